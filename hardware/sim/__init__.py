@@ -1,0 +1,1 @@
+"""The simulated AFM-in-SEM: sample surfaces, drift and stage errors, synthetic patch sets."""

@@ -1,0 +1,230 @@
+"""A robust start: Z offsets and XY shifts of all patches, before any nearest-neighbour search.
+
+In snake order, vertically adjacent patches were scanned up to two rows apart in time, so their Z
+offsets can differ by hundreds of nanometres, far more than the grid spacing: a 3-D
+nearest-neighbour search would pair the wrong points. So first, for every overlapping pair, a
+masked normalized cross-correlation of the (plane-levelled) down-sampled heights measures the XY
+shift — it is blind to Z offsets by construction — and the median height difference at that
+shift measures the Z offset. All patches are then solved at once from these pairwise differences
+(:mod:`merge.network`), with robust weights, and a second pass re-measures the pairs the first
+solution disagreed with in a narrow window around the shift it predicts.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from merge.downsample import GridSample, grid_downsample
+from merge.ncc import CorrelationPeak, best_shift
+from merge.network import solve_pair_differences
+from merge.noise import estimate_noise
+from merge.patchset import Patch
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.intp]
+
+#: NCC below this says nothing reliable about XY.
+MIN_SCORE = 0.3
+#: Pairs overlapping nominally by fewer cells than this along either axis are not correlated.
+MIN_OVERLAP_CELLS = 3
+#: A correlation peak must keep at least this fraction of the nominal overlap.
+MIN_OVERLAP_FRACTION = 0.4
+#: A patch whose levelled heights vary less than this many noise sigmas carries no XY texture.
+MIN_TEXTURE = 2.0
+
+
+@dataclass(frozen=True)
+class CoarseStart:
+    """Initial translations (the rotations start at identity).
+
+    translation : (n, 3) metres, ``t`` of ``q = p + t`` per patch.
+    xy_measured : (n,) bool, whether any pair measured the patch's XY.
+    pair_score : (k,) NCC at the accepted peak per pair (NaN when not measured).
+    """
+
+    translation: FloatArray
+    xy_measured: NDArray[np.bool_]
+    pair_score: FloatArray
+
+
+def _remove_common_plane(grids: Sequence[GridSample]) -> list[FloatArray]:
+    """Heights minus one plane shared by all patches, fitted with a free offset per patch.
+
+    A sample tilt is common to every patch, while the Z staircase is not; levelling each patch on
+    its own would tilt patches differently around a large step and spoil the correlation.
+    """
+    sxx = sxy = syy = sxz = syz = 0.0
+    for g in grids:
+        yy, xx = np.meshgrid(g.y, g.x, indexing="ij")
+        ok = np.isfinite(g.heights)
+        if ok.sum() < 3:
+            continue
+        x, y, z = xx[ok] - xx[ok].mean(), yy[ok] - yy[ok].mean(), g.heights[ok] - g.heights[ok].mean()
+        sxx += float(x @ x)
+        sxy += float(x @ y)
+        syy += float(y @ y)
+        sxz += float(x @ z)
+        syz += float(y @ z)
+    det = sxx * syy - sxy**2
+    a, b = ((syy * sxz - sxy * syz) / det, (sxx * syz - sxy * sxz) / det) if det > 0 else (0, 0)
+    out = []
+    for g in grids:
+        yy, xx = np.meshgrid(g.y, g.x, indexing="ij")
+        out.append(g.heights - a * xx - b * yy)
+    return out
+
+
+def _information(a: FloatArray, b: FloatArray, shift: tuple[int, int], sigma: float) -> FloatArray:
+    """XY information (per cell², 2 x 2, order x, y) of a shift: structure tensor of the overlap."""
+    dy, dx = shift
+    ha, wa = a.shape
+    hb, wb = b.shape
+    y0, y1 = max(0, -dy), min(ha, hb - dy)
+    x0, x1 = max(0, -dx), min(wa, wb - dx)
+    if y1 - y0 < 2 or x1 - x0 < 2:
+        return np.zeros((2, 2))
+    gy, gx = np.gradient(a[y0:y1, x0:x1])
+    ok = np.isfinite(gx) & np.isfinite(gy) & np.isfinite(b[y0 + dy : y1 + dy, x0 + dx : x1 + dx])
+    gx, gy = gx[ok], gy[ok]
+    tensor = np.array([[gx @ gx, gx @ gy], [gx @ gy, gy @ gy]])
+    out: FloatArray = tensor / (2.0 * sigma**2)
+    return out
+
+
+def _z_difference(a: FloatArray, b: FloatArray, shift: tuple[int, int]) -> tuple[float, int]:
+    """Median of ``b[y + dy, x + dx] - a[y, x]`` over the overlap, and the overlap size."""
+    dy, dx = shift
+    ha, wa = a.shape
+    hb, wb = b.shape
+    y0, y1 = max(0, -dy), min(ha, hb - dy)
+    x0, x1 = max(0, -dx), min(wa, wb - dx)
+    if y1 <= y0 or x1 <= x0:
+        return float("nan"), 0
+    diff = b[y0 + dy : y1 + dy, x0 + dx : x1 + dx] - a[y0:y1, x0:x1]
+    diff = diff[np.isfinite(diff)]
+    if diff.size == 0:
+        return float("nan"), 0
+    return float(np.median(diff)), int(diff.size)
+
+
+def coarse_start(
+    patches: Sequence[Patch],
+    pairs: IntArray,
+    *,
+    cell: float,
+    max_shift: float,
+    estimate_xy: bool = True,
+) -> CoarseStart:
+    """Estimate every patch's XY and Z offset from its overlaps, simultaneously.
+
+    Parameters
+    ----------
+    patches : sequence of Patch
+    pairs : (k, 2) int array
+        Patch pairs that can overlap.
+    cell : float, keyword-only
+        Side of the common lattice the patches are averaged onto, metres.
+    max_shift : float, keyword-only
+        Largest XY error of a pair relative to nominal that is searched, metres.
+    estimate_xy : bool, keyword-only
+        False measures Z offsets only, at the nominal overlaps (plain levelling).
+    """
+    n = len(patches)
+    pairs = np.asarray(pairs, dtype=np.intp).reshape(-1, 2)
+    anchor = (
+        min(p.origin[0] - 0.5 * p.pixel_size[0] for p in patches),
+        min(p.origin[1] - 0.5 * p.pixel_size[1] for p in patches),
+    )
+    grids = [
+        grid_downsample(p.heights, p.pixel_size, cell=cell, origin=p.origin, anchor=anchor)
+        for p in patches
+    ]
+    # lattice index (row, column) of every grid's cell (0, 0)
+    offs = [
+        (round((g.y[0] - anchor[1]) / cell - 0.5), round((g.x[0] - anchor[0]) / cell - 0.5))
+        for g in grids
+    ]
+    levelled = _remove_common_plane(grids)
+    noise = np.array([estimate_noise(g.heights) for g in grids])
+    sigma = np.where(np.isfinite(noise) & (noise > 0), noise, 1e-12)
+    textured = np.array(
+        [
+            np.nanstd(lv - np.nanmean(lv)) > MIN_TEXTURE * s
+            for lv, s in zip(levelled, sigma, strict=True)
+        ]
+    )
+    k = len(pairs)
+    radius = max_shift / cell
+    xy_m, xy_w = np.zeros((k, 2)), np.zeros((k, 2, 2))
+    score = np.full(k, np.nan)
+    nominal_overlap = np.zeros(k)
+    for i, (a, b) in enumerate(pairs):
+        ha, wa = grids[a].heights.shape
+        hb, wb = grids[b].heights.shape
+        oy = min(offs[a][0] + ha, offs[b][0] + hb) - max(offs[a][0], offs[b][0])
+        ox = min(offs[a][1] + wa, offs[b][1] + wb) - max(offs[a][1], offs[b][1])
+        nominal_overlap[i] = max(oy, 0) * max(ox, 0) if min(ox, oy) >= MIN_OVERLAP_CELLS else 0
+
+    def expected(i: int) -> tuple[int, int]:
+        a, b = pairs[i]
+        return offs[a][0] - offs[b][0], offs[a][1] - offs[b][1]
+
+    def measure(i: int, centre: tuple[float, float], rad: float) -> None:
+        a, b = pairs[i]
+        xy_w[i] = 0.0
+        if nominal_overlap[i] == 0 or not (textured[a] and textured[b]):
+            return
+        peak = best_shift(
+            levelled[a],
+            levelled[b],
+            expected=centre,
+            radius=(rad, rad),
+            min_overlap=max(16, int(MIN_OVERLAP_FRACTION * nominal_overlap[i])),
+        )
+        if peak is None or peak.at_border or peak.score < MIN_SCORE:
+            return
+        e = expected(i)
+        xy_m[i] = [(peak.shift[1] - e[1]) * cell, (peak.shift[0] - e[0]) * cell]
+        score[i] = peak.score
+        s_pair = float(np.hypot(sigma[a], sigma[b]) / np.sqrt(2.0))
+        xy_w[i] = _information(levelled[a], levelled[b], peak.integer_shift, s_pair) / cell**2
+
+    translation = np.zeros((n, 3))
+    if estimate_xy and k:
+        for i in range(k):
+            e = expected(i)
+            measure(i, (float(e[0]), float(e[1])), radius)
+        sol = solve_pair_differences(n, pairs, xy_m, xy_w)
+        # second pass: re-measure doubtful pairs near the shift the network predicts
+        unmeasured = np.trace(xy_w, axis1=1, axis2=2) == 0
+        redo = np.flatnonzero(unmeasured | (sol.robust < 0.2))
+        if len(redo):
+            for i in redo:
+                a, b = pairs[i]
+                pred = sol.x[a] - sol.x[b]
+                e = expected(i)
+                measure(i, (e[0] + pred[1] / cell, e[1] + pred[0] / cell), 2.0)
+            sol = solve_pair_differences(n, pairs, xy_m, xy_w)
+        translation[:, :2] = sol.x
+    # Z offsets at the XY the network settled on (nominal overlap when XY is not estimated)
+    z_m, z_w = np.zeros(k), np.zeros(k)
+    for i in range(k):
+        a, b = pairs[i]
+        e = expected(i)
+        pred = translation[a, :2] - translation[b, :2]
+        shift = (int(round(e[0] + pred[1] / cell)), int(round(e[1] + pred[0] / cell)))
+        dz, cnt = _z_difference(grids[a].heights, grids[b].heights, shift)
+        if nominal_overlap[i] > 0 and cnt >= 16 and np.isfinite(dz):
+            # variance of a median of differences of two noisy maps: (π/2) · 2σ² / count
+            var = np.pi * (sigma[a] ** 2 + sigma[b] ** 2) / 2.0 / cnt
+            z_m[i], z_w[i] = dz, 1.0 / var
+    zsol = solve_pair_differences(n, pairs, z_m, z_w)
+    translation[:, 2] = zsol.x[:, 0]
+    measured = np.zeros(n, dtype=bool)
+    for i in np.flatnonzero(np.trace(xy_w, axis1=1, axis2=2) > 0):
+        measured[pairs[i]] = True
+    return CoarseStart(translation=translation, xy_measured=measured, pair_score=score)

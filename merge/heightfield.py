@@ -1,0 +1,60 @@
+"""Height maps as continuous surfaces: NaN-aware smoothing, slopes and bilinear look-up."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy import ndimage
+
+FloatArray = NDArray[np.float64]
+
+
+def smooth_nan(heights: FloatArray, sigma: float) -> FloatArray:
+    """Gaussian smoothing (``sigma`` in pixels) that ignores NaN and keeps them NaN."""
+    h = np.asarray(heights, dtype=np.float64)
+    if sigma <= 0:
+        return h.copy()
+    ok = np.isfinite(h)
+    num = ndimage.gaussian_filter(np.where(ok, h, 0.0), sigma, mode="nearest")
+    den = ndimage.gaussian_filter(ok.astype(np.float64), sigma, mode="nearest")
+    with np.errstate(invalid="ignore", divide="ignore"):
+        out: FloatArray = np.where(ok & (den > 1e-6), num / den, np.nan)
+    return out
+
+
+def slopes(heights: FloatArray, pixel_size: tuple[float, float]) -> tuple[FloatArray, FloatArray]:
+    """``(dh/dx, dh/dy)`` by central differences (one-sided at edges); NaN next to holes."""
+    h = np.asarray(heights, dtype=np.float64)
+    gy, gx = np.gradient(h, pixel_size[1], pixel_size[0])
+    return gx, gy
+
+
+def bilinear(
+    arrays: Sequence[FloatArray], v: FloatArray, u: FloatArray
+) -> tuple[list[FloatArray], NDArray[np.bool_]]:
+    """Bilinear values of same-shape arrays at fractional (row ``v``, column ``u``) indices.
+
+    Returns the interpolated values and a mask of points inside the grid whose four neighbours
+    are all finite in every array. Values outside the mask are meaningless.
+    """
+    ny, nx = arrays[0].shape
+    inside = (u >= 0) & (u <= nx - 1) & (v >= 0) & (v <= ny - 1)
+    i0 = np.clip(np.floor(v).astype(np.intp), 0, ny - 2)
+    j0 = np.clip(np.floor(u).astype(np.intp), 0, nx - 2)
+    fv = np.clip(v - i0, 0.0, 1.0)
+    fu = np.clip(u - j0, 0.0, 1.0)
+    w00 = (1 - fv) * (1 - fu)
+    w01 = (1 - fv) * fu
+    w10 = fv * (1 - fu)
+    w11 = fv * fu
+    flat = i0 * nx + j0
+    out = []
+    valid = inside
+    for a in arrays:
+        f = a.ravel()
+        val = w00 * f[flat] + w01 * f[flat + 1] + w10 * f[flat + nx] + w11 * f[flat + nx + 1]
+        valid = valid & np.isfinite(val)
+        out.append(val)
+    return out, valid

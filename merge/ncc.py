@@ -1,0 +1,141 @@
+"""Masked normalized cross-correlation of two images for all integer shifts (Padfield 2012).
+
+Each shift is scored only on the pixels both images hold there, with means and variances taken
+over that overlap: so a Z offset between the images, NaN holes and partial overlap do not bias
+the score.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy import fft
+
+FloatArray = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class CorrelationPeak:
+    """Best shift of ``b`` against ``a``: ``b[y + dy, x + dx] ≈ a[y, x]`` (up to offset and gain).
+
+    shift : (dy, dx) sub-pixel shift, pixels.
+    integer_shift : (dy, dx) integer shift at the peak.
+    score : NCC at the peak, in [-1, 1].
+    overlap : number of pixels both images hold at the peak.
+    at_border : the peak lies on the border of the search window (a weak result).
+    """
+
+    shift: tuple[float, float]
+    integer_shift: tuple[int, int]
+    score: float
+    overlap: int
+    at_border: bool
+
+
+def masked_ncc(
+    a: FloatArray, b: FloatArray
+) -> tuple[FloatArray, FloatArray, tuple[int, int]]:
+    """NCC and overlap count for every shift.
+
+    Parameters
+    ----------
+    a, b : 2-D arrays
+        Images; NaN marks missing pixels.
+
+    Returns
+    -------
+    ncc : (ha + hb - 1, wa + wb - 1) array
+        ``ncc[k, l]`` scores the shift ``(k - (ha - 1), l - (wa - 1))``; NaN where undefined.
+    count : same shape
+        Number of overlapping valid pixels.
+    zero : (ha - 1, wa - 1)
+        Index of the zero shift.
+    """
+    a = np.asarray(a, dtype=np.float64)
+    b = np.asarray(b, dtype=np.float64)
+    if a.ndim != 2 or b.ndim != 2:
+        raise ValueError("masked_ncc needs two 2-D images")
+    ma, mb = np.isfinite(a), np.isfinite(b)
+    # standardise so that sums of squares do not cancel catastrophically
+    a0 = np.where(ma, a - np.nanmean(a), 0.0)
+    b0 = np.where(mb, b - np.nanmean(b), 0.0)
+    scale = max(float(np.sqrt(np.mean(a0**2))), float(np.sqrt(np.mean(b0**2))), 1e-300)
+    a0, b0 = a0 / scale, b0 / scale
+    ha, wa = a.shape
+    hb, wb = b.shape
+    shape = (fft.next_fast_len(ha + hb - 1, real=True), fft.next_fast_len(wa + wb - 1, real=True))
+
+    def F(x: FloatArray) -> NDArray[np.complex128]:
+        out: NDArray[np.complex128] = fft.rfft2(x, shape)
+        return out
+
+    fa, fa2, fma = F(a0), F(a0 * a0), F(ma.astype(np.float64))
+    fb, fb2, fmb = F(b0), F(b0 * b0), F(mb.astype(np.float64))
+
+    def corr(x: NDArray[np.complex128], y: NDArray[np.complex128]) -> FloatArray:
+        full: FloatArray = fft.irfft2(np.conj(x) * y, shape)
+        # reorder so index (ha - 1, wa - 1) is the zero shift, shifts from -(ha-1) to hb-1
+        rows = np.r_[shape[0] - (ha - 1) : shape[0], 0:hb]
+        cols = np.r_[shape[1] - (wa - 1) : shape[1], 0:wb]
+        out: FloatArray = full[np.ix_(rows, cols)]
+        return out
+
+    n = np.rint(corr(fma, fmb))
+    sa, sb = corr(fa, fmb), corr(fma, fb)
+    saa, sbb, sab = corr(fa2, fmb), corr(fma, fb2), corr(fa, fb)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        num = sab - sa * sb / n
+        va = saa - sa**2 / n
+        vb = sbb - sb**2 / n
+        den = np.sqrt(np.clip(va, 0, None) * np.clip(vb, 0, None))
+        ncc = np.where((n > 0) & (den > 1e-12 * n), num / den, np.nan)
+    return np.clip(ncc, -1.0, 1.0), n, (ha - 1, wa - 1)
+
+
+def best_shift(
+    a: FloatArray,
+    b: FloatArray,
+    *,
+    expected: tuple[float, float] = (0.0, 0.0),
+    radius: tuple[float, float] | None = None,
+    min_overlap: int = 16,
+) -> CorrelationPeak | None:
+    """The NCC peak within ``radius`` (pixels per axis) of the ``expected`` shift ``(dy, dx)``.
+
+    Only shifts where at least ``min_overlap`` pixels overlap count. The sub-pixel shift comes
+    from a parabola through the peak and its neighbours along each axis. Returns None when no
+    shift qualifies.
+    """
+    ncc, count, zero = masked_ncc(a, b)
+    ky = np.arange(ncc.shape[0]) - zero[0]
+    kx = np.arange(ncc.shape[1]) - zero[1]
+    ok = np.isfinite(ncc) & (count >= min_overlap)
+    if radius is not None:
+        ok &= (np.abs(ky - expected[0]) <= radius[0])[:, None]
+        ok &= (np.abs(kx - expected[1]) <= radius[1])[None, :]
+    if not ok.any():
+        return None
+    score = np.where(ok, ncc, -np.inf)
+    iy, ix = np.unravel_index(int(np.argmax(score)), score.shape)
+    sub = [0.0, 0.0]
+    border = False
+    for axis, (i, n_axis) in enumerate(((iy, ncc.shape[0]), (ix, ncc.shape[1]))):
+        lo = (i - 1, ix) if axis == 0 else (iy, i - 1)
+        hi = (i + 1, ix) if axis == 0 else (iy, i + 1)
+        if i - 1 < 0 or i + 1 >= n_axis or not (ok[lo] and ok[hi]):
+            border = True
+            continue
+        f0, fm, fp = score[iy, ix], score[lo], score[hi]
+        curv = fm - 2 * f0 + fp
+        if curv < 0:
+            sub[axis] = float(np.clip(0.5 * (fm - fp) / curv, -0.5, 0.5))
+    dy, dx = int(ky[iy]), int(kx[ix])
+    return CorrelationPeak(
+        shift=(dy + sub[0], dx + sub[1]),
+        integer_shift=(dy, dx),
+        score=float(ncc[iy, ix]),
+        overlap=int(count[iy, ix]),
+        at_border=border,
+    )
