@@ -31,7 +31,7 @@ from scipy.sparse.linalg import spsolve
 
 from merge.errors import MergeCancelled
 from merge.heightfield import slopes, smooth_nan
-from merge.kabsch import weighted_rigid_transform
+from merge.gauge import anchor_to_nominal, nominal_points
 from merge.noise import estimate_noise
 from merge.patchset import Patch
 from merge.transforms import orthonormalize, rotation_from_vector
@@ -223,8 +223,8 @@ def refine(
     converged = False
     stats: _System | None = None
     # the nominal placement of every patch, for the gauge: local points + centre
-    base = _Bank(patches, scale, 0.0, 4)
-    nominal = base.points + base.centre[np.repeat(np.arange(n), np.diff(base.point_start))]
+    nominal, owner = nominal_points(patches)
+    nominal = nominal / scale
     for li, level in enumerate(levels):
         bank = _Bank(patches, scale, level.smooth, level.stride)
         margin = 3.0 * float(max(bank.dx.max(), bank.dy.max()))
@@ -249,7 +249,7 @@ def refine(
             )
             moved += motion
             t = s - np.einsum("cij,cj->ci", R, bank.centre)
-            R, t = _fix_gauge(base, nominal, R, t)
+            R, t = anchor_to_nominal(nominal, owner, R, t)
             s = np.einsum("cij,cj->ci", R, bank.centre) + t
             iteration += 1
             history.append(stats.rms * scale)
@@ -417,14 +417,21 @@ def _solve(system: _System) -> FloatArray:
     return out
 
 
-def _fix_gauge(
-    base: _Bank, nominal: FloatArray, R: FloatArray, t: FloatArray
-) -> tuple[FloatArray, FloatArray]:
-    """Apply the one rigid motion that brings all patch points closest to their nominal place."""
-    owner = np.repeat(np.arange(len(R)), np.diff(base.point_start))
-    current = np.einsum("mij,mj->mi", R[owner], nominal) + t[owner]
-    G, gt = weighted_rigid_transform(current, nominal)
-    return np.einsum("ij,cjk->cik", G, R), t @ G.T + gt
+def assess(
+    patches: Sequence[Patch], pairs: IntArray, R: FloatArray, t: FloatArray
+) -> list[PatchFit]:
+    """Per-patch quality of given transforms on the full-resolution heights (no update).
+
+    Used for every method, so their reports compare like with like.
+    """
+    scale = float(np.median([min(p.pixel_size) for p in patches]))
+    noise = float(np.nanmedian([estimate_noise(p.heights) for p in patches])) / scale
+    noise = noise if np.isfinite(noise) and noise > 0 else 1e-3
+    bank = _Bank(patches, scale, 0.0, 1)
+    s = np.einsum("cij,cj->ci", R, bank.centre) + np.asarray(t) / scale
+    margin = 3.0 * float(max(bank.dx.max(), bank.dy.max()))
+    cand = bank.candidates(np.asarray(pairs, dtype=np.intp).reshape(-1, 2), R, s, margin)
+    return _fits(_normal_system(bank, cand, R, s, noise), len(patches), scale)
 
 
 def _fits(stats: _System | None, n: int, scale: float) -> list[PatchFit]:

@@ -1,0 +1,1 @@
+"""The application layer: CLI, acquisition server, storage. Ties `merge` and `hardware` together."""

@@ -1,0 +1,200 @@
+"""``merge.run``: a patch set in, a merged mosaic with per-patch transforms and quality out."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from merge.coarse import coarse_start
+from merge.config import MergeConfig
+from merge.gauge import anchor_to_nominal, nominal_points
+from merge.overlap import overlapping_pairs
+from merge.paper import paper_gpa_icp
+from merge.patchset import PatchSet
+from merge.refine import DEFAULT_LEVELS, Level, assess, refine
+from merge.render import Mosaic, render_mosaic
+
+FloatArray = NDArray[np.float64]
+
+#: Called after every iteration with (iteration, residual RMS in metres).
+Progress = Callable[[int, float], None]
+#: Polled between iterations; returning True stops the merge with MergeCancelled.
+Cancel = Callable[[], bool]
+
+#: An XY standard deviation above this fraction of the pixel pitch means "XY not constrained".
+XY_CONSTRAINED_FRACTION = 0.25
+
+
+@dataclass(frozen=True)
+class PatchReport:
+    """What the merge did to one patch and how well it fits.
+
+    rotation, translation : ``T_mosaic_patch``, ``q = R p + t`` (metres).
+    overlaps : whether any other patch can overlap it (otherwise it stays nominal).
+    correspondences : overlap points that entered the fit.
+    residual_rms : RMS normal distance of those points to the other patches, metres.
+    xy_constrained : whether its overlaps pin down XY (a flat overlap constrains only Z).
+    xy_sigma, z_sigma : standard deviations of its translation from the fit, metres.
+    """
+
+    id: str
+    rotation: FloatArray
+    translation: FloatArray
+    overlaps: bool
+    correspondences: int
+    residual_rms: float
+    xy_constrained: bool
+    xy_sigma: float
+    z_sigma: float
+
+
+@dataclass(frozen=True)
+class MergeResult:
+    """The mosaic, every patch's transform and quality, and how the solver went."""
+
+    mosaic: Mosaic
+    patches: list[PatchReport]
+    method: str
+    config: MergeConfig
+    iterations: int
+    converged: bool
+    history: list[float]
+    warnings: list[str] = field(default_factory=list)
+    timings: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def R(self) -> FloatArray:
+        """``(n, 3, 3)`` rotations in patch order."""
+        return np.array([p.rotation for p in self.patches])
+
+    @property
+    def t(self) -> FloatArray:
+        """``(n, 3)`` translations in patch order, metres."""
+        return np.array([p.translation for p in self.patches])
+
+
+def default_cell(patch_set: PatchSet) -> float:
+    """The raster spacing: the larger pixel pitch over all patches (paper, III-C)."""
+    return max(max(p.pixel_size) for p in patch_set)
+
+
+def default_max_shift(patch_set: PatchSet) -> float:
+    """Half the smaller side of the smallest patch."""
+    return 0.5 * min(min(p.extent) for p in patch_set)
+
+
+def run(
+    patch_set: PatchSet,
+    config: MergeConfig | None = None,
+    *,
+    progress: Progress | None = None,
+    cancel: Cancel | None = None,
+) -> MergeResult:
+    """Merge all patches of ``patch_set`` simultaneously into one mosaic.
+
+    Parameters
+    ----------
+    patch_set : PatchSet
+        Validated patches (see :func:`merge.manifest.read_patch_set`).
+    config : MergeConfig, optional
+        Method and options; defaults to ``MergeConfig()``.
+    progress : callable(iteration, residual_m), keyword-only
+        Called after every solver iteration.
+    cancel : callable() -> bool, keyword-only
+        Polled every iteration; true stops the merge with :class:`merge.MergeCancelled`.
+    """
+    cfg = config or MergeConfig()
+    patches = patch_set.patches
+    n = len(patches)
+    clock = time.perf_counter()
+    timings: dict[str, float] = {}
+    cell = cfg.cell or default_cell(patch_set)
+    max_shift = cfg.max_shift or default_max_shift(patch_set)
+    boxes = np.array([p.footprint for p in patches])
+    pairs = overlapping_pairs(boxes, margin=max_shift)
+    linked = np.zeros(n, dtype=bool)
+    linked[pairs.ravel()] = True
+    warnings = [
+        f"patch {patches[c].id!r} overlaps no other patch: it stays at its nominal place"
+        for c in np.flatnonzero(~linked)
+    ]
+    R = np.repeat(np.eye(3)[None], n, axis=0)
+    t = np.zeros((n, 3))
+    if cfg.method != "nominal" and cfg.init == "auto" and len(pairs):
+        start = coarse_start(
+            patches, pairs, cell=cell, max_shift=max_shift, estimate_xy=cfg.method != "zlevel"
+        )
+        t = start.translation.copy()
+    timings["start"] = time.perf_counter() - clock
+    iterations, converged, history = 0, True, []
+    if cfg.method in ("default", "paper") and len(pairs):
+        # pairs at the estimated places, with a margin for what the refinement may still move
+        moved = boxes + np.column_stack([t[:, :2], t[:, :2]])
+        near = overlapping_pairs(moved, margin=4.0 * cell)
+        if cfg.method == "default":
+            levels: tuple[Level, ...] = DEFAULT_LEVELS
+            if cfg.max_iter is not None:
+                levels = tuple(
+                    Level(lv.smooth, lv.stride, max(1, min(lv.max_iter, cfg.max_iter)), lv.tol)
+                    for lv in levels
+                )
+            fit = refine(patches, near, R, t, levels=levels, progress=progress, cancel=cancel)
+            R, t = fit.R, fit.t
+            iterations, converged, history = fit.iterations, fit.converged, fit.history
+        else:
+            paper = paper_gpa_icp(
+                patches,
+                near,
+                R,
+                t,
+                cell=cell,
+                max_iter=cfg.max_iter or 200,
+                progress=progress,
+                cancel=cancel,
+            )
+            nominal, owner = nominal_points(patches)
+            R, t = anchor_to_nominal(nominal, owner, paper.R, paper.t)
+            iterations, converged, history = paper.iterations, paper.converged, paper.history
+    timings["solve"] = time.perf_counter() - clock - timings["start"]
+    moved = boxes + np.column_stack([t[:, :2], t[:, :2]])
+    final_pairs = overlapping_pairs(moved, margin=cell)
+    fits = assess(patches, final_pairs, R, t)
+    reports = []
+    for c, p in enumerate(patches):
+        f = fits[c]
+        xy_ok = f.correspondences > 0 and f.xy_sigma < XY_CONSTRAINED_FRACTION * min(p.pixel_size)
+        reports.append(
+            PatchReport(
+                id=p.id,
+                rotation=R[c],
+                translation=t[c],
+                overlaps=bool(linked[c]),
+                correspondences=f.correspondences,
+                residual_rms=f.residual_rms,
+                xy_constrained=bool(xy_ok),
+                xy_sigma=f.xy_sigma,
+                z_sigma=f.z_sigma,
+            )
+        )
+        if linked[c] and not xy_ok and cfg.method in ("default", "paper"):
+            warnings.append(
+                f"patch {p.id!r}: its overlaps constrain Z but not XY (too flat); "
+                "its XY stays at the coarse estimate"
+            )
+    mosaic = render_mosaic(patches, R, t, pixel_size=cfg.pixel_size, feather=cfg.feather)
+    timings["render"] = time.perf_counter() - clock - timings["start"] - timings["solve"]
+    return MergeResult(
+        mosaic=mosaic,
+        patches=reports,
+        method=cfg.method,
+        config=cfg,
+        iterations=iterations,
+        converged=converged,
+        history=history,
+        warnings=warnings,
+        timings=timings,
+    )
