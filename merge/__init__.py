@@ -12,6 +12,7 @@ from merge.errors import MergeCancelled, PatchSetError
 from merge.manifest import read_patch_set, write_patch_set
 from merge.patchset import Patch, PatchSet
 from merge.render import Mosaic, render_mosaic
+from merge.transforms import PatchTransform
 from merge.result import StoredResult, read_result, write_result
 
 __all__ = [
@@ -24,6 +25,7 @@ __all__ = [
     "PatchReport",
     "PatchSet",
     "PatchSetError",
+    "PatchTransform",
     "read_patch_set",
     "StoredResult",
     "render_mosaic",

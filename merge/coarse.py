@@ -5,7 +5,7 @@ offsets can differ by hundreds of nanometres, far more than the grid spacing: a 
 nearest-neighbour search would pair the wrong points. So first, for every overlapping pair, a
 masked normalized cross-correlation of the (plane-levelled) down-sampled heights measures the XY
 shift — it is blind to Z offsets by construction — and the median height difference at that
-shift measures the Z offset. All patches are then solved at once from these pairwise differences
+shift measures the Z offset. Heights and slopes are correlated together (see ``_channels``). All patches are then solved at once from these pairwise differences
 (:mod:`merge.network`), with robust weights, and a second pass re-measures the pairs the first
 solution disagreed with in a narrow window around the shift it predicts.
 """
@@ -19,6 +19,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from merge.downsample import GridSample, grid_downsample
+from merge.heightfield import smooth_nan
 from merge.ncc import CorrelationPeak, best_shift
 from merge.network import solve_pair_differences
 from merge.noise import estimate_noise
@@ -29,6 +30,8 @@ IntArray = NDArray[np.intp]
 
 #: NCC below this says nothing reliable about XY.
 MIN_SCORE = 0.3
+#: Weights of the correlated channels: heights, x slope, y slope.
+CHANNEL_WEIGHTS = (0.5, 0.25, 0.25)
 #: Pairs overlapping nominally by fewer cells than this along either axis are not correlated.
 MIN_OVERLAP_CELLS = 3
 #: A correlation peak must keep at least this fraction of the nominal overlap.
@@ -78,6 +81,17 @@ def _remove_common_plane(grids: Sequence[GridSample]) -> list[FloatArray]:
     return out
 
 
+def _channels(levelled: FloatArray) -> FloatArray:
+    """What is correlated: the heights and their slopes (after one cell of smoothing).
+
+    Heights alone let a smooth background ramp correlate with itself at any shift (the NCC
+    removes offsets, not ramps); slopes turn a ramp into a constant, which the NCC removes, and
+    keep the wide, smooth edges of a grating that a high-pass filter would erase.
+    """
+    gy, gx = np.gradient(smooth_nan(levelled, 1.0))
+    return np.stack([levelled, gx, gy])
+
+
 def _information(a: FloatArray, b: FloatArray, shift: tuple[int, int], sigma: float) -> FloatArray:
     """XY information (per cell², 2 x 2, order x, y) of a shift: structure tensor of the overlap."""
     dy, dx = shift
@@ -91,7 +105,15 @@ def _information(a: FloatArray, b: FloatArray, shift: tuple[int, int], sigma: fl
     ok = np.isfinite(gx) & np.isfinite(gy) & np.isfinite(b[y0 + dy : y1 + dy, x0 + dx : x1 + dx])
     gx, gy = gx[ok], gy[ok]
     tensor = np.array([[gx @ gx, gx @ gy], [gx @ gy, gy @ gy]])
-    out: FloatArray = tensor / (2.0 * sigma**2)
+    # Noise is not texture: a central difference of white noise has variance σ²/2, which would
+    # otherwise claim precision along a straight edge (the aperture problem) or on a flat terrace.
+    return signal_information(tensor, gx.size * sigma**2 / 2.0) / (2.0 * sigma**2)
+
+
+def signal_information(tensor: FloatArray, noise_part: float) -> FloatArray:
+    """``tensor - noise_part * I``, projected onto the positive semi-definite matrices."""
+    vals, vecs = np.linalg.eigh(tensor - noise_part * np.eye(len(tensor)))
+    out: FloatArray = (vecs * np.clip(vals, 0.0, None)) @ vecs.T
     return out
 
 
@@ -149,6 +171,7 @@ def coarse_start(
         for g in grids
     ]
     levelled = _remove_common_plane(grids)
+    channels = [_channels(lv) for lv in levelled]
     noise = np.array([estimate_noise(g.heights) for g in grids])
     sigma = np.where(np.isfinite(noise) & (noise > 0), noise, 1e-12)
     textured = np.array(
@@ -179,8 +202,9 @@ def coarse_start(
         if nominal_overlap[i] == 0 or not (textured[a] and textured[b]):
             return
         peak = best_shift(
-            levelled[a],
-            levelled[b],
+            channels[a],
+            channels[b],
+            weights=CHANNEL_WEIGHTS,
             expected=centre,
             radius=(rad, rad),
             min_overlap=max(16, int(MIN_OVERLAP_FRACTION * nominal_overlap[i])),

@@ -17,6 +17,7 @@ from merge.paper import paper_gpa_icp
 from merge.patchset import PatchSet
 from merge.refine import DEFAULT_LEVELS, Level, assess, refine
 from merge.render import Mosaic, render_mosaic
+from merge.transforms import PatchTransform
 
 FloatArray = NDArray[np.float64]
 
@@ -33,7 +34,9 @@ XY_CONSTRAINED_FRACTION = 0.25
 class PatchReport:
     """What the merge did to one patch and how well it fits.
 
-    rotation, translation : ``T_mosaic_patch``, ``q = R p + t`` (metres).
+    transform : ``T_mosaic_patch`` (rigid motion plus in-patch drift plane, metres).
+    rotation, translation : the rigid transform closest to ``transform`` over the patch's points,
+        for consumers that only understand ``q = R p + t``.
     overlaps : whether any other patch can overlap it (otherwise it stays nominal).
     correspondences : overlap points that entered the fit.
     residual_rms : RMS normal distance of those points to the other patches, metres.
@@ -42,6 +45,7 @@ class PatchReport:
     """
 
     id: str
+    transform: PatchTransform
     rotation: FloatArray
     translation: FloatArray
     overlaps: bool
@@ -67,14 +71,16 @@ class MergeResult:
     timings: dict[str, float] = field(default_factory=dict)
 
     @property
-    def R(self) -> FloatArray:
-        """``(n, 3, 3)`` rotations in patch order."""
-        return np.array([p.rotation for p in self.patches])
+    def transforms(self) -> list[PatchTransform]:
+        """``T_mosaic_patch`` in patch order."""
+        return [p.transform for p in self.patches]
 
-    @property
-    def t(self) -> FloatArray:
-        """``(n, 3)`` translations in patch order, metres."""
-        return np.array([p.translation for p in self.patches])
+
+def _moved_boxes(boxes: FloatArray, transforms: list[PatchTransform]) -> FloatArray:
+    """Nominal footprints shifted by each transform's XY translation (rotations are small)."""
+    shift = np.array([tr.t[:2] for tr in transforms])
+    out: FloatArray = boxes + np.column_stack([shift, shift])
+    return out
 
 
 def default_cell(patch_set: PatchSet) -> float:
@@ -122,19 +128,17 @@ def run(
         f"patch {patches[c].id!r} overlaps no other patch: it stays at its nominal place"
         for c in np.flatnonzero(~linked)
     ]
-    R = np.repeat(np.eye(3)[None], n, axis=0)
-    t = np.zeros((n, 3))
+    transforms = [PatchTransform() for _ in range(n)]
     if cfg.method != "nominal" and cfg.init == "auto" and len(pairs):
         start = coarse_start(
             patches, pairs, cell=cell, max_shift=max_shift, estimate_xy=cfg.method != "zlevel"
         )
-        t = start.translation.copy()
+        transforms = [PatchTransform(t=tc) for tc in start.translation]
     timings["start"] = time.perf_counter() - clock
     iterations, converged, history = 0, True, []
     if cfg.method in ("default", "paper") and len(pairs):
         # pairs at the estimated places, with a margin for what the refinement may still move
-        moved = boxes + np.column_stack([t[:, :2], t[:, :2]])
-        near = overlapping_pairs(moved, margin=4.0 * cell)
+        near = overlapping_pairs(_moved_boxes(boxes, transforms), margin=4.0 * cell)
         if cfg.method == "default":
             levels: tuple[Level, ...] = DEFAULT_LEVELS
             if cfg.max_iter is not None:
@@ -142,15 +146,17 @@ def run(
                     Level(lv.smooth, lv.stride, max(1, min(lv.max_iter, cfg.max_iter)), lv.tol)
                     for lv in levels
                 )
-            fit = refine(patches, near, R, t, levels=levels, progress=progress, cancel=cancel)
-            R, t = fit.R, fit.t
+            fit = refine(patches, near, transforms, levels=levels, progress=progress, cancel=cancel)
+            transforms = fit.transforms
             iterations, converged, history = fit.iterations, fit.converged, fit.history
         else:
+            R0 = np.array([tr.R for tr in transforms])
+            t0 = np.array([tr.t for tr in transforms])
             paper = paper_gpa_icp(
                 patches,
                 near,
-                R,
-                t,
+                R0,
+                t0,
                 cell=cell,
                 max_iter=cfg.max_iter or 200,
                 progress=progress,
@@ -158,20 +164,24 @@ def run(
             )
             nominal, owner = nominal_points(patches)
             R, t = anchor_to_nominal(nominal, owner, paper.R, paper.t)
+            transforms = [PatchTransform(R[c], t[c]) for c in range(n)]
             iterations, converged, history = paper.iterations, paper.converged, paper.history
     timings["solve"] = time.perf_counter() - clock - timings["start"]
-    moved = boxes + np.column_stack([t[:, :2], t[:, :2]])
-    final_pairs = overlapping_pairs(moved, margin=cell)
-    fits = assess(patches, final_pairs, R, t)
+    final_pairs = overlapping_pairs(_moved_boxes(boxes, transforms), margin=cell)
+    fits = assess(patches, final_pairs, transforms)
     reports = []
     for c, p in enumerate(patches):
         f = fits[c]
         xy_ok = f.correspondences > 0 and f.xy_sigma < XY_CONSTRAINED_FRACTION * min(p.pixel_size)
+        xx, yy = p.pixel_coordinates()
+        sample = np.column_stack([xx.ravel(), yy.ravel(), p.heights.ravel()])[::7]
+        R_rigid, t_rigid = transforms[c].rigid_approximation(sample[np.isfinite(sample[:, 2])])
         reports.append(
             PatchReport(
                 id=p.id,
-                rotation=R[c],
-                translation=t[c],
+                transform=transforms[c],
+                rotation=R_rigid,
+                translation=t_rigid,
                 overlaps=bool(linked[c]),
                 correspondences=f.correspondences,
                 residual_rms=f.residual_rms,
@@ -182,10 +192,10 @@ def run(
         )
         if linked[c] and not xy_ok and cfg.method in ("default", "paper"):
             warnings.append(
-                f"patch {p.id!r}: its overlaps constrain Z but not XY (too flat); "
-                "its XY stays at the coarse estimate"
+                f"patch {p.id!r}: its overlaps constrain Z but not XY (too flat or a 1-D "
+                "structure); its XY stays at the coarse estimate"
             )
-    mosaic = render_mosaic(patches, R, t, pixel_size=cfg.pixel_size, feather=cfg.feather)
+    mosaic = render_mosaic(patches, transforms, pixel_size=cfg.pixel_size, feather=cfg.feather)
     timings["render"] = time.perf_counter() - clock - timings["start"] - timings["solve"]
     return MergeResult(
         mosaic=mosaic,

@@ -7,6 +7,7 @@ the score.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -35,14 +36,17 @@ class CorrelationPeak:
 
 
 def masked_ncc(
-    a: FloatArray, b: FloatArray
+    a: FloatArray, b: FloatArray, *, weights: Sequence[float] | None = None
 ) -> tuple[FloatArray, FloatArray, tuple[int, int]]:
-    """NCC and overlap count for every shift.
+    """NCC and overlap count for every shift, averaged over channels.
 
     Parameters
     ----------
-    a, b : 2-D arrays
-        Images; NaN marks missing pixels.
+    a, b : (h, w) or (channels, h, w) arrays
+        Images (or stacks of channels of the same images, e.g. heights and slopes); NaN marks
+        missing pixels. A pixel counts where every channel of its image is finite.
+    weights : sequence of float, keyword-only
+        Weight of every channel in the average (default equal).
 
     Returns
     -------
@@ -55,60 +59,74 @@ def masked_ncc(
     """
     a = np.asarray(a, dtype=np.float64)
     b = np.asarray(b, dtype=np.float64)
-    if a.ndim != 2 or b.ndim != 2:
-        raise ValueError("masked_ncc needs two 2-D images")
-    ma, mb = np.isfinite(a), np.isfinite(b)
-    # standardise so that sums of squares do not cancel catastrophically
-    a0 = np.where(ma, a - np.nanmean(a), 0.0)
-    b0 = np.where(mb, b - np.nanmean(b), 0.0)
-    scale = max(float(np.sqrt(np.mean(a0**2))), float(np.sqrt(np.mean(b0**2))), 1e-300)
-    a0, b0 = a0 / scale, b0 / scale
-    ha, wa = a.shape
-    hb, wb = b.shape
+    if a.ndim == 2:
+        a = a[None]
+    if b.ndim == 2:
+        b = b[None]
+    if a.ndim != 3 or b.ndim != 3 or len(a) != len(b):
+        raise ValueError("masked_ncc needs two images (or stacks with the same channel count)")
+    w = np.ones(len(a)) if weights is None else np.asarray(weights, dtype=np.float64)
+    if w.shape != (len(a),) or (w < 0).any() or w.sum() <= 0:
+        raise ValueError("weights must be one non-negative number per channel")
+    w = w / w.sum()
+    ma, mb = np.isfinite(a).all(axis=0), np.isfinite(b).all(axis=0)
+    _, ha, wa = a.shape
+    _, hb, wb = b.shape
     shape = (fft.next_fast_len(ha + hb - 1, real=True), fft.next_fast_len(wa + wb - 1, real=True))
+    rows = np.r_[shape[0] - (ha - 1) : shape[0], 0:hb]
+    cols = np.r_[shape[1] - (wa - 1) : shape[1], 0:wb]
 
     def F(x: FloatArray) -> NDArray[np.complex128]:
         out: NDArray[np.complex128] = fft.rfft2(x, shape)
         return out
 
-    fa, fa2, fma = F(a0), F(a0 * a0), F(ma.astype(np.float64))
-    fb, fb2, fmb = F(b0), F(b0 * b0), F(mb.astype(np.float64))
-
     def corr(x: NDArray[np.complex128], y: NDArray[np.complex128]) -> FloatArray:
-        full: FloatArray = fft.irfft2(np.conj(x) * y, shape)
         # reorder so index (ha - 1, wa - 1) is the zero shift, shifts from -(ha-1) to hb-1
-        rows = np.r_[shape[0] - (ha - 1) : shape[0], 0:hb]
-        cols = np.r_[shape[1] - (wa - 1) : shape[1], 0:wb]
+        full: FloatArray = fft.irfft2(np.conj(x) * y, shape)
         out: FloatArray = full[np.ix_(rows, cols)]
         return out
 
+    fma, fmb = F(ma.astype(np.float64)), F(mb.astype(np.float64))
     n = np.rint(corr(fma, fmb))
-    sa, sb = corr(fa, fmb), corr(fma, fb)
-    saa, sbb, sab = corr(fa2, fmb), corr(fma, fb2), corr(fa, fb)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        num = sab - sa * sb / n
-        va = saa - sa**2 / n
-        vb = sbb - sb**2 / n
-        den = np.sqrt(np.clip(va, 0, None) * np.clip(vb, 0, None))
-        ncc = np.where((n > 0) & (den > 1e-12 * n), num / den, np.nan)
-    return np.clip(ncc, -1.0, 1.0), n, (ha - 1, wa - 1)
+    total = np.zeros(n.shape)
+    for ca, cb, wk in zip(a, b, w, strict=True):
+        if wk == 0:
+            continue
+        # standardise so that sums of squares do not cancel catastrophically
+        a0 = np.where(ma, ca - ca[ma].mean(), 0.0)
+        b0 = np.where(mb, cb - cb[mb].mean(), 0.0)
+        scale = max(float(np.sqrt(np.mean(a0**2))), float(np.sqrt(np.mean(b0**2))), 1e-300)
+        a0, b0 = a0 / scale, b0 / scale
+        fa, fb = F(a0), F(b0)
+        sa, sb = corr(fa, fmb), corr(fma, fb)
+        saa, sbb, sab = corr(F(a0 * a0), fmb), corr(fma, F(b0 * b0)), corr(fa, fb)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            num = sab - sa * sb / n
+            va = saa - sa**2 / n
+            vb = sbb - sb**2 / n
+            den = np.sqrt(np.clip(va, 0, None) * np.clip(vb, 0, None))
+            total += wk * np.where((n > 0) & (den > 1e-12 * n), num / den, np.nan)
+    return np.clip(total, -1.0, 1.0), n, (ha - 1, wa - 1)
 
 
 def best_shift(
     a: FloatArray,
     b: FloatArray,
     *,
+    weights: Sequence[float] | None = None,
     expected: tuple[float, float] = (0.0, 0.0),
     radius: tuple[float, float] | None = None,
     min_overlap: int = 16,
 ) -> CorrelationPeak | None:
     """The NCC peak within ``radius`` (pixels per axis) of the ``expected`` shift ``(dy, dx)``.
 
+    ``a`` and ``b`` are images or channel stacks as for :func:`masked_ncc`.
+
     Only shifts where at least ``min_overlap`` pixels overlap count. The sub-pixel shift comes
     from a parabola through the peak and its neighbours along each axis. Returns None when no
     shift qualifies.
     """
-    ncc, count, zero = masked_ncc(a, b)
+    ncc, count, zero = masked_ncc(a, b, weights=weights)
     ky = np.arange(ncc.shape[0]) - zero[0]
     kx = np.arange(ncc.shape[1]) - zero[1]
     ok = np.isfinite(ncc) & (count >= min_overlap)

@@ -4,7 +4,8 @@ Each patch is down-sampled on a grid of side ``cell`` (paper, III-C) and carries
 of every grid point. Every iteration then runs the six steps of section IV:
 
 1. nearest neighbour of every point in every other cloud that can overlap it (one kd-tree per
-   cloud, built once in its own frame; the queries are moved into it);
+   cloud, built once in its own frame; the queries are moved into it; points far from the other
+   cloud's outline are skipped and the search reaches 5 cells, which changes no useful MNN);
 2. mutual nearest neighbours (MNN);
 3. independent sets of MNN, discarding those with two points of one cloud;
 4. the mean cloud K (mean of each set) and weights ``1 - MAD(SI)`` per set;
@@ -50,6 +51,16 @@ class PaperResult:
     iterations: int
     converged: bool
     history: list[float]
+
+
+def _inside(points: FloatArray, lo: FloatArray, hi: FloatArray) -> IntArray:
+    """Indices of points whose XY lies in the box ``[lo, hi]``."""
+    ok = (
+        (points[:, 0] >= lo[0]) & (points[:, 0] <= hi[0])
+        & (points[:, 1] >= lo[1]) & (points[:, 1] <= hi[1])
+    )
+    out: IntArray = np.flatnonzero(ok)
+    return out
 
 
 def paper_gpa_icp(
@@ -103,20 +114,37 @@ def paper_gpa_icp(
     converged = False
     it = 0
     pairs = np.asarray(pairs, dtype=np.intp).reshape(-1, 2)
+    margin = 2.0 * cell
+    # The paper searches nearest neighbours without a bound; beyond a few cells (after the robust
+    # start) a nearest neighbour is never mutual and useful, and the bound makes the search fast.
+    reach = 5.0 * cell
     for it in range(1, max_iter + 1):
         if cancel is not None and cancel():
             raise MergeCancelled("merge cancelled")
         world = np.concatenate([local[c] @ R[c].T + s[c] for c in range(n)])
         edges = []
         # steps 1 and 2: nearest neighbours both ways, kept when mutual
+        lo = np.array([world[start[c] : start[c + 1], :2].min(axis=0) for c in range(n)])
+        hi = np.array([world[start[c] : start[c + 1], :2].max(axis=0) for c in range(n)])
         for a, b in pairs:
-            qa = (world[start[a] : start[a + 1]] - s[b]) @ R[b]  # a's points in b's frame
-            qb = (world[start[b] : start[b + 1]] - s[a]) @ R[a]
-            _, nn_ab = trees[b].query(qa)
-            _, nn_ba = trees[a].query(qb)
-            i, j = mutual_nearest_neighbours(nn_ab, nn_ba)
+            # only points near the other cloud's outline can be mutual nearest neighbours
+            wa, wb = world[start[a] : start[a + 1]], world[start[b] : start[b + 1]]
+            ia = _inside(wa, lo[b] - margin, hi[b] + margin)
+            ib = _inside(wb, lo[a] - margin, hi[a] + margin)
+            if len(ia) == 0 or len(ib) == 0:
+                continue
+            # queries moved into the other cloud's own frame; "no neighbour within reach" comes
+            # back as index len(cloud), mapped to -1 below
+            _, nn_ab = trees[b].query((wa[ia] - s[b]) @ R[b], distance_upper_bound=reach, workers=-1)
+            _, nn_ba = trees[a].query((wb[ib] - s[a]) @ R[a], distance_upper_bound=reach, workers=-1)
+            # map to window-local indices so the mutual test compares like with like
+            pos_b = np.full(len(wb) + 1, -1, dtype=np.intp)
+            pos_b[ib] = np.arange(len(ib))
+            pos_a = np.full(len(wa) + 1, -1, dtype=np.intp)
+            pos_a[ia] = np.arange(len(ia))
+            i, j = mutual_nearest_neighbours(pos_b[nn_ab], pos_a[nn_ba])
             if len(i):
-                edges.append(np.column_stack([i + start[a], j + start[b]]))
+                edges.append(np.column_stack([ia[i] + start[a], ib[j] + start[b]]))
         if not edges:
             break
         # step 3: independent sets with one point per cloud
@@ -130,9 +158,10 @@ def paper_gpa_icp(
         history.append(float(np.mean(resid)))
         # steps 5 and 6: a weighted rigid transform per cloud onto K, applied to all at once
         largest = 0.0
-        owner = cloud_of[sets.members]
+        by_cloud = np.argsort(cloud_of[sets.members], kind="stable")
+        bounds = np.searchsorted(cloud_of[sets.members][by_cloud], np.arange(n + 1))
         for c in range(n):
-            mine = owner == c
+            mine = by_cloud[bounds[c] : bounds[c + 1]]
             w = W[sets.set_of[mine]]
             if np.count_nonzero(w) < 3:
                 continue

@@ -7,16 +7,23 @@ point, so correspondences are sub-cell). All 6 rigid degrees of freedom of all p
 solved together, every Gauss-Newton step, from one sparse normal system: this is the Generalized
 Procrustes objective — the sum over every overlap point of its squared distances to the other
 patches is, up to a factor, its squared distance to their mean — never a chain of pairwise
-alignments. The rotations include the two tilts, which absorb a linear Z drift inside a patch.
+alignments.
+
+The six unknowns of a patch are its translation (3), its rotation about z and an in-patch drift
+term: a Z plane (dz/dx, dz/dy) that moves heights only. A linear Z drift during the scan is such
+a plane; modelling it as a tilt of a rigid body instead would couple heights to XY (a tilt of
+1 mrad shears the top of a 600 nm step 0.6 nm against its foot), and noise on steep edges would
+then leak into both.
 
 Coarse to fine: the first level works on heights smoothed by one pixel and every second point,
 which widens the basin of convergence; the second on the raw heights at every point. Residuals
 are re-weighted with a Cauchy function of their robust scale, so tip artefacts, dust or a changed
 surface do not pull the solution.
 
-Gauge: after every step, the one rigid motion that best brings the mosaic back onto the nominal
-placement (over all patch points) is applied to every patch, so the mosaic cannot drift away from
-the stage frame.
+Gauge: after every step the common motion of all patches (rotation about z, a Z plane and a
+translation — none changes any residual) is removed: the mean rotation and mean drift plane are
+zero, and the patch points move on average by zero from their nominal places (:mod:`merge.gauge`),
+so the mosaic cannot drift away from the stage frame.
 """
 
 from __future__ import annotations
@@ -30,11 +37,11 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.linalg import spsolve
 
 from merge.errors import MergeCancelled
+from merge.coarse import signal_information
 from merge.heightfield import slopes, smooth_nan
-from merge.gauge import anchor_to_nominal, nominal_points
 from merge.noise import estimate_noise
 from merge.patchset import Patch
-from merge.transforms import orthonormalize, rotation_from_vector
+from merge.transforms import PatchTransform, orthonormalize, rotation_from_vector
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
@@ -51,6 +58,9 @@ class Level:
     tol: float  # largest patch motion (pixels) that counts as converged
 
 
+STALL = 1e-4
+#: Expected in-patch Z drift (metres, centre to corner) of the drift-plane prior.
+DRIFT_PRIOR = 5e-9
 DEFAULT_LEVELS = (Level(smooth=1.0, stride=2, max_iter=10, tol=0.05), Level(0.0, 1, 30, 1e-3))
 
 
@@ -66,10 +76,9 @@ class PatchFit:
 
 @dataclass(frozen=True)
 class RefineResult:
-    """Transforms ``q = R p + t`` (nominal patch point to mosaic), iterations and quality."""
+    """``T_mosaic_patch`` per patch, iterations and quality."""
 
-    R: FloatArray
-    t: FloatArray
+    transforms: list[PatchTransform]
     iterations: int
     converged: bool
     history: list[float]
@@ -188,10 +197,10 @@ class _Bank:
 def refine(
     patches: Sequence[Patch],
     pairs: IntArray,
-    R0: FloatArray,
-    t0: FloatArray,
+    start: Sequence[PatchTransform],
     *,
     levels: Sequence[Level] = DEFAULT_LEVELS,
+    drift_prior: float = DRIFT_PRIOR,
     progress: Progress | None = None,
     cancel: Callable[[], bool] | None = None,
 ) -> RefineResult:
@@ -202,10 +211,14 @@ def refine(
     patches : sequence of Patch
     pairs : (k, 2) int array
         Patch pairs that may overlap.
-    R0, t0 : (n, 3, 3), (n, 3) arrays
-        Initial ``T_mosaic_patch`` (metres).
+    start : sequence of PatchTransform
+        Initial ``T_mosaic_patch`` per patch.
     levels : sequence of Level, keyword-only
         Coarse-to-fine schedule.
+    drift_prior : float, keyword-only
+        Expected size of the in-patch Z drift, metres from the patch centre to its corner (a
+        Gaussian prior on the drift plane). Overlaps pin down the differences of neighbouring
+        planes well but a mosaic-wide bend only weakly; the prior keeps that bend out.
     progress : callable(iteration, residual_rms_m), keyword-only
         Called after every iteration.
     cancel : callable() -> bool, keyword-only
@@ -214,23 +227,17 @@ def refine(
     n = len(patches)
     pairs = np.asarray(pairs, dtype=np.intp).reshape(-1, 2)
     scale = float(np.median([min(p.pixel_size) for p in patches]))
-    noise = float(np.nanmedian([estimate_noise(p.heights) for p in patches])) / scale
-    noise = noise if np.isfinite(noise) and noise > 0 else 1e-3
-    R = np.array(R0, dtype=np.float64, copy=True)
-    t = np.array(t0, dtype=np.float64, copy=True) / scale
+    noise = _noise(patches, scale)
     history: list[float] = []
     iteration = 0
     converged = False
     stats: _System | None = None
-    # the nominal placement of every patch, for the gauge: local points + centre
-    nominal, owner = nominal_points(patches)
-    nominal = nominal / scale
+    base = _Bank(patches, scale, 0.0, 1)
+    state = _State.from_transforms(start, base, scale)
     for li, level in enumerate(levels):
         bank = _Bank(patches, scale, level.smooth, level.stride)
         margin = 3.0 * float(max(bank.dx.max(), bank.dy.max()))
-        # state per patch: q = R_c p_local + s_c
-        s = np.einsum("cij,cj->ci", R, bank.centre) + t
-        cand = bank.candidates(pairs, R, s, margin)
+        cand = bank.candidates(pairs, state.R, state.s, margin)
         moved = 0.0
         level_converged = False
         previous = np.inf
@@ -238,36 +245,91 @@ def refine(
             if cancel is not None and cancel():
                 raise MergeCancelled("merge cancelled")
             if moved > 0.5 * margin:
-                cand, moved = bank.candidates(pairs, R, s, margin), 0.0
-            stats = _normal_system(bank, cand, R, s, noise)
-            delta = _solve(stats)
-            dw = delta[:, 3:] / bank.radius[:, None]
-            R = orthonormalize(np.einsum("cij,cjk->cik", rotation_from_vector(dw), R))
-            s = s + delta[:, :3]
+                cand, moved = bank.candidates(pairs, state.R, state.s, margin), 0.0
+            stats = _normal_system(bank, cand, state, noise)
+            delta = _solve(stats, state.slope * bank.radius[:, None], drift_prior / scale)
+            state.update(delta, bank.radius)
+            state.fix_gauge(bank.centre, bank.point_start)
             motion = float(
                 (np.abs(delta[:, :3]).max(axis=1) + np.abs(delta[:, 3:]).max(axis=1)).max(initial=0)
             )
             moved += motion
-            t = s - np.einsum("cij,cj->ci", R, bank.centre)
-            R, t = anchor_to_nominal(nominal, owner, R, t)
-            s = np.einsum("cij,cj->ci", R, bank.centre) + t
             iteration += 1
             history.append(stats.rms * scale)
             if progress is not None:
                 progress(iteration, stats.rms * scale)
             # converged when no patch moves, or when the cost no longer falls (the motion left
             # is then in directions the data do not constrain, e.g. XY over a flat overlap)
-            stalled = abs(previous - stats.rms) <= 1e-4 * stats.rms
+            stalled = abs(previous - stats.rms) <= STALL * stats.rms
             previous = stats.rms
             if motion < level.tol or stalled:
                 level_converged = True
                 break
         if li == len(levels) - 1:
             converged = level_converged
-    fits = _fits(stats, n, scale)
+    fits = _fits(stats, n, scale, noise)
     return RefineResult(
-        R=R, t=t * scale, iterations=iteration, converged=converged, history=history, fits=fits
+        transforms=state.to_transforms(base, scale),
+        iterations=iteration,
+        converged=converged,
+        history=history,
+        fits=fits,
     )
+
+
+def _noise(patches: Sequence[Patch], scale: float) -> float:
+    noise = float(np.nanmedian([estimate_noise(p.heights) for p in patches])) / scale
+    return noise if np.isfinite(noise) and noise > 0 else 1e-3
+
+
+class _State:
+    """Per patch, in pixel units: ``q = R p_local + s + e_z (slope · p_local_xy)``."""
+
+    def __init__(self, R: FloatArray, s: FloatArray, slope: FloatArray) -> None:
+        self.R, self.s, self.slope = R, s, slope
+
+    @classmethod
+    def from_transforms(cls, start: Sequence[PatchTransform], bank: _Bank, scale: float) -> _State:
+        n = len(start)
+        R = np.array([tr.R for tr in start])
+        slope = np.array([tr.slope for tr in start])
+        s = np.empty((n, 3))
+        for c, tr in enumerate(start):
+            centre = bank.centre[c] * scale
+            # the drift plane is re-centred on the patch centre (a change of its constant only)
+            s[c] = (R[c] @ centre + tr.t) / scale
+            s[c, 2] += float((centre[:2] - tr.centre) @ tr.slope) / scale
+        return cls(R, s, slope)
+
+    def to_transforms(self, bank: _Bank, scale: float) -> list[PatchTransform]:
+        out = []
+        for c in range(len(self.R)):
+            centre = bank.centre[c] * scale
+            t = self.s[c] * scale - self.R[c] @ centre
+            out.append(PatchTransform(self.R[c], t, self.slope[c], centre[:2]))
+        return out
+
+    def update(self, delta: FloatArray, radius: FloatArray) -> None:
+        spin = np.zeros((len(delta), 3))
+        spin[:, 2] = delta[:, 3] / radius
+        self.R = orthonormalize(np.einsum("cij,cjk->cik", rotation_from_vector(spin), self.R))
+        self.s = self.s + delta[:, :3]
+        self.slope = self.slope + delta[:, 4:] / radius[:, None]
+
+    def fix_gauge(self, centre: FloatArray, point_start: IntArray) -> None:
+        """Remove the common motion (module notes): mean spin, mean plane, mean displacement."""
+        weight = np.diff(point_start).astype(np.float64)
+        weight = weight / weight.sum()
+        pivot = weight @ self.s
+        spin = np.zeros(3)
+        spin[2] = -float(weight @ np.arctan2(self.R[:, 1, 0], self.R[:, 0, 0]))
+        G = rotation_from_vector(spin)
+        self.R = np.einsum("ij,cjk->cik", G, self.R)
+        self.s = (self.s - pivot) @ G.T + pivot
+        plane = weight @ self.slope
+        self.slope = self.slope - plane
+        self.s[:, 2] -= (self.s[:, :2] - pivot[:2]) @ plane
+        self.s = self.s - weight @ (self.s - centre)
 
 
 @dataclass(frozen=True)
@@ -282,17 +344,18 @@ class _System:
     sq: FloatArray  # (n,) sum of squared normal distances of those
     diag: FloatArray  # (n, 6, 6) the patch's own information block
     rms: float
+    rscale: float = 0.0  # robust residual scale (pixel units)
 
 
 def _normal_system(
     bank: _Bank,
     cand: tuple[IntArray, IntArray, IntArray, IntArray],
-    R: FloatArray,
-    s: FloatArray,
+    state: _State,
     noise: float,
 ) -> _System:
     """The Gauss-Newton system over all correspondences, and per-patch statistics."""
     n = len(bank.centre)
+    R, s, slope = state.R, state.s, state.slope
     src, dst, idx, starts = cand
     g = np.zeros((n, 6))
     count = np.zeros(n)
@@ -301,36 +364,47 @@ def _normal_system(
     empty_i = np.empty(0, dtype=np.intp)
     if len(idx) == 0:
         return _System(empty_i, empty_i, np.empty(0), g, count, sq, diag, 0.0)
-    q = np.einsum("mij,mj->mi", R[src], bank.points[idx]) + s[src]
+    p_src = bank.points[idx]
+    q = np.einsum("mij,mj->mi", R[src], p_src) + s[src]
+    q[:, 2] += np.einsum("mi,mi->m", slope[src], p_src[:, :2])
     p_dst = np.einsum("mji,mj->mi", R[dst], q - s[dst])
     h, gx, gy, ok = bank.lookup(dst, p_dst)
-    r = np.where(ok, p_dst[:, 2] - h, 0.0)
-    nrm = np.column_stack([-gx, -gy, np.ones_like(gx)])
-    w_plane = np.where(ok, 1.0 / np.einsum("ij,ij->i", nrm, nrm), 0.0)
+    r = np.where(ok, p_dst[:, 2] - np.einsum("mi,mi->m", slope[dst], p_dst[:, :2]) - h, 0.0)
+    # gradient of the residual with respect to q: the destination's surface normal (with its
+    # drift plane), in the mosaic frame
+    nrm = np.column_stack([-(gx + slope[dst, 0]), -(gy + slope[dst, 1]), np.ones_like(gx)])
+    nrm = np.where(ok[:, None], nrm, 0.0)
+    w_plane = np.where(ok, 1.0 / np.maximum(np.einsum("ij,ij->i", nrm, nrm), 1.0), 0.0)
     d = r * np.sqrt(w_plane)
     used = np.abs(d[ok])
     if used.size == 0:
         return _System(empty_i, empty_i, np.empty(0), g, count, sq, diag, 0.0)
     rscale = max(1.4826 * float(np.median(used)), noise)
     w = w_plane / (1.0 + (d / (3.0 * rscale)) ** 2)
-    m = np.einsum("mij,mj->mi", R[dst], np.where(ok[:, None], nrm, 0.0))
-    Ja = np.concatenate([m, np.cross(q - s[src], m) / bank.radius[src, None]], axis=1)
+    m = np.einsum("mij,mj->mi", R[dst], nrm)
+    rho_s = bank.radius[src, None]
+    arm = q[:, :2] - s[src, :2]
+    spin = (m[:, 1] * arm[:, 0] - m[:, 0] * arm[:, 1])[:, None]
+    Ja = np.concatenate([m, spin / rho_s, p_src[:, :2] / rho_s], axis=1)
     seg = starts[:-1]
     a_seg, b_seg = src[seg], dst[seg]
     count += np.bincount(src[ok], minlength=n)
     sq += np.bincount(src, weights=d**2, minlength=n)
     Baa, ga = _segment_sums(Ja, w, r, starts)
-    # Within one directed pair the destination's Jacobian is a fixed linear map of the source's:
-    # (q - s_b) x m = (q - s_a) x m + (s_a - s_b) x m, so Jb = -T Ja with
-    # T = [[I, 0], [K, α I]], α = ρa / ρb and K the cross-product matrix of (s_a - s_b) / ρb.
-    alpha = bank.radius[a_seg] / bank.radius[b_seg]
-    beta = (s[a_seg] - s[b_seg]) / bank.radius[b_seg, None]
+    # Within one directed pair the destination's Jacobian is a fixed linear map of the source's,
+    # Jb = -T Ja (rotations about z): its spin arm is the source's plus Δ = s_a - s_b, and its
+    # plane arm (x', y') = M (x_a, y_a) + c with M = [R_b' R_a]_xy and c = [R_b' Δ]_xy.
+    rho_a, rho_b = bank.radius[a_seg], bank.radius[b_seg]
+    delta = s[a_seg] - s[b_seg]
+    RbRa = np.einsum("kji,kjl->kil", R[b_seg], R[a_seg])
+    c = np.einsum("kji,kj->ki", R[b_seg], delta)
     T = np.zeros((len(seg), 6, 6))
     T[:, [0, 1, 2], [0, 1, 2]] = 1.0
-    T[:, [3, 4, 5], [3, 4, 5]] = alpha[:, None]
-    T[:, 3, 1], T[:, 3, 2] = -beta[:, 2], beta[:, 1]
-    T[:, 4, 0], T[:, 4, 2] = beta[:, 2], -beta[:, 0]
-    T[:, 5, 0], T[:, 5, 1] = -beta[:, 1], beta[:, 0]
+    T[:, 3, 0], T[:, 3, 1], T[:, 3, 3] = -delta[:, 1] / rho_b, delta[:, 0] / rho_b, rho_a / rho_b
+    for row, k in ((4, 0), (5, 1)):
+        T[:, row, 2] = c[:, k] / rho_b
+        T[:, row, 4] = RbRa[:, k, 0] * rho_a / rho_b
+        T[:, row, 5] = RbRa[:, k, 1] * rho_a / rho_b
     Tt = np.swapaxes(T, 1, 2)
     Bbb = T @ Baa @ Tt
     Bab = -(Baa @ Tt)
@@ -352,18 +426,16 @@ def _normal_system(
         triplets(a_seg, b_seg, Bab),
         triplets(b_seg, a_seg, np.swapaxes(Bab, 1, 2)),
     ]
-    rows = [x[0] for x in parts]
-    cols = [x[1] for x in parts]
-    vals = [x[2] for x in parts]
     return _System(
-        rows=np.concatenate(rows),
-        cols=np.concatenate(cols),
-        vals=np.concatenate(vals),
+        rows=np.concatenate([x[0] for x in parts]),
+        cols=np.concatenate([x[1] for x in parts]),
+        vals=np.concatenate([x[2] for x in parts]),
         g=g,
         count=count,
         sq=sq,
         diag=diag,
         rms=float(np.sqrt(np.mean(used**2))),
+        rscale=rscale,
     )
 
 
@@ -397,62 +469,71 @@ def _segment_sums(
     return B, grad
 
 
-def _solve(system: _System) -> FloatArray:
-    """Damped solution of the system: ``(n, 6)`` updates (translation, scaled rotation)."""
+def _solve(system: _System, plane: FloatArray, prior: float) -> FloatArray:
+    """Damped solution of the system: ``(n, 6)`` updates (translation, scaled spin and plane).
+
+    ``plane`` is every patch's current drift plane scaled by its radius (pixel units) and
+    ``prior`` the prior's standard deviation in the same unit: the prior ``|plane|² / prior²``
+    enters with the weight the data have per unit residual (``1 / residual scale²``).
+    """
     n = len(system.g)
     rows, cols, vals = system.rows, system.cols, system.vals
     # Levenberg damping relative to each patch's own curvature: directions a patch's data do not
     # constrain (XY on a flat overlap) stay put instead of following noise
     on_diag = rows == cols
     dvals = np.bincount(rows[on_diag], weights=vals[on_diag], minlength=6 * n).reshape(n, 6)
-    lam = 1e-4 * dvals.max(axis=1, keepdims=True) + 1e-12
-    damp = np.broadcast_to(lam, (n, 6)).ravel()
+    lam = np.broadcast_to(1e-4 * dvals.max(axis=1, keepdims=True) + 1e-12, (n, 6)).copy()
+    g = system.g.copy()
+    if prior > 0 and system.rscale > 0:
+        k = (system.rscale / prior) ** 2
+        lam[:, 4:] += k
+        g[:, 4:] -= k * plane
     idx = np.arange(6 * n)
     M = coo_matrix(
-        (np.concatenate([vals, damp]), (np.concatenate([rows, idx]), np.concatenate([cols, idx]))),
+        (np.concatenate([vals, lam.ravel()]), (np.concatenate([rows, idx]), np.concatenate([cols, idx]))),
         shape=(6 * n, 6 * n),
     ).tocsc()
-    x = spsolve(M, system.g.ravel())
+    x = spsolve(M, g.ravel())
     out: FloatArray = np.asarray(x, dtype=np.float64).reshape(n, 6)
     return out
 
 
 def assess(
-    patches: Sequence[Patch], pairs: IntArray, R: FloatArray, t: FloatArray
+    patches: Sequence[Patch], pairs: IntArray, transforms: Sequence[PatchTransform]
 ) -> list[PatchFit]:
     """Per-patch quality of given transforms on the full-resolution heights (no update).
 
     Used for every method, so their reports compare like with like.
     """
     scale = float(np.median([min(p.pixel_size) for p in patches]))
-    noise = float(np.nanmedian([estimate_noise(p.heights) for p in patches])) / scale
-    noise = noise if np.isfinite(noise) and noise > 0 else 1e-3
     bank = _Bank(patches, scale, 0.0, 1)
-    s = np.einsum("cij,cj->ci", R, bank.centre) + np.asarray(t) / scale
+    state = _State.from_transforms(transforms, bank, scale)
     margin = 3.0 * float(max(bank.dx.max(), bank.dy.max()))
-    cand = bank.candidates(np.asarray(pairs, dtype=np.intp).reshape(-1, 2), R, s, margin)
-    return _fits(_normal_system(bank, cand, R, s, noise), len(patches), scale)
+    cand = bank.candidates(np.asarray(pairs, dtype=np.intp).reshape(-1, 2), state.R, state.s, margin)
+    system = _normal_system(bank, cand, state, _noise(patches, scale))
+    return _fits(system, len(patches), scale, _noise(patches, scale))
 
 
-def _fits(stats: _System | None, n: int, scale: float) -> list[PatchFit]:
+def _fits(stats: _System | None, n: int, scale: float, noise: float) -> list[PatchFit]:
+    """Residual RMS and translation standard deviations of every patch (metres)."""
     if stats is None:
         return [PatchFit(0, float("nan"), float("inf"), float("inf")) for _ in range(n)]
-    count, sq, diag = stats.count, stats.sq, stats.diag
     out = []
     for c in range(n):
-        if count[c] == 0:
+        k = stats.count[c]
+        if k == 0:
             out.append(PatchFit(0, float("nan"), float("inf"), float("inf")))
             continue
-        rms = float(np.sqrt(sq[c] / count[c]))
-        info = diag[c][:3, :3]
-        # marginal standard deviations of the translation with the rotations free
+        rms = float(np.sqrt(stats.sq[c] / k))
+        info = stats.diag[c].copy()
+        # Slopes of noise are not texture: remove their expected share (a central difference
+        # of white noise has variance σ²/2 per pixel) from the XY information.
+        info[:2, :2] = signal_information(info[:2, :2], k * noise**2 / 2.0)
         try:
-            cov = np.linalg.inv(diag[c] + 1e-12 * np.eye(6))[:3, :3] * rms**2
+            cov = np.linalg.inv(info + 1e-9 * np.trace(info) * np.eye(6))[:3, :3] * rms**2
             xy = float(np.sqrt(max(np.linalg.eigvalsh(cov[:2, :2]).max(), 0.0)))
             z = float(np.sqrt(max(cov[2, 2], 0.0)))
         except np.linalg.LinAlgError:
             xy, z = float("inf"), float("inf")
-        if info[0, 0] + info[1, 1] == 0:
-            xy = float("inf")
-        out.append(PatchFit(int(count[c]), rms * scale, xy * scale, z * scale))
+        out.append(PatchFit(int(k), rms * scale, xy * scale, z * scale))
     return out

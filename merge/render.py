@@ -1,9 +1,9 @@
 """Rendering a mosaic: every patch resampled through its transform onto one regular grid.
 
 For every node ``(X, Y)`` of the mosaic grid and every patch that covers it, the patch point whose
-transform lands there is found by inverting ``q = R p + t`` with ``p = (x, y, h(x, y))``: the XY
-part is solved for ``(x, y)`` with the height taken from the previous guess (two fixed-point
-rounds suffice: the tilts are milliradians). The patch is interpolated bilinearly there (never
+transform lands there is found by inverting the transform (:class:`PatchTransform`) with
+``p = (x, y, h(x, y))``: its drift plane moves heights only, so XY inverts through the rigid part
+(with a few fixed-point rounds on the height when the rotation tilts). The patch is interpolated bilinearly there (never
 dropped into the nearest cell), and overlapping patches are blended with weights that fall
 smoothly to zero at each patch's border, so no seam is left where registrations differ by noise.
 """
@@ -18,6 +18,7 @@ from numpy.typing import NDArray
 
 from merge.heightfield import bilinear
 from merge.patchset import Patch
+from merge.transforms import PatchTransform
 
 FloatArray = NDArray[np.float64]
 
@@ -38,17 +39,20 @@ class Mosaic:
     coverage: NDArray[np.int32]
 
 
+def _corners(p: Patch) -> FloatArray:
+    x0, y0, x1, y1 = p.footprint
+    z = float(np.nanmedian(p.heights))
+    return np.array([[x0, y0, z], [x1, y0, z], [x1, y1, z], [x0, y1, z]])
+
+
 def mosaic_bounds(
-    patches: Sequence[Patch], R: FloatArray, t: FloatArray
+    patches: Sequence[Patch], transforms: Sequence[PatchTransform]
 ) -> tuple[float, float, float, float]:
     """``(xmin, ymin, xmax, ymax)`` of all transformed patch outlines, metres."""
     lo = np.array([np.inf, np.inf])
     hi = -lo
-    for c, p in enumerate(patches):
-        x0, y0, x1, y1 = p.footprint
-        z = float(np.nanmedian(p.heights))
-        corners = np.array([[x0, y0, z], [x1, y0, z], [x1, y1, z], [x0, y1, z]])
-        q = corners @ R[c].T + t[c]
+    for p, tr in zip(patches, transforms, strict=True):
+        q = tr.apply(_corners(p))
         lo = np.minimum(lo, q[:, :2].min(axis=0))
         hi = np.maximum(hi, q[:, :2].max(axis=0))
     return float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1])
@@ -56,20 +60,19 @@ def mosaic_bounds(
 
 def render_mosaic(
     patches: Sequence[Patch],
-    R: FloatArray,
-    t: FloatArray,
+    transforms: Sequence[PatchTransform] | None = None,
     *,
     pixel_size: tuple[float, float] | None = None,
     bounds: tuple[float, float, float, float] | None = None,
     feather: float = 0.15,
 ) -> Mosaic:
-    """Resample all patches through ``q = R p + t`` onto one grid and blend them.
+    """Resample all patches through their transforms onto one grid and blend them.
 
     Parameters
     ----------
     patches : sequence of Patch
-    R, t : (n, 3, 3), (n, 3) arrays
-        ``T_mosaic_patch`` per patch (metres).
+    transforms : sequence of PatchTransform, optional
+        ``T_mosaic_patch`` per patch; the nominal placement when not given.
     pixel_size : (dx, dy), keyword-only
         Mosaic pixel pitch, metres; defaults to the finest patch pitch per axis.
     bounds : (xmin, ymin, xmax, ymax), keyword-only
@@ -79,10 +82,9 @@ def render_mosaic(
         side (0 for plain averaging).
     """
     n = len(patches)
-    R = np.asarray(R, dtype=np.float64)
-    t = np.asarray(t, dtype=np.float64)
-    if R.shape != (n, 3, 3) or t.shape != (n, 3):
-        raise ValueError(f"need R (n, 3, 3) and t (n, 3) for {n} patches")
+    trs = list(transforms) if transforms is not None else [PatchTransform() for _ in range(n)]
+    if len(trs) != n:
+        raise ValueError(f"need one transform per patch: {n} patches, {len(trs)} transforms")
     if not 0 <= feather <= 0.5:
         raise ValueError(f"feather must be in [0, 0.5], got {feather}")
     if pixel_size is None:
@@ -93,17 +95,16 @@ def render_mosaic(
     dx, dy = float(pixel_size[0]), float(pixel_size[1])
     if dx <= 0 or dy <= 0:
         raise ValueError(f"pixel_size must be positive, got {pixel_size}")
-    xmin, ymin, xmax, ymax = bounds if bounds is not None else mosaic_bounds(patches, R, t)
+    xmin, ymin, xmax, ymax = bounds if bounds is not None else mosaic_bounds(patches, trs)
     nx = int(np.floor((xmax - xmin) / dx + 1e-9)) + 1
     ny = int(np.floor((ymax - ymin) / dy + 1e-9)) + 1
     acc = np.zeros((ny, nx))
     wsum = np.zeros((ny, nx))
     coverage = np.zeros((ny, nx), dtype=np.int32)
-    for c, p in enumerate(patches):
-        px0, py0, px1, py1 = p.footprint
+    for p, tr in zip(patches, trs, strict=True):
+        R, t = tr.R, tr.t
         zc = float(np.nanmedian(p.heights))
-        corners = np.array([[px0, py0, zc], [px1, py0, zc], [px1, py1, zc], [px0, py1, zc]])
-        q = corners @ R[c].T + t[c]
+        q = tr.apply(_corners(p))
         j0 = max(int(np.floor((q[:, 0].min() - xmin) / dx)) - 1, 0)
         j1 = min(int(np.ceil((q[:, 0].max() - xmin) / dx)) + 1, nx - 1)
         i0 = max(int(np.floor((q[:, 1].min() - ymin) / dy)) - 1, 0)
@@ -112,13 +113,14 @@ def render_mosaic(
             continue
         X, Y = np.meshgrid(xmin + np.arange(j0, j1 + 1) * dx, ymin + np.arange(i0, i1 + 1) * dy)
         X, Y = X.ravel(), Y.ravel()
-        A = R[c][:2, :2]
-        Ainv = np.linalg.inv(A)
+        Ainv = np.linalg.inv(R[:2, :2])
         z = np.full(X.shape, zc)
         valid = np.zeros(X.shape, dtype=bool)
         u = v = np.zeros(X.shape)
-        for _ in range(3):
-            rhs = np.column_stack([X, Y]) - t[c][:2] - np.outer(z, R[c][:2, 2])
+        # the drift plane moves Z only, so XY inverts through the rigid part; a tilt (if any)
+        # couples XY to the height, hence a few fixed-point rounds
+        for _ in range(3 if np.abs(R[:2, 2]).max() > 0 else 1):
+            rhs = np.column_stack([X, Y]) - t[:2] - np.outer(z, R[:2, 2])
             xy = rhs @ Ainv.T
             u = (xy[:, 0] - p.origin[0]) / p.pixel_size[0]
             v = (xy[:, 1] - p.origin[1]) / p.pixel_size[1]
@@ -126,7 +128,8 @@ def render_mosaic(
             z = np.where(valid, zi, zc)
         x_p = p.origin[0] + u * p.pixel_size[0]
         y_p = p.origin[1] + v * p.pixel_size[1]
-        Z = R[c][2, 0] * x_p + R[c][2, 1] * y_p + R[c][2, 2] * z + t[c][2]
+        Z = R[2, 0] * x_p + R[2, 1] * y_p + R[2, 2] * z + t[2]
+        Z = Z + (x_p - tr.centre[0]) * tr.slope[0] + (y_p - tr.centre[1]) * tr.slope[1]
         pny, pnx = p.shape
         edge = np.minimum.reduce([u, pnx - 1 - u, v, pny - 1 - v])
         ramp = feather * min(pnx, pny)

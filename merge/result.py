@@ -15,6 +15,7 @@ from merge.engine import MergeResult
 from merge.patchset import PatchSet
 from merge.preview import write_preview
 from merge.render import Mosaic, render_mosaic
+from merge.transforms import PatchTransform
 
 FloatArray = NDArray[np.float64]
 FORMAT = "mosaic-afm/mosaic@1"
@@ -47,6 +48,13 @@ def result_document(result: MergeResult, patch_set: PatchSet | None = None) -> d
                 "id": r.id,
                 "rotation": np.asarray(r.rotation).tolist(),
                 "translation": np.asarray(r.translation).tolist(),
+                "transform": {
+                    "model": "rigid+zplane",
+                    "rotation": r.transform.R.tolist(),
+                    "translation": r.transform.t.tolist(),
+                    "z_slope": r.transform.slope.tolist(),
+                    "centre": r.transform.centre.tolist(),
+                },
                 "overlaps": r.overlaps,
                 "correspondences": r.correspondences,
                 "residual_rms": _clean(r.residual_rms),
@@ -75,7 +83,6 @@ def write_result(
     path.write_text(json.dumps(doc, indent=1) + "\n", encoding="utf-8")
     if preview and patch_set is not None:
         m = result.mosaic
-        n = len(patch_set)
         ny, nx = m.heights.shape
         bounds = (
             m.origin[0],
@@ -83,13 +90,7 @@ def write_result(
             m.origin[0] + (nx - 1) * m.pixel_size[0],
             m.origin[1] + (ny - 1) * m.pixel_size[1],
         )
-        before = render_mosaic(
-            patch_set.patches,
-            np.repeat(np.eye(3)[None], n, axis=0),
-            np.zeros((n, 3)),
-            pixel_size=m.pixel_size,
-            bounds=bounds,
-        )
+        before = render_mosaic(patch_set.patches, pixel_size=m.pixel_size, bounds=bounds)
         write_preview(str(out / "preview.png"), before, m)
     return path
 
@@ -102,12 +103,18 @@ class StoredResult:
     document: dict[str, Any]
 
     @property
-    def transforms(self) -> dict[str, tuple[FloatArray, FloatArray]]:
-        """``{patch id: (R, t)}``."""
-        return {
-            p["id"]: (np.array(p["rotation"], dtype=np.float64), np.array(p["translation"]))
-            for p in self.document["patches"]
-        }
+    def transforms(self) -> dict[str, PatchTransform]:
+        """``{patch id: T_mosaic_patch}``: the full model when stored, else the rigid one."""
+        out = {}
+        for p in self.document["patches"]:
+            full = p.get("transform")
+            if full and full.get("model") == "rigid+zplane":
+                out[p["id"]] = PatchTransform(
+                    full["rotation"], full["translation"], full["z_slope"], full["centre"]
+                )
+            else:
+                out[p["id"]] = PatchTransform(p["rotation"], p["translation"])
+        return out
 
 
 def read_result(folder: str | Path) -> StoredResult:

@@ -84,3 +84,57 @@ def rotation_angle_deg(R: FloatArray) -> FloatArray:
     c = np.clip((np.trace(R, axis1=-2, axis2=-1) - 1.0) / 2.0, -1.0, 1.0)
     out: FloatArray = np.degrees(np.arccos(c))
     return out
+
+
+class PatchTransform:
+    """``T_mosaic_patch`` of the merge: a rigid motion plus a Z plane (the in-patch drift).
+
+    ``q = R p + t + e_z · (slope · (p_xy - centre))`` for nominal patch points ``p = (x, y, z)``
+    (metres). The plane is the linear Z drift a patch picked up while it was scanned; it moves
+    heights only, never XY, so a drift is not mistaken for a tilt that would shear the top of a
+    step against its foot.
+
+    Attributes
+    ----------
+    R : (3, 3) rotation
+    t : (3,) translation, metres
+    slope : (2,) dz/dx and dz/dy of the drift plane (dimensionless)
+    centre : (2,) nominal XY where the drift plane is zero, metres
+    """
+
+    __slots__ = ("R", "centre", "slope", "t")
+
+    def __init__(
+        self,
+        R: FloatArray | None = None,
+        t: FloatArray | None = None,
+        slope: FloatArray | None = None,
+        centre: FloatArray | None = None,
+    ) -> None:
+        self.R = np.eye(3) if R is None else np.asarray(R, dtype=np.float64).reshape(3, 3)
+        self.t = np.zeros(3) if t is None else np.asarray(t, dtype=np.float64).reshape(3)
+        self.slope = np.zeros(2) if slope is None else np.asarray(slope, dtype=np.float64).reshape(2)
+        self.centre = np.zeros(2) if centre is None else np.asarray(centre, dtype=np.float64).reshape(2)
+
+    def apply(self, points: FloatArray) -> FloatArray:
+        """Map ``(m, 3)`` nominal patch points to the mosaic frame."""
+        p = np.asarray(points, dtype=np.float64)
+        q = p @ self.R.T + self.t
+        q[:, 2] += (p[:, :2] - self.centre) @ self.slope
+        return q
+
+    def rigid_approximation(self, points: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """The rigid ``(R, t)`` closest to this transform over ``points`` (least squares).
+
+        For consumers that only understand rigid transforms: the drift plane becomes the tilt
+        that best reproduces it on these points.
+        """
+        from merge.kabsch import weighted_rigid_transform
+
+        p = np.asarray(points, dtype=np.float64)
+        if not self.slope.any():
+            return self.R.copy(), self.t.copy()
+        return weighted_rigid_transform(p, self.apply(p))
+
+    def __repr__(self) -> str:
+        return f"PatchTransform(R={self.R.tolist()}, t={self.t.tolist()}, slope={self.slope.tolist()})"

@@ -7,6 +7,8 @@ import sys
 import time
 from typing import Any
 
+import numpy as np
+
 from backend.cli.common import ProgressBar, UsageError, float_pair
 
 
@@ -62,10 +64,11 @@ def run(args: argparse.Namespace) -> int:
     for w in result.warnings:
         print(f"warning: {w}", file=sys.stderr)
     ny, nx = result.mosaic.heights.shape
-    last = result.history[-1] * 1e9 if result.history else float("nan")
+    rms = [r.residual_rms for r in result.patches if r.correspondences]
+    residual = f"{np.median(rms) * 1e9:.2f} nm" if rms else "n/a"
     print(
         f"merged {len(patch_set)} patches ({result.method}) in {time.perf_counter() - start:.1f} s: "
         f"{result.iterations} iterations, {'converged' if result.converged else 'not converged'}, "
-        f"residual {last:.2f} nm, mosaic {nx} x {ny} px -> {args.out}"
+        f"median patch residual {residual}, mosaic {nx} x {ny} px -> {args.out}"
     )
     return 0

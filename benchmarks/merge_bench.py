@@ -1,0 +1,208 @@
+"""Merge accuracy and speed on synthetic and real surfaces with known drift.
+
+Every case writes a patch set with its truth, runs the real CLI (``mosaic-afm merge``) for each
+method and scores the result:
+
+* registration error: RMS over all patch points of the difference between where the merge puts
+  each point and where it truly is, XY and Z apart, after removing the one global rigid transform
+  that fits best (the gauge);
+* map error: RMS of the mosaic against the true surface (after the same global transform), and
+  the floor — the true transforms through the same renderer — for comparison;
+* wall time and peak memory of the CLI process.
+
+Prints a table and writes JSON (``--json``, default ``benchmarks/results/merge_bench.json``).
+Run: ``make bench`` or ``python benchmarks/merge_bench.py [--quick] [--cases a,b]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from hardware.sim.drift import DriftModel
+from hardware.sim.surfaces import Chessboard, FoldedSurface, ImageSurface, Surface
+from hardware.sim.synth import SynthPatch, scan_fraction, synthesize, true_points
+from merge import Patch, PatchSet, PatchTransform, read_result, render_mosaic, write_patch_set
+from merge.kabsch import weighted_rigid_transform
+
+FloatArray = NDArray[np.float64]
+ROOT = Path(__file__).resolve().parents[1]
+DATA = ROOT.parent / "shared" / "data"
+CLI = [sys.executable, "-m", "backend.cli"]
+
+
+@dataclass(frozen=True)
+class Case:
+    name: str
+    surface: Callable[[], Surface]
+    rows: int
+    cols: int
+    patch_size: tuple[float, float]
+    pixels: tuple[int, int]
+    overlap: tuple[float, float]
+    drift: DriftModel
+    start: tuple[float, float] = (0.0, 0.0)
+    textured: bool = True
+    methods: tuple[str, ...] = ("default", "paper", "zlevel", "nominal")
+    paper_iter: int = 200
+    seed: int = 1
+
+
+def _real(name: str, pixel: tuple[float, float]) -> Callable[[], Surface]:
+    def make() -> Surface:
+        return ImageSurface(np.load(DATA / f"{name}.npy"), pixel)
+
+    return make
+
+
+PAPER_GRID = {"rows": 5, "cols": 10, "patch_size": (0.6e-6, 1.2e-6), "pixels": (30, 60),
+              "overlap": (0.5, 1 / 3)}
+CASES = [
+    Case("tgx1", lambda: Chessboard(seed=1), drift=DriftModel.typical(), **PAPER_GRID),  # type: ignore[arg-type]
+    Case("folded", lambda: FoldedSurface(seed=1), drift=DriftModel.typical(), **PAPER_GRID),  # type: ignore[arg-type]
+    Case("tgx1-harsh", lambda: Chessboard(seed=2), drift=DriftModel.harsh(), seed=2, **PAPER_GRID),  # type: ignore[arg-type]
+    Case("folded-harsh", lambda: FoldedSurface(seed=2), drift=DriftModel.harsh(), seed=2, **PAPER_GRID),  # type: ignore[arg-type]
+    # real Nanosurf images cut into 3 x 4 overlapping patches at their own pixel pitch
+    Case("mos2-real", _real("mos2", (3.973e-6 / 512, 3.973e-6 / 256)), rows=3, cols=4,
+         patch_size=(1.241e-6, 1.241e-6), pixels=(160, 80), overlap=(0.4, 0.4),
+         drift=DriftModel.typical(), start=(0.25e-6, 0.25e-6)),
+    Case("grid-real", _real("grid", (3e-6 / 256, 3e-6 / 256)), rows=3, cols=3,
+         patch_size=(1.172e-6, 1.172e-6), pixels=(100, 100), overlap=(0.4, 0.4),
+         drift=DriftModel.typical(), start=(0.3e-6, 0.3e-6), textured=False),
+    Case("grid20x20", lambda: FoldedSurface(seed=3), rows=20, cols=20, patch_size=(1.28e-6, 1.28e-6),
+         pixels=(64, 64), overlap=(0.3, 0.3), drift=DriftModel.typical(), methods=("default", "zlevel", "nominal")),
+]
+
+
+def registration_error(
+    synth: list[SynthPatch], transforms: list[PatchTransform]
+) -> tuple[float, float, tuple[FloatArray, FloatArray]]:
+    """RMS XY and Z error (m) over all points after the best global rigid transform, and it."""
+    est, true = [], []
+    for i, s in enumerate(synth):
+        ny, nx = s.heights.shape
+        xx, yy = np.meshgrid(s.origin[0] + np.arange(nx) * s.pixel_size[0],
+                             s.origin[1] + np.arange(ny) * s.pixel_size[1])
+        p = np.stack([xx, yy, s.heights], axis=-1).reshape(-1, 3)
+        q = true_points(s).reshape(-1, 3)
+        ok = np.isfinite(p).all(axis=1) & np.isfinite(q).all(axis=1)
+        est.append(transforms[i].apply(p[ok]))
+        true.append(q[ok])
+    P, Q = np.concatenate(est), np.concatenate(true)
+    G, g = weighted_rigid_transform(P, Q)
+    e = P @ G.T + g - Q
+    return float(np.sqrt(np.mean(np.sum(e[:, :2] ** 2, axis=1)))), float(np.sqrt(np.mean(e[:, 2] ** 2))), (G, g)
+
+
+def map_error(heights: FloatArray, origin: tuple[float, float], pixel: tuple[float, float],
+              surface: Surface, G: FloatArray, g: FloatArray) -> float:
+    """RMS of the mosaic against the true surface, the mosaic taken through ``q -> G q + g``."""
+    ny, nx = heights.shape
+    xx, yy = np.meshgrid(origin[0] + np.arange(nx) * pixel[0], origin[1] + np.arange(ny) * pixel[1])
+    ok = np.isfinite(heights)
+    q = np.column_stack([xx[ok], yy[ok], heights[ok]]) @ G.T + g
+    truth = surface.height(q[:, 0], q[:, 1])
+    d = q[:, 2] - truth
+    d = d[np.isfinite(d)]
+    return float(np.sqrt(np.mean(d**2)))
+
+
+def run_cli(args: list[str]) -> tuple[float, float, str]:
+    """Run the CLI; return wall seconds, peak RSS (MiB) of that process and its stdout."""
+    start = time.perf_counter()
+    proc = subprocess.Popen(CLI + args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=ROOT)
+    _, status, usage = os.wait4(proc.pid, 0)
+    wall = time.perf_counter() - start
+    out = proc.stdout.read().decode() if proc.stdout else ""
+    err = proc.stderr.read().decode() if proc.stderr else ""
+    if os.waitstatus_to_exitcode(status) != 0:
+        raise RuntimeError(f"CLI failed: {' '.join(args)}\n{err}")
+    return wall, usage.ru_maxrss / 1024.0, out.strip()
+
+
+def run_case(case: Case, work: Path) -> dict[str, Any]:
+    surface = case.surface()
+    synth = synthesize(surface, rows=case.rows, cols=case.cols, patch_size=case.patch_size,
+                       pixels=case.pixels, overlap=case.overlap, start=case.start,
+                       drift=case.drift, seed=case.seed)
+    ps = PatchSet(Patch(id=s.id, heights=s.heights, origin=s.origin, pixel_size=s.pixel_size,
+                        order=s.order, row=s.row, col=s.col) for s in synth)
+    folder = work / case.name
+    write_patch_set(ps, folder / "patches")
+    # the floor: true transforms, drift-free heights, same renderer
+    true_tr = [PatchTransform(s.rotation, s.translation) for s in synth]
+    # the true rotations have no tilt, so the drift-free heights go through (R, t) exactly
+    fixed = [
+        Patch(id=p.id, heights=s.heights - s.z_drift * (scan_fraction(p.shape) - 0.5),
+              origin=p.origin, pixel_size=p.pixel_size)
+        for p, s in zip(ps, synth, strict=True)
+    ]
+    floor_mosaic = render_mosaic(fixed, true_tr)
+    floor = map_error(floor_mosaic.heights, floor_mosaic.origin, floor_mosaic.pixel_size, surface,
+                      np.eye(3), np.zeros(3))
+    rows = {}
+    for method in case.methods:
+        out = folder / method
+        args = ["merge", str(folder / "patches" / "manifest.json"), "--out", str(out),
+                "--method", method, "--quiet", "--no-preview"]
+        if method == "paper":
+            args += ["--max-iter", str(case.paper_iter)]
+        wall, peak, summary = run_cli(args)
+        res = read_result(out)
+        tr = res.transforms
+        exy, ez, (G, g) = registration_error(synth, [tr[s.id] for s in synth])
+        m = res.mosaic
+        merr = map_error(m.heights, m.origin, m.pixel_size, surface, G, g)
+        unconstrained = sum(not p["xy_constrained"] for p in res.document["patches"])
+        rows[method] = {"reg_xy_nm": exy * 1e9, "reg_z_nm": ez * 1e9, "map_nm": merr * 1e9,
+                        "map_over_floor": merr / floor, "wall_s": wall, "peak_mib": peak,
+                        "iterations": res.document["iterations"],
+                        "converged": res.document["converged"],
+                        "xy_unconstrained_patches": unconstrained}
+    return {"case": case.name, "patches": len(synth), "pixels": list(case.pixels),
+            "textured": case.textured, "floor_nm": floor * 1e9, "methods": rows}
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--cases", help="comma-separated case names (default: all)")
+    parser.add_argument("--quick", action="store_true", help="skip the paper method")
+    parser.add_argument("--json", default=str(ROOT / "benchmarks" / "results" / "merge_bench.json"))
+    args = parser.parse_args(argv)
+    chosen = [c for c in CASES if not args.cases or c.name in args.cases.split(",")]
+    results = []
+    header = (f"{'case':<13}{'method':<9}{'reg XY nm':>10}{'reg Z nm':>10}{'map nm':>9}"
+              f"{'floor nm':>9}{'map/floor':>10}{'wall s':>8}{'peak MiB':>9}{'iter':>6}  unconstr.")
+    print(header)
+    print("-" * len(header))
+    with tempfile.TemporaryDirectory() as tmp:
+        for case in chosen:
+            if args.quick:
+                case = Case(**{**case.__dict__, "methods": tuple(m for m in case.methods if m != "paper")})
+            r = run_case(case, Path(tmp))
+            results.append(r)
+            for method, v in r["methods"].items():
+                print(f"{r['case']:<13}{method:<9}{v['reg_xy_nm']:>10.2f}{v['reg_z_nm']:>10.2f}"
+                      f"{v['map_nm']:>9.2f}{r['floor_nm']:>9.2f}{v['map_over_floor']:>10.2f}"
+                      f"{v['wall_s']:>8.2f}{v['peak_mib']:>9.0f}{v['iterations']:>6}"
+                      f"  {v['xy_unconstrained_patches']}", flush=True)
+    Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+    Path(args.json).write_text(json.dumps({"merge": results}, indent=1) + "\n")
+    print(f"\nwrote {args.json}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
