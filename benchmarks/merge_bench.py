@@ -67,22 +67,61 @@ def _real(name: str, pixel: tuple[float, float]) -> Callable[[], Surface]:
     return make
 
 
-PAPER_GRID = {"rows": 5, "cols": 10, "patch_size": (0.6e-6, 1.2e-6), "pixels": (30, 60),
-              "overlap": (0.5, 1 / 3)}
+def paper_grid(name: str, surface: Callable[[], Surface], drift: DriftModel, seed: int = 1) -> Case:
+    """The paper's grid: 5 x 10 patches of 0.6 x 1.2 µm, 50 % / 33 % overlap, 20 nm pixels."""
+    return Case(
+        name,
+        surface,
+        rows=5,
+        cols=10,
+        patch_size=(0.6e-6, 1.2e-6),
+        pixels=(30, 60),
+        overlap=(0.5, 1 / 3),
+        drift=drift,
+        seed=seed,
+    )
+
+
 CASES = [
-    Case("tgx1", lambda: Chessboard(seed=1), drift=DriftModel.typical(), **PAPER_GRID),  # type: ignore[arg-type]
-    Case("folded", lambda: FoldedSurface(seed=1), drift=DriftModel.typical(), **PAPER_GRID),  # type: ignore[arg-type]
-    Case("tgx1-harsh", lambda: Chessboard(seed=2), drift=DriftModel.harsh(), seed=2, **PAPER_GRID),  # type: ignore[arg-type]
-    Case("folded-harsh", lambda: FoldedSurface(seed=2), drift=DriftModel.harsh(), seed=2, **PAPER_GRID),  # type: ignore[arg-type]
+    paper_grid("tgx1", lambda: Chessboard(seed=1), DriftModel.typical()),
+    paper_grid("folded", lambda: FoldedSurface(seed=1), DriftModel.typical()),
+    paper_grid("tgx1-harsh", lambda: Chessboard(seed=2), DriftModel.harsh(), seed=2),
+    paper_grid("folded-harsh", lambda: FoldedSurface(seed=2), DriftModel.harsh(), seed=2),
     # real Nanosurf images cut into 3 x 4 overlapping patches at their own pixel pitch
-    Case("mos2-real", _real("mos2", (3.973e-6 / 512, 3.973e-6 / 256)), rows=3, cols=4,
-         patch_size=(1.241e-6, 1.241e-6), pixels=(160, 80), overlap=(0.4, 0.4),
-         drift=DriftModel.typical(), start=(0.25e-6, 0.25e-6)),
-    Case("grid-real", _real("grid", (3e-6 / 256, 3e-6 / 256)), rows=3, cols=3,
-         patch_size=(1.172e-6, 1.172e-6), pixels=(100, 100), overlap=(0.4, 0.4),
-         drift=DriftModel.typical(), start=(0.3e-6, 0.3e-6), textured=False),
-    Case("grid20x20", lambda: FoldedSurface(seed=3), rows=20, cols=20, patch_size=(1.28e-6, 1.28e-6),
-         pixels=(64, 64), overlap=(0.3, 0.3), drift=DriftModel.typical(), methods=("default", "zlevel", "nominal")),
+    Case(
+        "mos2-real",
+        _real("mos2", (3.973e-6 / 512, 3.973e-6 / 256)),
+        rows=3,
+        cols=4,
+        patch_size=(1.241e-6, 1.241e-6),
+        pixels=(160, 80),
+        overlap=(0.4, 0.4),
+        drift=DriftModel.typical(),
+        start=(0.25e-6, 0.25e-6),
+    ),
+    Case(
+        "grid-real",
+        _real("grid", (3e-6 / 256, 3e-6 / 256)),
+        rows=3,
+        cols=3,
+        patch_size=(1.172e-6, 1.172e-6),
+        pixels=(100, 100),
+        overlap=(0.4, 0.4),
+        drift=DriftModel.typical(),
+        start=(0.3e-6, 0.3e-6),
+        textured=False,
+    ),
+    Case(
+        "grid20x20",
+        lambda: FoldedSurface(seed=3),
+        rows=20,
+        cols=20,
+        patch_size=(1.28e-6, 1.28e-6),
+        pixels=(64, 64),
+        overlap=(0.3, 0.3),
+        drift=DriftModel.typical(),
+        methods=("default", "zlevel", "nominal"),
+    ),
 ]
 
 
@@ -93,8 +132,10 @@ def registration_error(
     est, true = [], []
     for i, s in enumerate(synth):
         ny, nx = s.heights.shape
-        xx, yy = np.meshgrid(s.origin[0] + np.arange(nx) * s.pixel_size[0],
-                             s.origin[1] + np.arange(ny) * s.pixel_size[1])
+        xx, yy = np.meshgrid(
+            s.origin[0] + np.arange(nx) * s.pixel_size[0],
+            s.origin[1] + np.arange(ny) * s.pixel_size[1],
+        )
         p = np.stack([xx, yy, s.heights], axis=-1).reshape(-1, 3)
         q = true_points(s).reshape(-1, 3)
         ok = np.isfinite(p).all(axis=1) & np.isfinite(q).all(axis=1)
@@ -103,11 +144,21 @@ def registration_error(
     P, Q = np.concatenate(est), np.concatenate(true)
     G, g = weighted_rigid_transform(P, Q)
     e = P @ G.T + g - Q
-    return float(np.sqrt(np.mean(np.sum(e[:, :2] ** 2, axis=1)))), float(np.sqrt(np.mean(e[:, 2] ** 2))), (G, g)
+    return (
+        float(np.sqrt(np.mean(np.sum(e[:, :2] ** 2, axis=1)))),
+        float(np.sqrt(np.mean(e[:, 2] ** 2))),
+        (G, g),
+    )
 
 
-def map_error(heights: FloatArray, origin: tuple[float, float], pixel: tuple[float, float],
-              surface: Surface, G: FloatArray, g: FloatArray) -> float:
+def map_error(
+    heights: FloatArray,
+    origin: tuple[float, float],
+    pixel: tuple[float, float],
+    surface: Surface,
+    G: FloatArray,
+    g: FloatArray,
+) -> float:
     """RMS of the mosaic against the true surface, the mosaic taken through ``q -> G q + g``."""
     ny, nx = heights.shape
     xx, yy = np.meshgrid(origin[0] + np.arange(nx) * pixel[0], origin[1] + np.arange(ny) * pixel[1])
@@ -134,45 +185,93 @@ def run_cli(args: list[str]) -> tuple[float, float, str]:
 
 def run_case(case: Case, work: Path) -> dict[str, Any]:
     surface = case.surface()
-    synth = synthesize(surface, rows=case.rows, cols=case.cols, patch_size=case.patch_size,
-                       pixels=case.pixels, overlap=case.overlap, start=case.start,
-                       drift=case.drift, seed=case.seed)
-    ps = PatchSet(Patch(id=s.id, heights=s.heights, origin=s.origin, pixel_size=s.pixel_size,
-                        order=s.order, row=s.row, col=s.col) for s in synth)
+    synth = synthesize(
+        surface,
+        rows=case.rows,
+        cols=case.cols,
+        patch_size=case.patch_size,
+        pixels=case.pixels,
+        overlap=case.overlap,
+        start=case.start,
+        drift=case.drift,
+        seed=case.seed,
+    )
+    ps = PatchSet(
+        Patch(
+            id=s.id,
+            heights=s.heights,
+            origin=s.origin,
+            pixel_size=s.pixel_size,
+            order=s.order,
+            row=s.row,
+            col=s.col,
+        )
+        for s in synth
+    )
     folder = work / case.name
     write_patch_set(ps, folder / "patches")
     # the floor: true transforms, drift-free heights, same renderer
     true_tr = [PatchTransform(s.rotation, s.translation) for s in synth]
     # the true rotations have no tilt, so the drift-free heights go through (R, t) exactly
     fixed = [
-        Patch(id=p.id, heights=s.heights - s.z_drift * (scan_fraction(p.shape) - 0.5),
-              origin=p.origin, pixel_size=p.pixel_size)
+        Patch(
+            id=p.id,
+            heights=s.heights - s.z_drift * (scan_fraction(p.shape) - 0.5),
+            origin=p.origin,
+            pixel_size=p.pixel_size,
+        )
         for p, s in zip(ps, synth, strict=True)
     ]
     floor_mosaic = render_mosaic(fixed, true_tr)
-    floor = map_error(floor_mosaic.heights, floor_mosaic.origin, floor_mosaic.pixel_size, surface,
-                      np.eye(3), np.zeros(3))
+    floor = map_error(
+        floor_mosaic.heights,
+        floor_mosaic.origin,
+        floor_mosaic.pixel_size,
+        surface,
+        np.eye(3),
+        np.zeros(3),
+    )
     rows = {}
     for method in case.methods:
         out = folder / method
-        args = ["merge", str(folder / "patches" / "manifest.json"), "--out", str(out),
-                "--method", method, "--quiet", "--no-preview"]
+        args = [
+            "merge",
+            str(folder / "patches" / "manifest.json"),
+            "--out",
+            str(out),
+            "--method",
+            method,
+            "--quiet",
+            "--no-preview",
+        ]
         if method == "paper":
             args += ["--max-iter", str(case.paper_iter)]
-        wall, peak, summary = run_cli(args)
+        wall, peak, _ = run_cli(args)
         res = read_result(out)
         tr = res.transforms
         exy, ez, (G, g) = registration_error(synth, [tr[s.id] for s in synth])
         m = res.mosaic
         merr = map_error(m.heights, m.origin, m.pixel_size, surface, G, g)
         unconstrained = sum(not p["xy_constrained"] for p in res.document["patches"])
-        rows[method] = {"reg_xy_nm": exy * 1e9, "reg_z_nm": ez * 1e9, "map_nm": merr * 1e9,
-                        "map_over_floor": merr / floor, "wall_s": wall, "peak_mib": peak,
-                        "iterations": res.document["iterations"],
-                        "converged": res.document["converged"],
-                        "xy_unconstrained_patches": unconstrained}
-    return {"case": case.name, "patches": len(synth), "pixels": list(case.pixels),
-            "textured": case.textured, "floor_nm": floor * 1e9, "methods": rows}
+        rows[method] = {
+            "reg_xy_nm": exy * 1e9,
+            "reg_z_nm": ez * 1e9,
+            "map_nm": merr * 1e9,
+            "map_over_floor": merr / floor,
+            "wall_s": wall,
+            "peak_mib": peak,
+            "iterations": res.document["iterations"],
+            "converged": res.document["converged"],
+            "xy_unconstrained_patches": unconstrained,
+        }
+    return {
+        "case": case.name,
+        "patches": len(synth),
+        "pixels": list(case.pixels),
+        "textured": case.textured,
+        "floor_nm": floor * 1e9,
+        "methods": rows,
+    }
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -183,21 +282,28 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     chosen = [c for c in CASES if not args.cases or c.name in args.cases.split(",")]
     results = []
-    header = (f"{'case':<13}{'method':<9}{'reg XY nm':>10}{'reg Z nm':>10}{'map nm':>9}"
-              f"{'floor nm':>9}{'map/floor':>10}{'wall s':>8}{'peak MiB':>9}{'iter':>6}  unconstr.")
+    header = (
+        f"{'case':<13}{'method':<9}{'reg XY nm':>10}{'reg Z nm':>10}{'map nm':>9}"
+        f"{'floor nm':>9}{'map/floor':>10}{'wall s':>8}{'peak MiB':>9}{'iter':>6}  unconstr."
+    )
     print(header)
     print("-" * len(header))
     with tempfile.TemporaryDirectory() as tmp:
         for case in chosen:
             if args.quick:
-                case = Case(**{**case.__dict__, "methods": tuple(m for m in case.methods if m != "paper")})
+                case = Case(
+                    **{**case.__dict__, "methods": tuple(m for m in case.methods if m != "paper")}
+                )
             r = run_case(case, Path(tmp))
             results.append(r)
             for method, v in r["methods"].items():
-                print(f"{r['case']:<13}{method:<9}{v['reg_xy_nm']:>10.2f}{v['reg_z_nm']:>10.2f}"
-                      f"{v['map_nm']:>9.2f}{r['floor_nm']:>9.2f}{v['map_over_floor']:>10.2f}"
-                      f"{v['wall_s']:>8.2f}{v['peak_mib']:>9.0f}{v['iterations']:>6}"
-                      f"  {v['xy_unconstrained_patches']}", flush=True)
+                print(
+                    f"{r['case']:<13}{method:<9}{v['reg_xy_nm']:>10.2f}{v['reg_z_nm']:>10.2f}"
+                    f"{v['map_nm']:>9.2f}{r['floor_nm']:>9.2f}{v['map_over_floor']:>10.2f}"
+                    f"{v['wall_s']:>8.2f}{v['peak_mib']:>9.0f}{v['iterations']:>6}"
+                    f"  {v['xy_unconstrained_patches']}",
+                    flush=True,
+                )
     Path(args.json).parent.mkdir(parents=True, exist_ok=True)
     Path(args.json).write_text(json.dumps({"merge": results}, indent=1) + "\n")
     print(f"\nwrote {args.json}")

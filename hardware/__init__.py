@@ -1,1 +1,1 @@
-"""Instrument layer: hardware roles as typed Protocols, real drivers and the simulated instrument."""
+"""Instrument layer: typed Protocols per hardware role, real drivers, the simulated instrument."""

@@ -12,8 +12,8 @@ from merge.errors import MergeCancelled, PatchSetError
 from merge.manifest import read_patch_set, write_patch_set
 from merge.patchset import Patch, PatchSet
 from merge.render import Mosaic, render_mosaic
-from merge.transforms import PatchTransform
 from merge.result import StoredResult, read_result, write_result
+from merge.transforms import PatchTransform
 
 __all__ = [
     "METHODS",
@@ -26,10 +26,10 @@ __all__ = [
     "PatchSet",
     "PatchSetError",
     "PatchTransform",
-    "read_patch_set",
     "StoredResult",
-    "render_mosaic",
+    "read_patch_set",
     "read_result",
+    "render_mosaic",
     "run",
     "write_patch_set",
     "write_result",

@@ -3,11 +3,13 @@
 In snake order, vertically adjacent patches were scanned up to two rows apart in time, so their Z
 offsets can differ by hundreds of nanometres, far more than the grid spacing: a 3-D
 nearest-neighbour search would pair the wrong points. So first, for every overlapping pair, a
-masked normalized cross-correlation of the (plane-levelled) down-sampled heights measures the XY
-shift — it is blind to Z offsets by construction — and the median height difference at that
-shift measures the Z offset. Heights and slopes are correlated together (see ``_channels``). All patches are then solved at once from these pairwise differences
-(:mod:`merge.network`), with robust weights, and a second pass re-measures the pairs the first
-solution disagreed with in a narrow window around the shift it predicts.
+masked normalized cross-correlation of the down-sampled heights and slopes (``_channels``)
+measures the XY shift — it is blind to Z offsets by construction — and the median height
+difference at that shift measures the Z offset. All patches are then solved at once from these
+pairwise differences (:mod:`merge.network`), with robust weights and with each pair's XY
+information as a 2 x 2 matrix (a straight edge fixes only its normal), and a second pass
+re-measures the pairs the first solution disagreed with in a narrow window around the shift it
+predicts.
 """
 
 from __future__ import annotations
@@ -20,7 +22,7 @@ from numpy.typing import NDArray
 
 from merge.downsample import GridSample, grid_downsample
 from merge.heightfield import smooth_nan
-from merge.ncc import CorrelationPeak, best_shift
+from merge.ncc import best_shift
 from merge.network import solve_pair_differences
 from merge.noise import estimate_noise
 from merge.patchset import Patch
@@ -66,7 +68,11 @@ def _remove_common_plane(grids: Sequence[GridSample]) -> list[FloatArray]:
         ok = np.isfinite(g.heights)
         if ok.sum() < 3:
             continue
-        x, y, z = xx[ok] - xx[ok].mean(), yy[ok] - yy[ok].mean(), g.heights[ok] - g.heights[ok].mean()
+        x, y, z = (
+            xx[ok] - xx[ok].mean(),
+            yy[ok] - yy[ok].mean(),
+            g.heights[ok] - g.heights[ok].mean(),
+        )
         sxx += float(x @ x)
         sxy += float(x @ y)
         syy += float(y @ y)
@@ -101,7 +107,7 @@ def _information(a: FloatArray, b: FloatArray, shift: tuple[int, int], sigma: fl
     x0, x1 = max(0, -dx), min(wa, wb - dx)
     if y1 - y0 < 2 or x1 - x0 < 2:
         return np.zeros((2, 2))
-    gy, gx = np.gradient(a[y0:y1, x0:x1])
+    gy, gx = (np.asarray(v, dtype=np.float64) for v in np.gradient(a[y0:y1, x0:x1]))
     ok = np.isfinite(gx) & np.isfinite(gy) & np.isfinite(b[y0 + dy : y1 + dy, x0 + dx : x1 + dx])
     gx, gy = gx[ok], gy[ok]
     tensor = np.array([[gx @ gx, gx @ gy], [gx @ gy, gy @ gy]])
@@ -185,7 +191,8 @@ def coarse_start(
     xy_m, xy_w = np.zeros((k, 2)), np.zeros((k, 2, 2))
     score = np.full(k, np.nan)
     nominal_overlap = np.zeros(k)
-    for i, (a, b) in enumerate(pairs):
+    for i in range(k):
+        a, b = int(pairs[i, 0]), int(pairs[i, 1])
         ha, wa = grids[a].heights.shape
         hb, wb = grids[b].heights.shape
         oy = min(offs[a][0] + ha, offs[b][0] + hb) - max(offs[a][0], offs[b][0])
@@ -227,20 +234,19 @@ def coarse_start(
         unmeasured = np.trace(xy_w, axis1=1, axis2=2) == 0
         redo = np.flatnonzero(unmeasured | (sol.robust < 0.2))
         if len(redo):
-            for i in redo:
-                a, b = pairs[i]
-                pred = sol.x[a] - sol.x[b]
-                e = expected(i)
-                measure(i, (e[0] + pred[1] / cell, e[1] + pred[0] / cell), 2.0)
+            for j in redo.tolist():
+                pred = sol.x[pairs[j, 0]] - sol.x[pairs[j, 1]]
+                e = expected(j)
+                measure(j, (e[0] + pred[1] / cell, e[1] + pred[0] / cell), 2.0)
             sol = solve_pair_differences(n, pairs, xy_m, xy_w)
         translation[:, :2] = sol.x
     # Z offsets at the XY the network settled on (nominal overlap when XY is not estimated)
     z_m, z_w = np.zeros(k), np.zeros(k)
     for i in range(k):
-        a, b = pairs[i]
+        a, b = int(pairs[i, 0]), int(pairs[i, 1])
         e = expected(i)
         pred = translation[a, :2] - translation[b, :2]
-        shift = (int(round(e[0] + pred[1] / cell)), int(round(e[1] + pred[0] / cell)))
+        shift = (round(e[0] + pred[1] / cell), round(e[1] + pred[0] / cell))
         dz, cnt = _z_difference(grids[a].heights, grids[b].heights, shift)
         if nominal_overlap[i] > 0 and cnt >= 16 and np.isfinite(dz):
             # variance of a median of differences of two noisy maps: (π/2) · 2σ² / count
@@ -249,6 +255,5 @@ def coarse_start(
     zsol = solve_pair_differences(n, pairs, z_m, z_w)
     translation[:, 2] = zsol.x[:, 0]
     measured = np.zeros(n, dtype=bool)
-    for i in np.flatnonzero(np.trace(xy_w, axis1=1, axis2=2) > 0):
-        measured[pairs[i]] = True
+    measured[pairs[np.trace(xy_w, axis1=1, axis2=2) > 0].ravel()] = True
     return CoarseStart(translation=translation, xy_measured=measured, pair_score=score)

@@ -43,12 +43,15 @@ class MergeConfig:
             raise ValueError(f"cell must be a positive length in metres, got {self.cell}")
         if self.max_iter is not None and (not isinstance(self.max_iter, int) or self.max_iter < 1):
             raise ValueError(f"max_iter must be a positive integer, got {self.max_iter}")
-        if self.max_shift is not None and not (math.isfinite(self.max_shift) and self.max_shift > 0):
+        if self.max_shift is not None and not (
+            math.isfinite(self.max_shift) and self.max_shift > 0
+        ):
             raise ValueError(f"max_shift must be a positive length in metres, got {self.max_shift}")
         if self.init not in ("auto", "nominal"):
             raise ValueError(f"init must be 'auto' or 'nominal', got {self.init!r}")
         if self.pixel_size is not None and (
-            len(self.pixel_size) != 2 or not all(math.isfinite(v) and v > 0 for v in self.pixel_size)
+            len(self.pixel_size) != 2
+            or not all(math.isfinite(v) and v > 0 for v in self.pixel_size)
         ):
             raise ValueError(f"pixel_size must be two positive lengths, got {self.pixel_size}")
         if not 0 <= self.feather <= 0.5:

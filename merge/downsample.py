@@ -104,7 +104,7 @@ def grid_downsample(
     return GridSample(
         heights=mean.reshape(my, mx),
         counts=counts.reshape(my, mx).astype(np.int64),
-        x=x,
-        y=y,
+        x=np.asarray(x, dtype=np.float64),
+        y=np.asarray(y, dtype=np.float64),
         cell=float(cell),
     )

@@ -26,7 +26,7 @@ IntArray = NDArray[np.intp]
 
 
 def nominal_points(patches: Sequence[Patch], *, stride: int = 4) -> tuple[FloatArray, IntArray]:
-    """Every ``stride``-th valid point of every patch at its nominal place, ``(m, 3)``, and owner."""
+    """Every ``stride``-th valid point of every patch at its nominal place ``(m, 3)``, and owner."""
     pts, owner = [], []
     for c, p in enumerate(patches):
         xx, yy = p.pixel_coordinates()

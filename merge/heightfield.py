@@ -28,7 +28,7 @@ def slopes(heights: FloatArray, pixel_size: tuple[float, float]) -> tuple[FloatA
     """``(dh/dx, dh/dy)`` by central differences (one-sided at edges); NaN next to holes."""
     h = np.asarray(heights, dtype=np.float64)
     gy, gx = np.gradient(h, pixel_size[1], pixel_size[0])
-    return gx, gy
+    return np.asarray(gx, dtype=np.float64), np.asarray(gy, dtype=np.float64)
 
 
 def bilinear(
@@ -40,7 +40,8 @@ def bilinear(
     are all finite in every array. Values outside the mask are meaningless.
     """
     ny, nx = arrays[0].shape
-    inside = (u >= 0) & (u <= nx - 1) & (v >= 0) & (v <= ny - 1)
+    eps = 1e-6  # pixels: a node that rounding puts a hair outside the last pixel is inside
+    inside = (u >= -eps) & (u <= nx - 1 + eps) & (v >= -eps) & (v <= ny - 1 + eps)
     i0 = np.clip(np.floor(v).astype(np.intp), 0, ny - 2)
     j0 = np.clip(np.floor(u).astype(np.intp), 0, nx - 2)
     fv = np.clip(v - i0, 0.0, 1.0)

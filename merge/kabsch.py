@@ -42,7 +42,9 @@ def weighted_rigid_transform(
     if not np.all(np.isfinite(w)) or (w < 0).any():
         raise ValueError("weights must be finite and non-negative")
     if np.count_nonzero(w) < d:
-        raise ValueError(f"need at least {d} points with positive weight, got {np.count_nonzero(w)}")
+        raise ValueError(
+            f"need at least {d} points with positive weight, got {np.count_nonzero(w)}"
+        )
     wsum = w.sum()
     pc = (w @ p) / wsum
     qc = (w @ q) / wsum

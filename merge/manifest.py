@@ -73,15 +73,11 @@ def read_patch_set(
     if not isinstance(entries, list):
         raise PatchSetError(f"manifest {path}: 'patches' must be a list")
     table = {**READERS, **(readers or {})}
-    patches = [
-        _read_entry(entry, k, path.parent, table) for k, entry in enumerate(entries)
-    ]
+    patches = [_read_entry(entry, k, path.parent, table) for k, entry in enumerate(entries)]
     return PatchSet(patches)
 
 
-def _read_entry(
-    entry: Any, k: int, folder: Path, readers: Mapping[str, HeightReader]
-) -> Patch:
+def _read_entry(entry: Any, k: int, folder: Path, readers: Mapping[str, HeightReader]) -> Patch:
     if not isinstance(entry, dict):
         raise PatchSetError(f"patch #{k} in the manifest must be an object")
     pid = entry.get("id")

@@ -69,7 +69,8 @@ def masked_ncc(
     if w.shape != (len(a),) or (w < 0).any() or w.sum() <= 0:
         raise ValueError("weights must be one non-negative number per channel")
     w = w / w.sum()
-    ma, mb = np.isfinite(a).all(axis=0), np.isfinite(b).all(axis=0)
+    ma: NDArray[np.bool_] = np.all(np.isfinite(a), axis=0)
+    mb: NDArray[np.bool_] = np.all(np.isfinite(b), axis=0)
     _, ha, wa = a.shape
     _, hb, wb = b.shape
     shape = (fft.next_fast_len(ha + hb - 1, real=True), fft.next_fast_len(wa + wb - 1, real=True))

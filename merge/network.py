@@ -64,10 +64,7 @@ def solve_pair_differences(
         m = m[:, None]
     k, d = m.shape
     w_in = np.asarray(weights, dtype=np.float64)
-    if w_in.ndim == 1:
-        W0 = w_in[:, None, None] * np.eye(d)[None]
-    else:
-        W0 = w_in
+    W0 = w_in[:, None, None] * np.eye(d)[None] if w_in.ndim == 1 else w_in
     if len(pairs) != k or W0.shape != (k, d, d):
         raise ValueError("pairs, measured and weights must describe the same pairs")
     if not np.isfinite(W0).all():
@@ -77,7 +74,7 @@ def solve_pair_differences(
         raise ValueError("weights must be non-negative")
     use = tr > 0
     graph = coo_matrix((np.ones(int(use.sum())), (pairs[use, 0], pairs[use, 1])), shape=(n, n))
-    n_comp, comp = connected_components(graph, directed=False)
+    _, comp = connected_components(graph, directed=False)
     factor = np.ones(k)
     x = np.zeros((n, d))
     res = m.copy()
@@ -116,8 +113,10 @@ def _solve(
     eps = 1e-9 * (scale if scale > 0 else 1.0)
     diag = np.arange(n * d)
     system = coo_matrix(
-        (np.concatenate([vals, np.full(n * d, eps)]),
-         (np.concatenate([rows, diag]), np.concatenate([cols, diag]))),
+        (
+            np.concatenate([vals, np.full(n * d, eps)]),
+            (np.concatenate([rows, diag]), np.concatenate([cols, diag])),
+        ),
         shape=(n * d, n * d),
     ).tocsc()
     rhs = np.zeros(n * d)

@@ -51,9 +51,7 @@ def overlapping_pairs(boxes: FloatArray, *, margin: float = 0.0) -> IntArray:
     return out
 
 
-def overlap_box(
-    box_a: FloatArray, box_b: FloatArray, *, margin: float = 0.0
-) -> FloatArray | None:
+def overlap_box(box_a: FloatArray, box_b: FloatArray, *, margin: float = 0.0) -> FloatArray | None:
     """Intersection ``(xmin, ymin, xmax, ymax)`` of two boxes grown by ``margin``, or None."""
     lo = np.maximum(box_a[:2], box_b[:2]) - margin
     hi = np.minimum(box_a[2:], box_b[2:]) + margin

@@ -56,8 +56,10 @@ class PaperResult:
 def _inside(points: FloatArray, lo: FloatArray, hi: FloatArray) -> IntArray:
     """Indices of points whose XY lies in the box ``[lo, hi]``."""
     ok = (
-        (points[:, 0] >= lo[0]) & (points[:, 0] <= hi[0])
-        & (points[:, 1] >= lo[1]) & (points[:, 1] <= hi[1])
+        (points[:, 0] >= lo[0])
+        & (points[:, 0] <= hi[0])
+        & (points[:, 1] >= lo[1])
+        & (points[:, 1] <= hi[1])
     )
     out: IntArray = np.flatnonzero(ok)
     return out
@@ -135,8 +137,12 @@ def paper_gpa_icp(
                 continue
             # queries moved into the other cloud's own frame; "no neighbour within reach" comes
             # back as index len(cloud), mapped to -1 below
-            _, nn_ab = trees[b].query((wa[ia] - s[b]) @ R[b], distance_upper_bound=reach, workers=-1)
-            _, nn_ba = trees[a].query((wb[ib] - s[a]) @ R[a], distance_upper_bound=reach, workers=-1)
+            _, nn_ab = trees[b].query(
+                (wa[ia] - s[b]) @ R[b], distance_upper_bound=reach, workers=-1
+            )
+            _, nn_ba = trees[a].query(
+                (wb[ib] - s[a]) @ R[a], distance_upper_bound=reach, workers=-1
+            )
             # map to window-local indices so the mutual test compares like with like
             pos_b = np.full(len(wb) + 1, -1, dtype=np.intp)
             pos_b[ib] = np.arange(len(ib))

@@ -53,7 +53,7 @@ def render_preview(before: Mosaic, after: Mosaic, *, size: int = 420) -> UInt8Ar
     """An RGB image: before | after | colour bar (nm), with titles and a scale bar."""
     both = np.concatenate([before.heights.ravel(), after.heights.ravel()])
     both = both[np.isfinite(both)]
-    lo, hi = (np.percentile(both, [1, 99]) if both.size else (0.0, 1.0))
+    lo, hi = np.percentile(both, [1, 99]) if both.size else (0.0, 1.0)
     hi = hi if hi > lo else lo + 1e-9
     panels = [_fit(m.heights, size) for m in (before, after)]
     ph = max(p.shape[0] for p in panels)

@@ -36,8 +36,8 @@ from numpy.typing import NDArray
 from scipy.sparse import coo_matrix
 from scipy.sparse.linalg import spsolve
 
-from merge.errors import MergeCancelled
 from merge.coarse import signal_information
+from merge.errors import MergeCancelled
 from merge.heightfield import slopes, smooth_nan
 from merge.noise import estimate_noise
 from merge.patchset import Patch
@@ -125,7 +125,11 @@ class _Bank:
             ii, jj = ii[keep], jj[keep]
             pts.append(
                 np.column_stack(
-                    [self.x0[c] + jj * self.dx[c] - cx, self.y0[c] + ii * self.dy[c] - cy, hl[ii, jj]]
+                    [
+                        self.x0[c] + jj * self.dx[c] - cx,
+                        self.y0[c] + ii * self.dy[c] - cy,
+                        hl[ii, jj],
+                    ]
                 )
             )
             owner.append(np.full(len(ii), c, dtype=np.intp))
@@ -175,7 +179,10 @@ class _Bank:
                 hi = loc[:, :2].max(axis=0) + margin
                 p = self.points[self.point_start[src] : self.point_start[src + 1]]
                 sel = np.flatnonzero(
-                    (p[:, 0] >= lo[0]) & (p[:, 0] <= hi[0]) & (p[:, 1] >= lo[1]) & (p[:, 1] <= hi[1])
+                    (p[:, 0] >= lo[0])
+                    & (p[:, 0] <= hi[0])
+                    & (p[:, 1] >= lo[1])
+                    & (p[:, 1] <= hi[1])
                 )
                 if len(sel) == 0:
                     continue
@@ -413,7 +420,9 @@ def _normal_system(
     np.add.at(diag, a_seg, Baa)
     ii, jj = np.meshgrid(np.arange(6), np.arange(6), indexing="ij")
 
-    def triplets(ra: IntArray, cb: IntArray, blk: FloatArray) -> tuple[IntArray, ...]:
+    def triplets(
+        ra: IntArray, cb: IntArray, blk: FloatArray
+    ) -> tuple[IntArray, IntArray, FloatArray]:
         return (
             (ra[:, None, None] * 6 + ii).ravel(),
             (cb[:, None, None] * 6 + jj).ravel(),
@@ -490,7 +499,10 @@ def _solve(system: _System, plane: FloatArray, prior: float) -> FloatArray:
         g[:, 4:] -= k * plane
     idx = np.arange(6 * n)
     M = coo_matrix(
-        (np.concatenate([vals, lam.ravel()]), (np.concatenate([rows, idx]), np.concatenate([cols, idx]))),
+        (
+            np.concatenate([vals, lam.ravel()]),
+            (np.concatenate([rows, idx]), np.concatenate([cols, idx])),
+        ),
         shape=(6 * n, 6 * n),
     ).tocsc()
     x = spsolve(M, g.ravel())
@@ -509,7 +521,9 @@ def assess(
     bank = _Bank(patches, scale, 0.0, 1)
     state = _State.from_transforms(transforms, bank, scale)
     margin = 3.0 * float(max(bank.dx.max(), bank.dy.max()))
-    cand = bank.candidates(np.asarray(pairs, dtype=np.intp).reshape(-1, 2), state.R, state.s, margin)
+    cand = bank.candidates(
+        np.asarray(pairs, dtype=np.intp).reshape(-1, 2), state.R, state.s, margin
+    )
     system = _normal_system(bank, cand, state, _noise(patches, scale))
     return _fits(system, len(patches), scale, _noise(patches, scale))
 
@@ -525,14 +539,16 @@ def _fits(stats: _System | None, n: int, scale: float, noise: float) -> list[Pat
             out.append(PatchFit(0, float("nan"), float("inf"), float("inf")))
             continue
         rms = float(np.sqrt(stats.sq[c] / k))
-        info = stats.diag[c].copy()
-        # Slopes of noise are not texture: remove their expected share (a central difference
-        # of white noise has variance σ²/2 per pixel) from the XY information.
-        info[:2, :2] = signal_information(info[:2, :2], k * noise**2 / 2.0)
+        info = stats.diag[c] + 1e-9 * np.trace(stats.diag[c]) * np.eye(6)
         try:
-            cov = np.linalg.inv(info + 1e-9 * np.trace(info) * np.eye(6))[:3, :3] * rms**2
-            xy = float(np.sqrt(max(np.linalg.eigvalsh(cov[:2, :2]).max(), 0.0)))
-            z = float(np.sqrt(max(cov[2, 2], 0.0)))
+            # marginal information of the XY translation (all other unknowns free), without the
+            # share that slopes of noise contribute (a central difference of white noise has
+            # variance σ²/2 per pixel): noise is not texture
+            xy_info = info[:2, :2] - info[:2, 2:] @ np.linalg.solve(info[2:, 2:], info[2:, :2])
+            xy_info = signal_information(xy_info, k * noise**2 / 2.0)
+            vals = np.linalg.eigvalsh(xy_info)
+            xy = float(rms / np.sqrt(vals.min())) if vals.min() > 0 else float("inf")
+            z = float(rms * np.sqrt(max(np.linalg.inv(info)[2, 2], 0.0)))
         except np.linalg.LinAlgError:
             xy, z = float("inf"), float("inf")
         out.append(PatchFit(int(k), rms * scale, xy * scale, z * scale))

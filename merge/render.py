@@ -3,9 +3,10 @@
 For every node ``(X, Y)`` of the mosaic grid and every patch that covers it, the patch point whose
 transform lands there is found by inverting the transform (:class:`PatchTransform`) with
 ``p = (x, y, h(x, y))``: its drift plane moves heights only, so XY inverts through the rigid part
-(with a few fixed-point rounds on the height when the rotation tilts). The patch is interpolated bilinearly there (never
-dropped into the nearest cell), and overlapping patches are blended with weights that fall
-smoothly to zero at each patch's border, so no seam is left where registrations differ by noise.
+(with a few fixed-point rounds on the height when the rotation tilts). The patch is interpolated
+bilinearly there (never dropped into the nearest cell), and overlapping patches are blended with
+weights that fall smoothly to zero at each patch's border, so no seam is left where registrations
+differ by noise.
 """
 
 from __future__ import annotations

@@ -69,7 +69,11 @@ def result_document(result: MergeResult, patch_set: PatchSet | None = None) -> d
 
 
 def write_result(
-    result: MergeResult, folder: str | Path, *, patch_set: PatchSet | None = None, preview: bool = True
+    result: MergeResult,
+    folder: str | Path,
+    *,
+    patch_set: PatchSet | None = None,
+    preview: bool = True,
 ) -> Path:
     """Write the result files into ``folder`` (created if needed); return ``mosaic.json``'s path.
 

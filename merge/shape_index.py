@@ -68,9 +68,9 @@ def principal_curvatures(
             d((1, 1)) / spacing**2,
         )
     else:
-        hy, hx = np.gradient(h, spacing)
-        hyy, hyx = np.gradient(hy, spacing)
-        hxy_, hxx = np.gradient(hx, spacing)
+        hy, hx = (np.asarray(v, dtype=np.float64) for v in np.gradient(h, spacing))
+        hyy, hyx = (np.asarray(v, dtype=np.float64) for v in np.gradient(hy, spacing))
+        hxy_, hxx = (np.asarray(v, dtype=np.float64) for v in np.gradient(hx, spacing))
         hxy = 0.5 * (hyx + hxy_)
     g2 = 1.0 + hx**2 + hy**2
     gauss = (hxx * hyy - hxy**2) / g2**2

@@ -29,7 +29,7 @@ def rotation_from_vector(omega: FloatArray) -> FloatArray:
     if w.shape[-1] != 3:
         raise ValueError(f"rotation vectors need a last axis of 3, got shape {w.shape}")
     theta = np.linalg.norm(w, axis=-1)[..., None, None]
-    k = np.zeros(w.shape[:-1] + (3, 3))
+    k = np.zeros((*w.shape[:-1], 3, 3))
     k[..., 0, 1], k[..., 0, 2] = -w[..., 2], w[..., 1]
     k[..., 1, 0], k[..., 1, 2] = w[..., 2], -w[..., 0]
     k[..., 2, 0], k[..., 2, 1] = -w[..., 1], w[..., 0]
@@ -113,8 +113,12 @@ class PatchTransform:
     ) -> None:
         self.R = np.eye(3) if R is None else np.asarray(R, dtype=np.float64).reshape(3, 3)
         self.t = np.zeros(3) if t is None else np.asarray(t, dtype=np.float64).reshape(3)
-        self.slope = np.zeros(2) if slope is None else np.asarray(slope, dtype=np.float64).reshape(2)
-        self.centre = np.zeros(2) if centre is None else np.asarray(centre, dtype=np.float64).reshape(2)
+        self.slope = (
+            np.zeros(2) if slope is None else np.asarray(slope, dtype=np.float64).reshape(2)
+        )
+        self.centre = (
+            np.zeros(2) if centre is None else np.asarray(centre, dtype=np.float64).reshape(2)
+        )
 
     def apply(self, points: FloatArray) -> FloatArray:
         """Map ``(m, 3)`` nominal patch points to the mosaic frame."""
@@ -137,4 +141,6 @@ class PatchTransform:
         return weighted_rigid_transform(p, self.apply(p))
 
     def __repr__(self) -> str:
-        return f"PatchTransform(R={self.R.tolist()}, t={self.t.tolist()}, slope={self.slope.tolist()})"
+        return (
+            f"PatchTransform(R={self.R.tolist()}, t={self.t.tolist()}, slope={self.slope.tolist()})"
+        )

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import sys
 import time
 from typing import TextIO
@@ -12,16 +13,18 @@ class UsageError(Exception):
 
 
 def float_pair(text: str) -> tuple[float, float]:
-    """``"a,b"`` (or one number for both) as two floats."""
+    """``"a,b"`` (or one number for both) as two floats (an argparse type)."""
     parts = [p for p in text.replace(" ", "").split(",") if p]
     try:
         vals = [float(p) for p in parts]
     except ValueError:
-        raise UsageError(f"expected one or two numbers like 0.5,0.33, got {text!r}") from None
+        raise argparse.ArgumentTypeError(
+            f"expected one or two numbers like 0.5,0.33, got {text!r}"
+        ) from None
     if len(vals) == 1:
         vals = vals * 2
     if len(vals) != 2:
-        raise UsageError(f"expected one or two numbers like 0.5,0.33, got {text!r}")
+        raise argparse.ArgumentTypeError(f"expected one or two numbers like 0.5,0.33, got {text!r}")
     return vals[0], vals[1]
 
 
@@ -29,7 +32,7 @@ def int_pair(text: str) -> tuple[int, int]:
     """``"nx,ny"`` (or one number for both) as two integers."""
     a, b = float_pair(text)
     if a != int(a) or b != int(b):
-        raise UsageError(f"expected whole numbers like 30,60, got {text!r}")
+        raise argparse.ArgumentTypeError(f"expected whole numbers like 30,60, got {text!r}")
     return int(a), int(b)
 
 
@@ -50,11 +53,14 @@ class ProgressBar:
             filled = int(30 * frac)
             bar = "#" * filled + "-" * (30 - filled)
             self.stream.write(
-                f"\r{self.label} [{bar}] iteration {iteration:4d}  residual {residual * 1e9:8.3f} nm"
+                f"\r{self.label} [{bar}] iteration {iteration:4d}"
+                f"  residual {residual * 1e9:8.3f} nm"
             )
             self.stream.flush()
         elif now - self.last > 1.0:
-            self.stream.write(f"{self.label}: iteration {iteration}, residual {residual * 1e9:.3f} nm\n")
+            self.stream.write(
+                f"{self.label}: iteration {iteration}, residual {residual * 1e9:.3f} nm\n"
+            )
             self.last = now
 
     def close(self) -> None:

@@ -27,7 +27,9 @@ def add_parser(sub: Any) -> None:
         help="default: robust start + full-resolution point-to-plane GPA; paper: the published "
         "GPA-ICP; nominal: no correction; zlevel: Z offsets only",
     )
-    p.add_argument("--cell", type=float, help="down-sampling cell, metres (default: raster spacing)")
+    p.add_argument(
+        "--cell", type=float, help="down-sampling cell, metres (default: raster spacing)"
+    )
     p.add_argument("--max-iter", type=int, help="iteration cap")
     p.add_argument("--max-shift", type=float, help="largest stage error searched, metres")
     p.add_argument("--pixel", type=float_pair, help="mosaic pixel size dx[,dy], metres")
@@ -66,8 +68,9 @@ def run(args: argparse.Namespace) -> int:
     ny, nx = result.mosaic.heights.shape
     rms = [r.residual_rms for r in result.patches if r.correspondences]
     residual = f"{np.median(rms) * 1e9:.2f} nm" if rms else "n/a"
+    elapsed = time.perf_counter() - start
     print(
-        f"merged {len(patch_set)} patches ({result.method}) in {time.perf_counter() - start:.1f} s: "
+        f"merged {len(patch_set)} patches ({result.method}) in {elapsed:.1f} s: "
         f"{result.iterations} iterations, {'converged' if result.converged else 'not converged'}, "
         f"median patch residual {residual}, mosaic {nx} x {ny} px -> {args.out}"
     )

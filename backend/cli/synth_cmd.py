@@ -23,15 +23,21 @@ def add_parser(sub: Any) -> None:
     )
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument(
-        "--surface", default="chessboard", choices=["chessboard", "folded", "image"],
+        "--surface",
+        default="chessboard",
+        choices=["chessboard", "folded", "image"],
         help="TGX1-like chessboard, folded organic surface, or a height image (--image)",
     )
     p.add_argument("--image", help="2-D .npy height image in metres (rows along y)")
     p.add_argument("--image-pixel", type=float_pair, help="pixel size of --image dx[,dy], metres")
     p.add_argument("--rows", type=int, default=5)
     p.add_argument("--cols", type=int, default=10)
-    p.add_argument("--patch", type=float_pair, default=(0.6e-6, 1.2e-6),
-                   help="patch scan range width,height in metres (default 0.6e-6,1.2e-6)")
+    p.add_argument(
+        "--patch",
+        type=float_pair,
+        default=(0.6e-6, 1.2e-6),
+        help="patch scan range width,height in metres (default 0.6e-6,1.2e-6)",
+    )
     p.add_argument("--pixels", type=int_pair, default=(30, 60), help="pixels per patch nx,ny")
     p.add_argument("--overlap", type=float_pair, default=(0.5, 1 / 3), help="overlap fractions")
     p.add_argument("--start", type=float_pair, default=(0.0, 0.0), help="origin of patch 0, m")
@@ -88,8 +94,15 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError("some patches fall outside the image: reduce --rows/--cols or --patch")
     out = Path(args.out)
     patch_set = PatchSet(
-        Patch(id=s.id, heights=s.heights, origin=s.origin, pixel_size=s.pixel_size,
-              order=s.order, row=s.row, col=s.col)
+        Patch(
+            id=s.id,
+            heights=s.heights,
+            origin=s.origin,
+            pixel_size=s.pixel_size,
+            order=s.order,
+            row=s.row,
+            col=s.col,
+        )
         for s in synth
     )
     write_patch_set(patch_set, out)
@@ -112,11 +125,17 @@ def run(args: argparse.Namespace) -> int:
         "truth_surface": {"file": "truth.npy", "origin": [x0, y0], "pixel_size": [dx, dy]},
         "z_drift_model": "z_true = (R p + t)_z - z_drift * (s - 0.5), s = scan-time fraction",
         "patches": [
-            {"id": s.id, "rotation": s.rotation.tolist(), "translation": s.translation.tolist(),
-             "z_drift": s.z_drift}
+            {
+                "id": s.id,
+                "rotation": s.rotation.tolist(),
+                "translation": s.translation.tolist(),
+                "z_drift": s.z_drift,
+            }
             for s in synth
         ],
     }
     (out / "truth.json").write_text(json.dumps(truth, indent=1) + "\n", encoding="utf-8")
-    print(f"wrote {len(synth)} patches ({args.surface}, drift {args.drift}) to {out}", file=sys.stderr)
+    print(
+        f"wrote {len(synth)} patches ({args.surface}, drift {args.drift}) to {out}", file=sys.stderr
+    )
     return 0

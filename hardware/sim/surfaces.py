@@ -225,7 +225,9 @@ class ImageSurface:
         u = (xa - self.origin[0]) / self.pixel_size[0]
         v = (ya - self.origin[1]) / self.pixel_size[1]
         coords = np.stack([v.ravel(), u.ravel()])
-        vals = ndimage.map_coordinates(self._coeffs, coords, order=3, mode="mirror", prefilter=False)
+        vals = ndimage.map_coordinates(
+            self._coeffs, coords, order=3, mode="mirror", prefilter=False
+        )
         ny, nx = self.heights.shape
         inside = (u >= -1e-9) & (u <= nx - 1 + 1e-9) & (v >= -1e-9) & (v <= ny - 1 + 1e-9)
         out: FloatArray = np.where(inside, vals.reshape(xa.shape), np.nan)

@@ -1,0 +1,93 @@
+"""The CLI end to end: synth, merge, and every bad input as a one-line error with exit 2."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from backend.cli import main
+
+
+@pytest.fixture(scope="module")
+def patch_folder(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("synth")
+    code = main(
+        [
+            "synth",
+            "--out",
+            str(out),
+            "--surface",
+            "folded",
+            "--rows",
+            "2",
+            "--cols",
+            "3",
+            "--patch",
+            "0.8e-6",
+            "--pixels",
+            "40",
+            "--overlap",
+            "0.4",
+            "--seed",
+            "3",
+        ]
+    )
+    assert code == 0
+    return out
+
+
+def test_synth_writes_a_patch_set_with_its_truth(patch_folder: Path) -> None:
+    manifest = json.loads((patch_folder / "manifest.json").read_text())
+    assert manifest["format"] == "mosaic-afm/patchset@1"
+    assert len(manifest["patches"]) == 6
+    truth = json.loads((patch_folder / "truth.json").read_text())
+    assert len(truth["patches"]) == 6
+    assert np.load(patch_folder / "truth.npy").ndim == 2
+
+
+def test_merge_writes_the_result_and_a_summary(
+    patch_folder: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    code = main(["merge", str(patch_folder / "manifest.json"), "--out", str(tmp_path)])
+    assert code == 0
+    out = capsys.readouterr()
+    assert out.out.startswith("merged 6 patches (default)")
+    assert "converged" in out.out
+    for name in ("mosaic.npy", "mosaic.json", "preview.png"):
+        assert (tmp_path / name).is_file()
+
+
+@pytest.mark.parametrize(
+    "args",
+    [
+        ["merge", "/no/such/manifest.json", "--out", "{tmp}"],
+        ["merge", "{patches}/manifest.json", "--out", "{tmp}", "--cell", "-1"],
+        ["merge", "{patches}/manifest.json", "--out", "{tmp}", "--max-iter", "0"],
+        ["synth", "--out", "{tmp}", "--rows", "1", "--cols", "1"],
+        ["synth", "--out", "{tmp}", "--overlap", "1.5"],
+        ["synth", "--out", "{tmp}", "--surface", "image"],
+        ["synth", "--out", "{tmp}", "--pixels", "4,x"],
+    ],
+)
+def test_bad_input_is_a_message_and_exit_2(
+    args: list[str], patch_folder: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    argv = [a.format(tmp=tmp_path / "o", patches=patch_folder) for a in args]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert "error:" in err and "Traceback" not in err
+
+
+def test_a_broken_patch_file_is_named(
+    patch_folder: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    bad = tmp_path / "set"
+    bad.mkdir()
+    for f in patch_folder.iterdir():
+        (bad / f.name).write_bytes(f.read_bytes())
+    (bad / "p002.npy").write_bytes(b"garbage")
+    assert main(["merge", str(bad / "manifest.json"), "--out", str(tmp_path / "o")]) == 2
+    assert "patch 'p002'" in capsys.readouterr().err

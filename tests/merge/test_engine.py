@@ -1,0 +1,100 @@
+"""The whole merge on small synthetic mosaics with known truth."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from merge import MergeCancelled, MergeConfig, Patch, PatchSet, run
+from tests.conftest import Synthetic
+
+
+def test_default_method_recovers_the_truth(small_mosaic: Synthetic) -> None:
+    steps: list[tuple[int, float]] = []
+    result = run(small_mosaic.patch_set, progress=lambda i, r: steps.append((i, r)))
+    exy, ez = small_mosaic.registration_error(result.transforms)
+    nominal = small_mosaic.registration_error(
+        run(small_mosaic.patch_set, MergeConfig(method="nominal")).transforms
+    )
+    assert nominal[0] > 20e-9 and nominal[1] > 20e-9  # the drift was real
+    assert exy < 1.5e-9
+    assert ez < 1.0e-9
+    assert result.converged
+    assert [i for i, _ in steps] == list(range(1, len(steps) + 1))
+    assert all(p.xy_constrained and p.correspondences > 0 for p in result.patches)
+    assert all(p.residual_rms < 3e-9 for p in result.patches)
+    assert np.isfinite(result.mosaic.heights).mean() > 0.9
+
+
+def test_z_levelling_removes_the_staircase_but_not_xy(small_mosaic: Synthetic) -> None:
+    zlev = run(small_mosaic.patch_set, MergeConfig(method="zlevel"))
+    exy, ez = small_mosaic.registration_error(zlev.transforms)
+    assert ez < 15e-9 and exy > 10e-9
+    assert zlev.iterations == 0
+
+
+def test_paper_method_improves_on_the_start(small_mosaic: Synthetic) -> None:
+    paper = run(small_mosaic.patch_set, MergeConfig(method="paper", max_iter=30))
+    exy, ez = small_mosaic.registration_error(paper.transforms)
+    assert exy < 10e-9 and ez < 3e-9
+    assert 1 <= paper.iterations <= 30
+    assert len(paper.history) >= 1
+
+
+def test_cancel_stops_the_merge(small_mosaic: Synthetic) -> None:
+    calls = {"n": 0}
+
+    def cancel() -> bool:
+        calls["n"] += 1
+        return calls["n"] > 2
+
+    with pytest.raises(MergeCancelled):
+        run(small_mosaic.patch_set, cancel=cancel)
+
+
+def test_a_patch_that_overlaps_nothing_stays_nominal(small_mosaic: Synthetic) -> None:
+    far = Patch(
+        id="far",
+        heights=np.random.default_rng(0).normal(size=(20, 20)) * 1e-9,
+        origin=(50e-6, 50e-6),
+        pixel_size=(2e-8, 2e-8),
+        order=99,
+    )
+    result = run(PatchSet([*small_mosaic.patch_set, far]))
+    report = {p.id: p for p in result.patches}["far"]
+    assert not report.overlaps
+    assert any("'far' overlaps no other patch" in w for w in result.warnings)
+    assert np.abs(report.transform.t[:2]).max() < 1e-6  # only the gauge's common shift
+
+
+def test_flat_overlaps_constrain_z_but_not_xy() -> None:
+    rng = np.random.default_rng(4)
+    patches = [
+        Patch(
+            id=f"f{k}",
+            heights=rng.normal(0, 1e-9, (30, 30)) + 5e-9 * k,
+            origin=(k * 3e-7, 0.0),
+            pixel_size=(2e-8, 2e-8),
+            order=k,
+        )
+        for k in range(3)
+    ]
+    result = run(PatchSet(patches))
+    assert not any(p.xy_constrained for p in result.patches)
+    assert any("constrain Z but not XY" in w for w in result.warnings)
+    z = [p.transform.t[2] for p in result.patches]
+    assert z[1] - z[0] == pytest.approx(-5e-9, abs=0.3e-9)  # the Z staircase is still removed
+
+
+def test_config_is_validated() -> None:
+    for bad in (
+        {"method": "magic"},
+        {"cell": -1.0},
+        {"max_iter": 0},
+        {"max_shift": float("nan")},
+        {"init": "guess"},
+        {"pixel_size": (1e-8, 0.0)},
+        {"feather": 2.0},
+    ):
+        with pytest.raises(ValueError, match="must"):
+            MergeConfig(**bad)  # type: ignore[arg-type]

@@ -1,0 +1,47 @@
+import numpy as np
+import pytest
+from scipy.ndimage import gaussian_filter
+
+from merge.ncc import best_shift, masked_ncc
+
+
+def texture(seed: int, shape: tuple[int, int] = (60, 60)) -> np.ndarray:
+    out: np.ndarray = gaussian_filter(np.random.default_rng(seed).normal(size=shape), 2)
+    return out
+
+
+def test_finds_the_shift_whatever_the_offset_and_gain() -> None:
+    big = texture(1, (80, 80))
+    a = big[10:50, 10:50]
+    b = 3.0 * big[14:54, 7:47] + 100.0  # b[y, x] = a[y + 4, x - 3]: shift (-4, 3)
+    peak = best_shift(a, b, min_overlap=200)
+    assert peak is not None
+    assert peak.integer_shift == (-4, 3)
+    assert peak.score == pytest.approx(1.0, abs=1e-6)
+    assert peak.overlap == 36 * 37
+
+
+def test_missing_pixels_do_not_bias_the_score() -> None:
+    big = texture(2, (80, 80))
+    a = big[10:50, 10:50].copy()
+    b = big[12:52, 10:50].copy()
+    a[5:15, 5:15] = np.nan
+    b[20:30, :] = np.nan
+    peak = best_shift(a, b, min_overlap=100)
+    assert peak is not None and peak.integer_shift == (-2, 0)
+
+
+def test_radius_limits_the_search_and_flags_the_border() -> None:
+    big = texture(3, (80, 80))
+    a, b = big[10:50, 10:50], big[18:58, 10:50]  # true shift (-8, 0)
+    peak = best_shift(a, b, expected=(0, 0), radius=(3, 3), min_overlap=100)
+    assert peak is not None and peak.at_border
+
+
+def test_channels_are_averaged() -> None:
+    a = texture(4, (30, 30))
+    ncc, count, zero = masked_ncc(np.stack([a, a]), np.stack([a, -a]), weights=[1, 1])
+    assert ncc[zero] == pytest.approx(0.0, abs=1e-9)
+    assert count[zero] == 900
+    with pytest.raises(ValueError, match="channel"):
+        masked_ncc(np.stack([a, a]), a[None])
