@@ -22,7 +22,7 @@ from numpy.typing import NDArray
 
 from merge.downsample import GridSample, grid_downsample
 from merge.heightfield import smooth_nan
-from merge.ncc import best_shift
+from merge.ncc import CorrelationPeak, best_shift, find_peak, masked_ncc
 from merge.network import solve_pair_differences
 from merge.noise import estimate_noise
 from merge.patchset import Patch
@@ -32,6 +32,14 @@ IntArray = NDArray[np.intp]
 
 #: NCC below this says nothing reliable about XY.
 MIN_SCORE = 0.3
+#: NCC given up at the search radius to break ties toward the expected shift (see find_peak).
+SHIFT_PRIOR = 0.05
+#: Best precision of a correlation peak, cells.
+PRECISION = 0.1
+#: Information along an edge below this fraction of that across it counts as none.
+APERTURE = 0.01
+#: Pairs correlated together through one set of FFTs.
+BATCH = 64
 #: Weights of the correlated channels: heights, x slope, y slope.
 CHANNEL_WEIGHTS = (0.5, 0.25, 0.25)
 #: Pairs overlapping nominally by fewer cells than this along either axis are not correlated.
@@ -87,6 +95,24 @@ def _remove_common_plane(grids: Sequence[GridSample]) -> list[FloatArray]:
     return out
 
 
+def _drop_unconstrained(x: FloatArray, pairs: IntArray, W: FloatArray) -> FloatArray:
+    """Zero each patch's offset along directions its pairs hardly measure, all taken together.
+
+    The pairs of a patch on a 1-D structure (a grating's stripes, a single straight edge) all
+    measure nearly the same direction; their small differences in angle would otherwise turn
+    their errors across the edge into large, meaningless offsets along it.
+    """
+    info = np.zeros((len(x), 2, 2))
+    np.add.at(info, pairs[:, 0], W)
+    np.add.at(info, pairs[:, 1], W)
+    out = x.copy()
+    for c in range(len(x)):
+        vals, vecs = np.linalg.eigh(info[c])
+        weak = vecs[:, vals < APERTURE * max(vals.max(), 0.0)]
+        out[c] -= weak @ (weak.T @ x[c])
+    return out
+
+
 def _channels(levelled: FloatArray) -> FloatArray:
     """What is correlated: the heights and their slopes (after one cell of smoothing).
 
@@ -99,7 +125,11 @@ def _channels(levelled: FloatArray) -> FloatArray:
 
 
 def _information(a: FloatArray, b: FloatArray, shift: tuple[int, int], sigma: float) -> FloatArray:
-    """XY information (per cell², 2 x 2, order x, y) of a shift: structure tensor of the overlap."""
+    """XY information (per cell², 2 x 2, order x, y) of a shift: structure tensor of the overlap.
+
+    Capped at ``1 / PRECISION²``: a correlation peak on a lattice is never better than a tenth
+    of a cell (discretisation, interpolation bias), however sharp the edges.
+    """
     dy, dx = shift
     ha, wa = a.shape
     hb, wb = b.shape
@@ -113,12 +143,19 @@ def _information(a: FloatArray, b: FloatArray, shift: tuple[int, int], sigma: fl
     tensor = np.array([[gx @ gx, gx @ gy], [gx @ gy, gy @ gy]])
     # Noise is not texture: a central difference of white noise has variance σ²/2, which would
     # otherwise claim precision along a straight edge (the aperture problem) or on a flat terrace.
-    return signal_information(tensor, gx.size * sigma**2 / 2.0) / (2.0 * sigma**2)
+    info = signal_information(tensor, gx.size * sigma**2 / 2.0) / (2.0 * sigma**2)
+    # A direction with a tiny share of the information is not measured at all: pairs whose
+    # nearly parallel edges are combined would otherwise amplify their errors along the edges.
+    vals, vecs = np.linalg.eigh(info)
+    vals = np.where(vals >= APERTURE * vals.max(), np.minimum(vals, PRECISION**-2), 0.0)
+    out: FloatArray = (vecs * vals) @ vecs.T
+    return out
 
 
-def signal_information(tensor: FloatArray, noise_part: float) -> FloatArray:
-    """``tensor - noise_part * I``, projected onto the positive semi-definite matrices."""
-    vals, vecs = np.linalg.eigh(tensor - noise_part * np.eye(len(tensor)))
+def signal_information(tensor: FloatArray, noise_part: FloatArray | float) -> FloatArray:
+    """``tensor - diag(noise_part)``, projected onto the positive semi-definite matrices."""
+    noise = np.broadcast_to(np.asarray(noise_part, dtype=np.float64), (len(tensor),))
+    vals, vecs = np.linalg.eigh(tensor - np.diag(noise))
     out: FloatArray = (vecs * np.clip(vals, 0.0, None)) @ vecs.T
     return out
 
@@ -203,19 +240,13 @@ def coarse_start(
         a, b = pairs[i]
         return offs[a][0] - offs[b][0], offs[a][1] - offs[b][1]
 
-    def measure(i: int, centre: tuple[float, float], rad: float) -> None:
+    def measurable(i: int) -> bool:
+        a, b = pairs[i]
+        return bool(nominal_overlap[i] > 0 and textured[a] and textured[b])
+
+    def accept(i: int, peak: CorrelationPeak | None) -> None:
         a, b = pairs[i]
         xy_w[i] = 0.0
-        if nominal_overlap[i] == 0 or not (textured[a] and textured[b]):
-            return
-        peak = best_shift(
-            channels[a],
-            channels[b],
-            weights=CHANNEL_WEIGHTS,
-            expected=centre,
-            radius=(rad, rad),
-            min_overlap=max(16, int(MIN_OVERLAP_FRACTION * nominal_overlap[i])),
-        )
         if peak is None or peak.at_border or peak.score < MIN_SCORE:
             return
         e = expected(i)
@@ -224,12 +255,57 @@ def coarse_start(
         s_pair = float(np.hypot(sigma[a], sigma[b]) / np.sqrt(2.0))
         xy_w[i] = _information(levelled[a], levelled[b], peak.integer_shift, s_pair) / cell**2
 
+    def min_overlap(i: int) -> int:
+        return max(16, int(MIN_OVERLAP_FRACTION * nominal_overlap[i]))
+
+    def measure(i: int, centre: tuple[float, float], rad: float) -> None:
+        a, b = pairs[i]
+        peak = None
+        if measurable(i):
+            peak = best_shift(
+                channels[a],
+                channels[b],
+                weights=CHANNEL_WEIGHTS,
+                expected=centre,
+                radius=(rad, rad),
+                min_overlap=min_overlap(i),
+                prior=SHIFT_PRIOR,
+            )
+        accept(i, peak)
+
     translation = np.zeros((n, 3))
+    # every patch's stage error is a priori within about half the searched range
+    xy_prior = 1.0 / (0.5 * max_shift) ** 2
     if estimate_xy and k:
-        for i in range(k):
-            e = expected(i)
-            measure(i, (float(e[0]), float(e[1])), radius)
-        sol = solve_pair_differences(n, pairs, xy_m, xy_w)
+        # first pass: all measurable pairs, batched by image shapes through one set of FFTs
+        todo = [i for i in range(k) if measurable(i)]
+        groups: dict[tuple[tuple[int, ...], tuple[int, ...]], list[int]] = {}
+        for i in todo:
+            key = (channels[pairs[i, 0]].shape, channels[pairs[i, 1]].shape)
+            groups.setdefault(key, []).append(i)
+        for members in groups.values():
+            for lo in range(0, len(members), BATCH):
+                chunk = members[lo : lo + BATCH]
+                ncc, count, zero = masked_ncc(
+                    np.stack([channels[pairs[i, 0]] for i in chunk]),
+                    np.stack([channels[pairs[i, 1]] for i in chunk]),
+                    weights=CHANNEL_WEIGHTS,
+                )
+                for j, i in enumerate(chunk):
+                    e = expected(i)
+                    accept(
+                        i,
+                        find_peak(
+                            ncc[j],
+                            count[j],
+                            zero,
+                            expected=(float(e[0]), float(e[1])),
+                            radius=(radius, radius),
+                            min_overlap=min_overlap(i),
+                            prior=SHIFT_PRIOR,
+                        ),
+                    )
+        sol = solve_pair_differences(n, pairs, xy_m, xy_w, prior=xy_prior)
         # second pass: re-measure doubtful pairs near the shift the network predicts
         unmeasured = np.trace(xy_w, axis1=1, axis2=2) == 0
         redo = np.flatnonzero(unmeasured | (sol.robust < 0.2))
@@ -238,8 +314,8 @@ def coarse_start(
                 pred = sol.x[pairs[j, 0]] - sol.x[pairs[j, 1]]
                 e = expected(j)
                 measure(j, (e[0] + pred[1] / cell, e[1] + pred[0] / cell), 2.0)
-            sol = solve_pair_differences(n, pairs, xy_m, xy_w)
-        translation[:, :2] = sol.x
+            sol = solve_pair_differences(n, pairs, xy_m, xy_w, prior=xy_prior)
+        translation[:, :2] = _drop_unconstrained(sol.x, pairs, xy_w * sol.robust[:, None, None])
     # Z offsets at the XY the network settled on (nominal overlap when XY is not estimated)
     z_m, z_w = np.zeros(k), np.zeros(k)
     for i in range(k):

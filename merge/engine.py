@@ -88,6 +88,17 @@ def default_cell(patch_set: PatchSet) -> float:
     return max(max(p.pixel_size) for p in patch_set)
 
 
+#: The coarse start correlates patches of about this many cells along their shorter side.
+COARSE_CELLS = 32
+
+
+def coarse_cell(patch_set: PatchSet, cell: float) -> float:
+    """The cell of the coarse start: ``cell`` times a whole factor that brings the smaller patch
+    side down to about :data:`COARSE_CELLS` cells (the start needs about a pixel, not better)."""
+    side = min(min(p.extent) for p in patch_set)
+    return cell * max(1, round(side / cell / COARSE_CELLS))
+
+
 def default_max_shift(patch_set: PatchSet) -> float:
     """Half the smaller side of the smallest patch."""
     return 0.5 * min(min(p.extent) for p in patch_set)
@@ -131,7 +142,11 @@ def run(
     transforms = [PatchTransform() for _ in range(n)]
     if cfg.method != "nominal" and cfg.init == "auto" and len(pairs):
         start = coarse_start(
-            patches, pairs, cell=cell, max_shift=max_shift, estimate_xy=cfg.method != "zlevel"
+            patches,
+            pairs,
+            cell=coarse_cell(patch_set, cell),
+            max_shift=max_shift,
+            estimate_xy=cfg.method != "zlevel",
         )
         transforms = [PatchTransform(t=tc) for tc in start.translation]
     timings["start"] = time.perf_counter() - clock
@@ -146,7 +161,15 @@ def run(
                     Level(lv.smooth, lv.stride, max(1, min(lv.max_iter, cfg.max_iter)), lv.tol)
                     for lv in levels
                 )
-            fit = refine(patches, near, transforms, levels=levels, progress=progress, cancel=cancel)
+            fit = refine(
+                patches,
+                near,
+                transforms,
+                levels=levels,
+                shift_prior=0.25 * max_shift,
+                progress=progress,
+                cancel=cancel,
+            )
             transforms = fit.transforms
             iterations, converged, history = fit.iterations, fit.converged, fit.history
         else:

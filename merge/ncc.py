@@ -38,20 +38,21 @@ class CorrelationPeak:
 def masked_ncc(
     a: FloatArray, b: FloatArray, *, weights: Sequence[float] | None = None
 ) -> tuple[FloatArray, FloatArray, tuple[int, int]]:
-    """NCC and overlap count for every shift, averaged over channels.
+    """NCC and overlap count for every shift, averaged over channels; batches allowed.
 
     Parameters
     ----------
-    a, b : (h, w) or (channels, h, w) arrays
-        Images (or stacks of channels of the same images, e.g. heights and slopes); NaN marks
-        missing pixels. A pixel counts where every channel of its image is finite.
+    a, b : (h, w), (channels, h, w) or (batch, channels, h, w) arrays
+        Images (or stacks of channels of the same images, e.g. heights and slopes), or a batch
+        of such image pairs of equal shapes; NaN marks missing pixels. A pixel counts where
+        every channel of its image is finite.
     weights : sequence of float, keyword-only
         Weight of every channel in the average (default equal).
 
     Returns
     -------
-    ncc : (ha + hb - 1, wa + wb - 1) array
-        ``ncc[k, l]`` scores the shift ``(k - (ha - 1), l - (wa - 1))``; NaN where undefined.
+    ncc : ([batch,] ha + hb - 1, wa + wb - 1) array
+        ``ncc[..., k, l]`` scores the shift ``(k - (ha - 1), l - (wa - 1))``; NaN where undefined.
     count : same shape
         Number of overlapping valid pixels.
     zero : (ha - 1, wa - 1)
@@ -59,44 +60,45 @@ def masked_ncc(
     """
     a = np.asarray(a, dtype=np.float64)
     b = np.asarray(b, dtype=np.float64)
-    if a.ndim == 2:
-        a = a[None]
-    if b.ndim == 2:
-        b = b[None]
-    if a.ndim != 3 or b.ndim != 3 or len(a) != len(b):
+    single = a.ndim <= 3
+    a = a.reshape((1,) * (4 - a.ndim) + a.shape) if a.ndim < 4 else a
+    b = b.reshape((1,) * (4 - b.ndim) + b.shape) if b.ndim < 4 else b
+    if a.ndim != 4 or b.ndim != 4 or a.shape[:2] != b.shape[:2]:
         raise ValueError("masked_ncc needs two images (or stacks with the same channel count)")
-    w = np.ones(len(a)) if weights is None else np.asarray(weights, dtype=np.float64)
-    if w.shape != (len(a),) or (w < 0).any() or w.sum() <= 0:
+    nch = a.shape[1]
+    w = np.ones(nch) if weights is None else np.asarray(weights, dtype=np.float64)
+    if w.shape != (nch,) or (w < 0).any() or w.sum() <= 0:
         raise ValueError("weights must be one non-negative number per channel")
     w = w / w.sum()
-    ma: NDArray[np.bool_] = np.all(np.isfinite(a), axis=0)
-    mb: NDArray[np.bool_] = np.all(np.isfinite(b), axis=0)
-    _, ha, wa = a.shape
-    _, hb, wb = b.shape
+    ma: NDArray[np.bool_] = np.all(np.isfinite(a), axis=1)
+    mb: NDArray[np.bool_] = np.all(np.isfinite(b), axis=1)
+    ha, wa = a.shape[-2:]
+    hb, wb = b.shape[-2:]
     shape = (fft.next_fast_len(ha + hb - 1, real=True), fft.next_fast_len(wa + wb - 1, real=True))
     rows = np.r_[shape[0] - (ha - 1) : shape[0], 0:hb]
     cols = np.r_[shape[1] - (wa - 1) : shape[1], 0:wb]
 
     def F(x: FloatArray) -> NDArray[np.complex128]:
-        out: NDArray[np.complex128] = fft.rfft2(x, shape)
+        out: NDArray[np.complex128] = fft.rfft2(x, shape, axes=(-2, -1))
         return out
 
     def corr(x: NDArray[np.complex128], y: NDArray[np.complex128]) -> FloatArray:
         # reorder so index (ha - 1, wa - 1) is the zero shift, shifts from -(ha-1) to hb-1
-        full: FloatArray = fft.irfft2(np.conj(x) * y, shape)
-        out: FloatArray = full[np.ix_(rows, cols)]
+        full: FloatArray = fft.irfft2(np.conj(x) * y, shape, axes=(-2, -1))
+        out: FloatArray = full[..., rows[:, None], cols[None, :]]
         return out
 
     fma, fmb = F(ma.astype(np.float64)), F(mb.astype(np.float64))
     n = np.rint(corr(fma, fmb))
     total = np.zeros(n.shape)
-    for ca, cb, wk in zip(a, b, w, strict=True):
-        if wk == 0:
+    for ch in range(nch):
+        if w[ch] == 0:
             continue
+        ca, cb = a[:, ch], b[:, ch]
         # standardise so that sums of squares do not cancel catastrophically
-        a0 = np.where(ma, ca - ca[ma].mean(), 0.0)
-        b0 = np.where(mb, cb - cb[mb].mean(), 0.0)
-        scale = max(float(np.sqrt(np.mean(a0**2))), float(np.sqrt(np.mean(b0**2))), 1e-300)
+        a0 = np.where(ma, ca - _masked_mean(ca, ma), 0.0)
+        b0 = np.where(mb, cb - _masked_mean(cb, mb), 0.0)
+        scale = np.maximum(_rms(a0), _rms(b0))
         a0, b0 = a0 / scale, b0 / scale
         fa, fb = F(a0), F(b0)
         sa, sb = corr(fa, fmb), corr(fma, fb)
@@ -106,8 +108,22 @@ def masked_ncc(
             va = saa - sa**2 / n
             vb = sbb - sb**2 / n
             den = np.sqrt(np.clip(va, 0, None) * np.clip(vb, 0, None))
-            total += wk * np.where((n > 0) & (den > 1e-12 * n), num / den, np.nan)
-    return np.clip(total, -1.0, 1.0), n, (ha - 1, wa - 1)
+            total += w[ch] * np.where((n > 0) & (den > 1e-12 * n), num / den, np.nan)
+    ncc = np.clip(total, -1.0, 1.0)
+    if single:
+        return ncc[0], n[0], (ha - 1, wa - 1)
+    return ncc, n, (ha - 1, wa - 1)
+
+
+def _masked_mean(x: FloatArray, mask: NDArray[np.bool_]) -> FloatArray:
+    count = np.maximum(mask.sum(axis=(-2, -1), keepdims=True), 1)
+    out: FloatArray = np.where(mask, x, 0.0).sum(axis=(-2, -1), keepdims=True) / count
+    return out
+
+
+def _rms(x: FloatArray) -> FloatArray:
+    out: FloatArray = np.maximum(np.sqrt(np.mean(x**2, axis=(-2, -1), keepdims=True)), 1e-300)
+    return out
 
 
 def best_shift(
@@ -118,6 +134,7 @@ def best_shift(
     expected: tuple[float, float] = (0.0, 0.0),
     radius: tuple[float, float] | None = None,
     min_overlap: int = 16,
+    prior: float = 0.0,
 ) -> CorrelationPeak | None:
     """The NCC peak within ``radius`` (pixels per axis) of the ``expected`` shift ``(dy, dx)``.
 
@@ -128,6 +145,27 @@ def best_shift(
     shift qualifies.
     """
     ncc, count, zero = masked_ncc(a, b, weights=weights)
+    return find_peak(
+        ncc, count, zero, expected=expected, radius=radius, min_overlap=min_overlap, prior=prior
+    )
+
+
+def find_peak(
+    ncc: FloatArray,
+    count: FloatArray,
+    zero: tuple[int, int],
+    *,
+    expected: tuple[float, float] = (0.0, 0.0),
+    radius: tuple[float, float] | None = None,
+    min_overlap: int = 16,
+    prior: float = 0.0,
+) -> CorrelationPeak | None:
+    """The peak of one NCC map from :func:`masked_ncc` (see :func:`best_shift`).
+
+    ``prior`` is subtracted from the score at the edge of the search radius, quadratically
+    less closer in: among near-equal peaks (the ridge a straight edge or a grating draws along
+    its own direction) the one nearest the expected shift wins.
+    """
     ky = np.arange(ncc.shape[0]) - zero[0]
     kx = np.arange(ncc.shape[1]) - zero[1]
     ok = np.isfinite(ncc) & (count >= min_overlap)
@@ -137,6 +175,11 @@ def best_shift(
     if not ok.any():
         return None
     score = np.where(ok, ncc, -np.inf)
+    if prior > 0 and radius is not None:
+        d2 = ((ky - expected[0]) / max(radius[0], 1e-9))[:, None] ** 2 + (
+            (kx - expected[1]) / max(radius[1], 1e-9)
+        )[None, :] ** 2
+        score = score - prior * d2
     iy, ix = np.unravel_index(int(np.argmax(score)), score.shape)
     sub = [0.0, 0.0]
     border = False

@@ -38,6 +38,7 @@ def solve_pair_differences(
     *,
     scale_floor: float = 1.0,
     robust_iterations: int = 8,
+    prior: float = 0.0,
 ) -> NetworkSolution:
     """Solve ``x_a - x_b = m_ab`` for all pairs in the weighted, robust least-squares sense.
 
@@ -57,6 +58,10 @@ def solve_pair_differences(
         measurements (the Mahalanobis distance ``sqrt(r' W r)``).
     robust_iterations : int, keyword-only
         Iteratively re-weighted least-squares rounds (0 for plain least squares).
+    prior : float, keyword-only
+        Information (1 / σ²) of a prior holding every offset near zero. Directions no pair
+        measures (the stripes of a 1-D grating, a flat overlap) then stay at zero instead of
+        being left to round-off; 0 leaves only a numerical regulariser.
     """
     pairs = np.asarray(pairs, dtype=np.intp).reshape(-1, 2)
     m = np.asarray(measured, dtype=np.float64)
@@ -79,7 +84,7 @@ def solve_pair_differences(
     x = np.zeros((n, d))
     res = m.copy()
     for it in range(robust_iterations + 1):
-        x = _solve(n, pairs, m, W0 * factor[:, None, None])
+        x = _solve(n, pairs, m, W0 * factor[:, None, None], prior)
         res = m - (x[pairs[:, 0]] - x[pairs[:, 1]])
         if it == robust_iterations or not use.any():
             break
@@ -94,6 +99,7 @@ def _solve(
     pairs: IntArray,
     m: FloatArray,
     W: FloatArray,
+    prior: float,
 ) -> FloatArray:
     k, d = m.shape
     a, b = pairs[:, 0], pairs[:, 1]
@@ -107,10 +113,10 @@ def _solve(
     cols = np.concatenate([blk[1] for blk in blocks])
     vals = np.concatenate([blk[2] for blk in blocks])
     # Gauge. The right-hand side has no component along the null space of this block Laplacian
-    # (one constant offset per connected group), so a tiny Tikhonov term makes the system regular
-    # and leaves the solution with zero mean offset in every group; an isolated patch stays at 0.
+    # (one constant offset per connected group), so a small Tikhonov term (or the prior) makes
+    # the system regular and leaves every group with zero mean offset; an isolated patch stays 0.
     scale = float(np.abs(W).max()) if k else 1.0
-    eps = 1e-9 * (scale if scale > 0 else 1.0)
+    eps = max(prior, 1e-9 * (scale if scale > 0 else 1.0))
     diag = np.arange(n * d)
     system = coo_matrix(
         (

@@ -61,6 +61,8 @@ class Level:
 STALL = 1e-4
 #: Expected in-patch Z drift (metres, centre to corner) of the drift-plane prior.
 DRIFT_PRIOR = 5e-9
+#: Standard deviation (radians) of the prior on a patch's rotation about z.
+SPIN_PRIOR = np.radians(2.0)
 DEFAULT_LEVELS = (Level(smooth=1.0, stride=2, max_iter=10, tol=0.05), Level(0.0, 1, 30, 1e-3))
 
 
@@ -166,10 +168,12 @@ class _Bank:
         """Points of every source patch that may fall on every destination patch.
 
         Returns per row the source patch, destination patch and global point index, plus the
-        start of every directed pair's run of rows (runs are contiguous).
+        start of every pair's run of rows (runs are contiguous).
         """
         src_l, dst_l, idx_l, starts = [], [], [], [0]
-        for a, b in pairs:
+        # Both ways: the points of each patch against the other's surface, which averages the
+        # interpolation of either surface (Jacobians act on both patches of a pair).
+        for a, b in pairs.tolist():
             for src, dst in ((a, b), (b, a)):
                 # the destination's outline in the source's local frame
                 hx, hy = self.half[dst]
@@ -208,6 +212,7 @@ def refine(
     *,
     levels: Sequence[Level] = DEFAULT_LEVELS,
     drift_prior: float = DRIFT_PRIOR,
+    shift_prior: float = np.inf,
     progress: Progress | None = None,
     cancel: Callable[[], bool] | None = None,
 ) -> RefineResult:
@@ -226,6 +231,10 @@ def refine(
         Expected size of the in-patch Z drift, metres from the patch centre to its corner (a
         Gaussian prior on the drift plane). Overlaps pin down the differences of neighbouring
         planes well but a mosaic-wide bend only weakly; the prior keeps that bend out.
+    shift_prior : float, keyword-only
+        Standard deviation (metres) of a prior holding each patch's XY near its start. It only
+        matters where the data do not constrain XY (a flat overlap, the stripes of a 1-D
+        grating): there the patch stays at its start instead of wandering off.
     progress : callable(iteration, residual_rms_m), keyword-only
         Called after every iteration.
     cancel : callable() -> bool, keyword-only
@@ -241,9 +250,10 @@ def refine(
     stats: _System | None = None
     base = _Bank(patches, scale, 0.0, 1)
     state = _State.from_transforms(start, base, scale)
+    start_s = state.s.copy()
     for li, level in enumerate(levels):
         bank = _Bank(patches, scale, level.smooth, level.stride)
-        margin = 3.0 * float(max(bank.dx.max(), bank.dy.max()))
+        margin = 1.5 * float(max(bank.dx.max(), bank.dy.max()))
         cand = bank.candidates(pairs, state.R, state.s, margin)
         moved = 0.0
         level_converged = False
@@ -254,7 +264,15 @@ def refine(
             if moved > 0.5 * margin:
                 cand, moved = bank.candidates(pairs, state.R, state.s, margin), 0.0
             stats = _normal_system(bank, cand, state, noise)
-            delta = _solve(stats, state.slope * bank.radius[:, None], drift_prior / scale)
+            priors = _Priors(
+                plane=state.slope * bank.radius[:, None],
+                plane_sigma=drift_prior / scale,
+                shift=state.s[:, :2] - (start_s[:, :2] + bank.centre[:, :2] - base.centre[:, :2]),
+                shift_sigma=shift_prior / scale,
+                spin=state.spin() * bank.radius,
+                spin_sigma=SPIN_PRIOR * bank.radius,
+            )
+            delta = _solve(stats, priors)
             state.update(delta, bank.radius)
             state.fix_gauge(bank.centre, bank.point_start)
             motion = float(
@@ -274,7 +292,7 @@ def refine(
                 break
         if li == len(levels) - 1:
             converged = level_converged
-    fits = _fits(stats, n, scale, noise)
+    fits = _fits(stats, n, scale, noise, np.column_stack([base.dx, base.dy]))
     return RefineResult(
         transforms=state.to_transforms(base, scale),
         iterations=iteration,
@@ -316,6 +334,11 @@ class _State:
             out.append(PatchTransform(self.R[c], t, self.slope[c], centre[:2]))
         return out
 
+    def spin(self) -> FloatArray:
+        """Rotation angle about z of every patch, radians."""
+        out: FloatArray = np.arctan2(self.R[:, 1, 0], self.R[:, 0, 0])
+        return out
+
     def update(self, delta: FloatArray, radius: FloatArray) -> None:
         spin = np.zeros((len(delta), 3))
         spin[:, 2] = delta[:, 3] / radius
@@ -329,7 +352,7 @@ class _State:
         weight = weight / weight.sum()
         pivot = weight @ self.s
         spin = np.zeros(3)
-        spin[2] = -float(weight @ np.arctan2(self.R[:, 1, 0], self.R[:, 0, 0]))
+        spin[2] = -float(weight @ self.spin())
         G = rotation_from_vector(spin)
         self.R = np.einsum("ij,cjk->cik", G, self.R)
         self.s = (self.s - pivot) @ G.T + pivot
@@ -347,8 +370,8 @@ class _System:
     cols: IntArray
     vals: FloatArray
     g: FloatArray  # (n, 6)
-    count: FloatArray  # (n,) residuals where the patch is the source
-    sq: FloatArray  # (n,) sum of squared normal distances of those
+    count: FloatArray  # (n,) residuals that involve the patch
+    sq: FloatArray  # (n,) sum of their squared normal distances
     diag: FloatArray  # (n, 6, 6) the patch's own information block
     rms: float
     rscale: float = 0.0  # robust residual scale (pixel units)
@@ -395,8 +418,9 @@ def _normal_system(
     Ja = np.concatenate([m, spin / rho_s, p_src[:, :2] / rho_s], axis=1)
     seg = starts[:-1]
     a_seg, b_seg = src[seg], dst[seg]
-    count += np.bincount(src[ok], minlength=n)
-    sq += np.bincount(src, weights=d**2, minlength=n)
+    # every residual informs both patches of its pair
+    count += np.bincount(src[ok], minlength=n) + np.bincount(dst[ok], minlength=n)
+    sq += np.bincount(src, weights=d**2, minlength=n) + np.bincount(dst, weights=d**2, minlength=n)
     Baa, ga = _segment_sums(Ja, w, r, starts)
     # Within one directed pair the destination's Jacobian is a fixed linear map of the source's,
     # Jb = -T Ja (rotations about z): its spin arm is the source's plus Δ = s_a - s_b, and its
@@ -418,6 +442,7 @@ def _normal_system(
     np.add.at(g, a_seg, -ga)
     np.add.at(g, b_seg, np.einsum("kij,kj->ki", T, ga))
     np.add.at(diag, a_seg, Baa)
+    np.add.at(diag, b_seg, Bbb)
     ii, jj = np.meshgrid(np.arange(6), np.arange(6), indexing="ij")
 
     def triplets(
@@ -478,12 +503,23 @@ def _segment_sums(
     return B, grad
 
 
-def _solve(system: _System, plane: FloatArray, prior: float) -> FloatArray:
+@dataclass(frozen=True)
+class _Priors:
+    """Gaussian priors on the absolute state, in the scaled units of the unknowns (pixels)."""
+
+    plane: FloatArray  # (n, 2) drift plane times radius
+    plane_sigma: float
+    shift: FloatArray  # (n, 2) XY offset from the start
+    shift_sigma: float
+    spin: FloatArray  # (n,) rotation about z times radius
+    spin_sigma: FloatArray  # (n,)
+
+
+def _solve(system: _System, priors: _Priors) -> FloatArray:
     """Damped solution of the system: ``(n, 6)`` updates (translation, scaled spin and plane).
 
-    ``plane`` is every patch's current drift plane scaled by its radius (pixel units) and
-    ``prior`` the prior's standard deviation in the same unit: the prior ``|plane|² / prior²``
-    enters with the weight the data have per unit residual (``1 / residual scale²``).
+    A prior ``|value / sigma|²`` enters with the weight the data have per unit residual
+    (``1 / residual scale²``), so it is a proper posterior, not a tuning knob.
     """
     n = len(system.g)
     rows, cols, vals = system.rows, system.cols, system.vals
@@ -493,10 +529,16 @@ def _solve(system: _System, plane: FloatArray, prior: float) -> FloatArray:
     dvals = np.bincount(rows[on_diag], weights=vals[on_diag], minlength=6 * n).reshape(n, 6)
     lam = np.broadcast_to(1e-4 * dvals.max(axis=1, keepdims=True) + 1e-12, (n, 6)).copy()
     g = system.g.copy()
-    if prior > 0 and system.rscale > 0:
-        k = (system.rscale / prior) ** 2
-        lam[:, 4:] += k
-        g[:, 4:] -= k * plane
+    if system.rscale > 0:
+        r2 = system.rscale**2
+        for cols_, value, sigma in (
+            ([4, 5], priors.plane, np.full((n, 1), priors.plane_sigma)),
+            ([0, 1], priors.shift, np.full((n, 1), priors.shift_sigma)),
+            ([3], priors.spin[:, None], priors.spin_sigma[:, None]),
+        ):
+            k = r2 / np.asarray(sigma, dtype=np.float64) ** 2
+            lam[:, cols_] += k
+            g[:, cols_] -= k * value
     idx = np.arange(6 * n)
     M = coo_matrix(
         (
@@ -520,15 +562,18 @@ def assess(
     scale = float(np.median([min(p.pixel_size) for p in patches]))
     bank = _Bank(patches, scale, 0.0, 1)
     state = _State.from_transforms(transforms, bank, scale)
-    margin = 3.0 * float(max(bank.dx.max(), bank.dy.max()))
+    margin = 1.5 * float(max(bank.dx.max(), bank.dy.max()))
     cand = bank.candidates(
         np.asarray(pairs, dtype=np.intp).reshape(-1, 2), state.R, state.s, margin
     )
     system = _normal_system(bank, cand, state, _noise(patches, scale))
-    return _fits(system, len(patches), scale, _noise(patches, scale))
+    pitch = np.column_stack([bank.dx, bank.dy])
+    return _fits(system, len(patches), scale, _noise(patches, scale), pitch)
 
 
-def _fits(stats: _System | None, n: int, scale: float, noise: float) -> list[PatchFit]:
+def _fits(
+    stats: _System | None, n: int, scale: float, noise: float, pitch: FloatArray
+) -> list[PatchFit]:
     """Residual RMS and translation standard deviations of every patch (metres)."""
     if stats is None:
         return [PatchFit(0, float("nan"), float("inf"), float("inf")) for _ in range(n)]
@@ -542,10 +587,12 @@ def _fits(stats: _System | None, n: int, scale: float, noise: float) -> list[Pat
         info = stats.diag[c] + 1e-9 * np.trace(stats.diag[c]) * np.eye(6)
         try:
             # marginal information of the XY translation (all other unknowns free), without the
-            # share that slopes of noise contribute (a central difference of white noise has
-            # variance σ²/2 per pixel): noise is not texture
+            # share that slopes of noise contribute: noise is not texture. A central difference
+            # of white noise has variance σ²/2; bilinear interpolation between independent
+            # differences keeps 4/9 of it on average, so (2/9) σ² per residual.
             xy_info = info[:2, :2] - info[:2, 2:] @ np.linalg.solve(info[2:, 2:], info[2:, :2])
-            xy_info = signal_information(xy_info, k * noise**2 / 2.0)
+            pitch2 = np.array([pitch[c, 0] ** -2, pitch[c, 1] ** -2])
+            xy_info = signal_information(xy_info, k * noise**2 * 2.0 / 9.0 * pitch2)
             vals = np.linalg.eigvalsh(xy_info)
             xy = float(rms / np.sqrt(vals.min())) if vals.min() > 0 else float("inf")
             z = float(rms * np.sqrt(max(np.linalg.inv(info)[2, 2], 0.0)))
