@@ -274,10 +274,55 @@ def run_case(case: Case, work: Path) -> dict[str, Any]:
     }
 
 
+def scaling(work: Path, sides: tuple[int, ...] = (5, 10, 14, 20)) -> list[dict[str, Any]]:
+    """CLI wall time and peak memory of the default merge against the number of patches."""
+    surface = FoldedSurface(seed=3)
+    rows = []
+    for side in sides:
+        synth = synthesize(
+            surface,
+            rows=side,
+            cols=side,
+            patch_size=(1.28e-6, 1.28e-6),
+            pixels=(64, 64),
+            overlap=(0.3, 0.3),
+            drift=DriftModel.typical(),
+            seed=1,
+        )
+        ps = PatchSet(
+            Patch(
+                id=s.id, heights=s.heights, origin=s.origin, pixel_size=s.pixel_size, order=s.order
+            )
+            for s in synth
+        )
+        folder = work / f"scaling-{side}"
+        write_patch_set(ps, folder)
+        wall, peak, _ = run_cli(
+            [
+                "merge",
+                str(folder / "manifest.json"),
+                "--out",
+                str(folder / "out"),
+                "--quiet",
+                "--no-preview",
+            ]
+        )
+        rows.append(
+            {
+                "patches": side * side,
+                "wall_s": wall,
+                "peak_mib": peak,
+                "ms_per_patch": 1e3 * wall / (side * side),
+            }
+        )
+    return rows
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--cases", help="comma-separated case names (default: all)")
     parser.add_argument("--quick", action="store_true", help="skip the paper method")
+    parser.add_argument("--no-scaling", action="store_true", help="skip the time-vs-patches run")
     parser.add_argument("--json", default=str(ROOT / "benchmarks" / "results" / "merge_bench.json"))
     args = parser.parse_args(argv)
     chosen = [c for c in CASES if not args.cases or c.name in args.cases.split(",")]
@@ -304,8 +349,17 @@ def main(argv: list[str] | None = None) -> int:
                     f"  {v['xy_unconstrained_patches']}",
                     flush=True,
                 )
+        print(f"\n{'patches (64 x 64 px)':<22}{'wall s':>8}{'ms/patch':>10}{'peak MiB':>10}")
+        scale_rows = [] if args.no_scaling else scaling(Path(tmp))
+        for row in scale_rows:
+            print(
+                f"{row['patches']:<22}{row['wall_s']:>8.2f}{row['ms_per_patch']:>10.1f}"
+                f"{row['peak_mib']:>10.0f}",
+                flush=True,
+            )
     Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.json).write_text(json.dumps({"merge": results}, indent=1) + "\n")
+    doc = {"merge": results, "scaling": scale_rows}
+    Path(args.json).write_text(json.dumps(doc, indent=1) + "\n")
     print(f"\nwrote {args.json}")
     return 0
 
