@@ -91,3 +91,39 @@ def test_a_broken_patch_file_is_named(
     (bad / "p002.npy").write_bytes(b"garbage")
     assert main(["merge", str(bad / "manifest.json"), "--out", str(tmp_path / "o")]) == 2
     assert "patch 'p002'" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    "args",
+    [
+        ["sim-mcs", "--channels", "0"],
+        ["sim-mcs", "--speed", "fast"],
+        ["sim-mcs", "--speed", "-1"],
+        ["sim-mcs", "--port", "70000"],
+    ],
+)
+def test_sim_mcs_bad_options(args: list[str], capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(args) == 2
+    assert "error:" in capsys.readouterr().err
+
+
+def test_sim_mcs_serves_the_protocol() -> None:
+    import subprocess
+    import sys
+
+    from hardware.smaract_mcs import MCSController
+
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "backend.cli", "sim-mcs", "--channels", "2"],
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert proc.stdout is not None
+        line = proc.stdout.readline()
+        url = line.split(" at ")[1].strip()
+        with MCSController.open(url, timeout=2.0) as c:
+            assert c.channel_count() == 2
+    finally:
+        proc.terminate()
+        proc.wait(timeout=10)

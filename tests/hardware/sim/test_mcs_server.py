@@ -1,0 +1,64 @@
+"""The real driver against the protocol simulator through real socket:// URLs."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterator
+
+import pytest
+
+from hardware.sim.mcs_server import MCSServer
+from hardware.smaract_errors import MCSControllerError, MCSLinkError, MCSProtocolError, MCSTimeout
+from hardware.smaract_mcs import AxisStatus, MCSController
+
+
+@pytest.fixture
+def server() -> Iterator[MCSServer]:
+    with MCSServer() as srv:
+        yield srv
+
+
+def test_driver_talks_to_the_simulator(server: MCSServer) -> None:
+    with MCSController.open(server.url, timeout=1.0) as c:
+        assert c.channel_count() == 3
+        c.move_absolute(0, 2e-6, hold_ms=0)
+        assert c.status(0) is AxisStatus.STOPPED  # fast time: the move is done when polled
+        assert c.position(0) == pytest.approx(2e-6, abs=5e-9)
+        c.step(1, 500, amplitude=4095, frequency=5000)
+        assert c.position(1) == pytest.approx(500 * 100e-9, rel=0.05)
+        c.scan_absolute(2, 4095, speed=100000)
+        assert c.voltage_level(2) == 4095
+        with pytest.raises(MCSControllerError) as err:
+            c.step(7, 1, amplitude=1, frequency=1)
+        assert err.value.code == 7
+    assert server.log[0] == (":SCM0", ":E-1,0")
+
+
+@pytest.mark.parametrize(
+    ("fault", "error"),
+    [
+        ("silent", MCSTimeout),
+        ("garbage", MCSProtocolError),
+        ("error", MCSControllerError),
+        ("drop", (MCSLinkError, MCSTimeout)),
+    ],
+)
+def test_each_fault_gives_its_typed_error_within_the_time_out(
+    server: MCSServer, fault: str, error: type[Exception] | tuple[type[Exception], ...]
+) -> None:
+    with MCSController.open(server.url, timeout=0.3) as c:
+        server.inject(fault)  # type: ignore[arg-type]
+        start = time.monotonic()
+        with pytest.raises(error):
+            c.position(0)  # a read: retried once, so at most two time-outs
+        assert time.monotonic() - start < 1.5
+        with pytest.raises(error):
+            c.stop(0)
+        server.inject(None)
+
+
+def test_unreachable_controller_is_a_link_error() -> None:
+    with MCSServer() as srv:
+        url = srv.url
+    with pytest.raises(MCSLinkError):
+        MCSController.open(url, timeout=0.3)
