@@ -1,0 +1,142 @@
+"""One typed Protocol per hardware role (SI units: metres, seconds, hertz).
+
+Real drivers and the simulated instrument both implement these, so the procedures above them
+(landing, retract, raster) and the server run unchanged on either. Roles that the simulated
+AFM-in-SEM fills in (probe signal, force loop, patch scanner, SEM) are declared here too.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+from numpy.typing import NDArray
+
+from hardware.smaract_mcs import AxisStatus
+
+FloatArray = NDArray[np.float64]
+
+
+@runtime_checkable
+class PositionerAxis(Protocol):
+    """One stick-slip axis: stepping mode (coarse, long range) and fine mode (scan)."""
+
+    name: str
+
+    def position(self) -> float | None:
+        """Sensor read-back, metres; None for an axis without sensor."""
+        ...
+
+    def status(self) -> AxisStatus: ...
+
+    def step(self, steps: int, *, amplitude: int, frequency: int) -> None:
+        """Open-loop steps (sign gives the direction)."""
+        ...
+
+    def move_to(self, position: float, *, hold: float = 0.0) -> None:
+        """Closed-loop move to ``position`` metres (needs a sensor)."""
+        ...
+
+    def fine_to(self, extension: float, *, speed: float) -> None:
+        """Fine mode to ``extension`` metres of the fine range, at ``speed`` m/s."""
+        ...
+
+    def fine_extension(self) -> float:
+        """Current fine-mode extension, metres (from the voltage level and calibration)."""
+        ...
+
+    @property
+    def fine_range(self) -> float:
+        """Fine-mode range, metres."""
+        ...
+
+    def stop(self) -> None: ...
+
+
+@runtime_checkable
+class ProbeSignal(Protocol):
+    """The self-sensing probe's PLL: frequency shift and amplitude."""
+
+    def frequency_shift(self) -> float:
+        """Δf, hertz (negative when attractive, rising through zero into repulsion)."""
+        ...
+
+    def amplitude(self) -> float:
+        """Oscillation amplitude, metres."""
+        ...
+
+    def locked(self) -> bool:
+        """Whether the PLL follows the resonance."""
+        ...
+
+
+@runtime_checkable
+class ForceLoop(Protocol):
+    """The Z feedback on Δf."""
+
+    def engage(self, setpoint: float) -> None:
+        """Regulate Z so that Δf stays at ``setpoint`` hertz."""
+        ...
+
+    def withdraw(self) -> None:
+        """Open the loop and pull Z fully back in fine mode."""
+        ...
+
+    def engaged(self) -> bool: ...
+
+    def saturated(self) -> bool:
+        """True when Z hit an end of its fine range while engaged."""
+        ...
+
+
+@dataclass(frozen=True)
+class ScanLines:
+    """One raster patch as the scanner returns it.
+
+    heights : (ny, nx) metres, rows along y, NaN where the loop lost the surface.
+    line_times : (ny,) simulated or wall seconds at the start of every line.
+    origin, pixel_size : metres, in the scanner's nominal frame.
+    """
+
+    heights: FloatArray
+    line_times: FloatArray
+    origin: tuple[float, float]
+    pixel_size: tuple[float, float]
+
+
+@runtime_checkable
+class PatchScanner(Protocol):
+    """Rasters one patch in fine mode with the force loop engaged."""
+
+    def scan_patch(
+        self, *, size: tuple[float, float], pixels: tuple[int, int], line_rate: float
+    ) -> ScanLines: ...
+
+
+@dataclass(frozen=True)
+class SEMImage:
+    """An SEM image and where its pixels are on the stage.
+
+    pixels : (ny, nx) grey levels.
+    origin : stage position (metres) of pixel (0, 0).
+    pixel_size : (dx, dy) metres per pixel along the image's columns and rows.
+    """
+
+    pixels: NDArray[np.float64]
+    origin: tuple[float, float]
+    pixel_size: tuple[float, float]
+
+    def to_stage(self, col: float, row: float) -> tuple[float, float]:
+        """Stage position of fractional pixel ``(col, row)``."""
+        return (
+            self.origin[0] + col * self.pixel_size[0],
+            self.origin[1] + row * self.pixel_size[1],
+        )
+
+
+@runtime_checkable
+class SEM(Protocol):
+    """The scanning electron microscope around the AFM."""
+
+    def grab(self, *, centre: tuple[float, float], field: float, pixels: int) -> SEMImage: ...
