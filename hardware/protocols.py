@@ -96,7 +96,9 @@ class ScanLines:
 
     heights : (ny, nx) metres, rows along y, NaN where the loop lost the surface.
     line_times : (ny,) simulated or wall seconds at the start of every line.
-    origin, pixel_size : metres, in the scanner's nominal frame.
+    origin : fine-mode (x, y) of pixel (0, 0) in the scanner's own frame, metres; the sample
+        position is this minus the sample stage's position.
+    pixel_size : (dx, dy) metres.
     """
 
     heights: FloatArray

@@ -11,6 +11,8 @@ The model, in SI units and simulated seconds:
   extension keeps drifting a fraction of that move, relaxing exponentially.
 * **Closed loop** (``:MPA``/``:MPR``): the controller steps and then fine-tunes until the sensor
   reads the target; it needs a sensor and respects the soft range limit.
+* **Slider creep**: after stepping, the slider keeps moving a fraction of the stepped distance,
+  relaxing exponentially (on a Z axis this is the drift that makes a mosaic's Z staircase).
 * **Sensor**: reads slider + extension with white noise.
 """
 
@@ -36,6 +38,8 @@ class ChannelParams:
     hysteresis: float = 0.015
     creep_fraction: float = 0.01
     creep_time: float = 20.0
+    step_creep_fraction: float = 0.02
+    step_creep_time: float = 60.0
     sensor_noise: float = 1e-9
     has_sensor: bool = True
     closed_loop_speed: float = 1e-3
@@ -48,8 +52,8 @@ class _Motion:
     t1: float
     slider0: float
     slider1: float
-    level0: int
-    level1: int
+    level0: float
+    level1: float
     hold_until: float = 0.0
 
 
@@ -60,7 +64,8 @@ class MCSChannel:
     params: ChannelParams = field(default_factory=ChannelParams)
     rng: np.random.Generator = field(default_factory=lambda: np.random.default_rng(0))
     slider: float = 0.0
-    level: int = 0
+    # fractional: an analogue loop drives the piezo between the controller's whole levels
+    level: float = 0.0
     limit: tuple[float, float] | None = None
     _motion: _Motion | None = None
     # creep of all past fine moves (one time constant, so they sum exactly):
@@ -68,6 +73,9 @@ class MCSChannel:
     _creep0: float = 0.0
     _creep_inf: float = 0.0
     _creep_t0: float = 0.0
+    _slide0: float = 0.0
+    _slide_inf: float = 0.0
+    _slide_t0: float = 0.0
     _rising: bool = True
 
     # -- what the controller can read -----------------------------------------------------------
@@ -97,8 +105,32 @@ class MCSChannel:
         return float(self._creep_inf - (self._creep_inf - self._creep0) * decay)
 
     def true_position(self, t: float) -> float:
-        """Where the positioner really is, metres (slider + extension)."""
-        return self._slider_at(t) + self.extension(t)
+        """Where the positioner really is, metres (slider, its creep, and extension)."""
+        return self._slider_at(t) + self.slider_creep(t) + self.extension(t)
+
+    def slider_creep(self, t: float) -> float:
+        decay = np.exp(-max(t - self._slide_t0, 0.0) / self.params.step_creep_time)
+        return float(self._slide_inf - (self._slide_inf - self._slide0) * decay)
+
+    def drive_extension(self, extension: float, t: float) -> float:
+        """Set the fine level whose extension (hysteresis and creep included) is closest to
+        ``extension`` metres, as a feedback loop on the piezo would; returns the extension."""
+        self._settle(t)
+        target = extension - self.creep(t)
+        self._rising = target >= self._ext_without_creep(self.level)
+        level = self.level
+        for _ in range(6):  # the hysteresis bow is a few per cent: fixed point converges fast
+            error = target - self._ext_without_creep(level)
+            level = float(np.clip(level + error / self.params.fine_range * MAX_LEVEL, 0, MAX_LEVEL))
+        self.level = level
+        return self.extension(t)
+
+    def drive_level(self, level: int, t: float) -> None:
+        """Set the fine level directly, as an analogue force loop drives the Z piezo."""
+        self._settle(t)
+        level = int(np.clip(level, 0, MAX_LEVEL))
+        self._rising = level >= self.level
+        self.level = level
 
     def sensor(self, t: float) -> float:
         return self.true_position(t) + float(self.rng.normal(0.0, self.params.sensor_noise))
@@ -145,7 +177,7 @@ class MCSChannel:
         level = MAX_LEVEL // 2
         self._rising = level > self.level
         t1 = t + duration
-        slider = target - self._ext_without_creep(level) - self.creep(t1)
+        slider = target - self._ext_without_creep(level) - self.creep(t1) - self.slider_creep(t1)
         self._motion = _Motion(
             AxisStatus.TARGETING,
             t,
@@ -166,7 +198,7 @@ class MCSChannel:
 
     # -- internals -----------------------------------------------------------------------------
 
-    def _ext_without_creep(self, level: int) -> float:
+    def _ext_without_creep(self, level: float) -> float:
         frac = level / MAX_LEVEL
         bow = self.params.hysteresis * 4 * frac * (1 - frac)
         frac += -bow / 2 if self._rising else bow / 2
@@ -184,12 +216,12 @@ class MCSChannel:
             return self.slider
         return m.slider0 + (m.slider1 - m.slider0) * self._progress(t)
 
-    def level_at(self, t: float) -> int:
-        """Fine-mode voltage level now, 0..4095."""
+    def level_at(self, t: float) -> float:
+        """Fine-mode voltage level now, 0..4095 (fractional while an analogue loop drives it)."""
         m = self._motion
         if m is None:
             return self.level
-        return round(m.level0 + (m.level1 - m.level0) * self._progress(t))
+        return m.level0 + (m.level1 - m.level0) * self._progress(t)
 
     def _settle(self, t: float) -> None:
         """Finish a motion that has ended (starting creep for its fine part), or stop a
@@ -201,6 +233,11 @@ class MCSChannel:
             self.stop(t)
             return
         # a hold still running ends here too: the new command takes over
+        stepped = m.slider1 - m.slider0
+        if m.status is AxisStatus.STEPPING and stepped:
+            self._slide0 = self.slider_creep(m.t1)
+            self._slide_inf += self.params.step_creep_fraction * stepped
+            self._slide_t0 = m.t1
         moved = (m.level1 - m.level0) / MAX_LEVEL * self.params.fine_range
         if moved:
             self._creep0 = self.creep(m.t1)

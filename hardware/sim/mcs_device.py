@@ -131,7 +131,7 @@ class MCSDevice:
     def _gvl(self, a: list[int], t: float) -> str:
         axis = self._axis(a[0])
         axis.status(t)
-        return f":VL{a[0]},{axis.level_at(t)}"
+        return f":VL{a[0]},{round(axis.level_at(t))}"
 
     def _mpa(self, a: list[int], t: float) -> str | None:
         ch, target_nm, hold = a
@@ -180,7 +180,7 @@ class MCSDevice:
         ch, diff, speed = a
         axis = self._axis(ch)
         axis.status(t)
-        target = axis.level_at(t) + diff
+        target = round(axis.level_at(t)) + diff
         if not 0 <= target <= MAX_LEVEL or not MIN_SCAN_SPEED <= speed <= MAX_SCAN_SPEED:
             raise _Reject(INVALID_PARAMETER, ch)
         axis.scan(target, speed, t)

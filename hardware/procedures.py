@@ -1,0 +1,182 @@
+"""Procedures above the drivers: landing, retract, one patch of a mosaic.
+
+They use only the role Protocols, so they run unchanged on the real instrument and on the
+simulated one. Every failure is a typed error an operator can read; whatever happens, the tip
+ends withdrawn (the callers put the instrument in its safe state).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from hardware.protocols import ForceLoop, PatchScanner, PositionerAxis, ProbeSignal, ScanLines
+from hardware.smaract_mcs import AxisStatus
+
+
+class ProcedureError(RuntimeError):
+    """A procedure could not complete; the message says what the operator should know."""
+
+
+class NoSurfaceError(ProcedureError):
+    """Landing reached its travel without finding the surface."""
+
+
+class CrashError(ProcedureError):
+    """The tip was driven into the surface (PLL lost in repulsion)."""
+
+
+class SaturationError(ProcedureError):
+    """Z ran out of fine range during a scan: the patch is too tall or tilted."""
+
+
+@dataclass(frozen=True)
+class LandingConfig:
+    """Woodpecker landing: fine approach with the loop engaged, coarse steps in between.
+
+    setpoint : Δf to land at, Hz.
+    steps : coarse Z steps per cycle (their travel must stay well inside the fine range).
+    amplitude, frequency : of the coarse steps.
+    max_cycles : give up ("no surface") after this many cycles.
+    """
+
+    setpoint: float = 10.0
+    steps: int = 6
+    amplitude: int = 2000
+    frequency: int = 1000
+    max_cycles: int = 300
+
+
+@dataclass(frozen=True)
+class LandingReport:
+    cycles: int
+    frequency_shift: float
+
+
+def wait_stopped(axis: PositionerAxis, *, polls: int = 100_000) -> None:
+    """Poll until ``axis`` has stopped (or finished holding)."""
+    for _ in range(polls):
+        if axis.status() in (AxisStatus.STOPPED, AxisStatus.HOLDING):
+            return
+    raise ProcedureError(f"{axis.name} did not stop")
+
+
+def land(
+    z: PositionerAxis, loop: ForceLoop, probe: ProbeSignal, config: LandingConfig | None = None
+) -> LandingReport:
+    """Bring the tip to the surface at the set-point; the loop stays engaged on success.
+
+    Each cycle engages the loop, which extends Z in fine mode toward the set-point. If it
+    saturates fully extended the surface is out of reach: withdraw, step Z down a few coarse
+    steps (never while extended), and try again. Saturating retracted means the surface is
+    closer than the set-point even with Z pulled back: step up one cycle and retry.
+    """
+    cfg = config or LandingConfig()
+    loop.withdraw()
+    for cycle in range(1, cfg.max_cycles + 1):
+        loop.engage(cfg.setpoint)
+        if not probe.locked():
+            loop.withdraw()
+            raise CrashError("the PLL lost lock while landing: the tip may have crashed")
+        if not loop.saturated():
+            _centre_fine_range(z, loop, probe, cfg)
+            return LandingReport(cycle, probe.frequency_shift())
+        extended = z.fine_extension() > 0.5 * z.fine_range
+        loop.withdraw()
+        z.step(
+            cfg.steps if extended else -cfg.steps, amplitude=cfg.amplitude, frequency=cfg.frequency
+        )
+        wait_stopped(z)
+    raise NoSurfaceError(
+        f"no surface within {cfg.max_cycles} landing cycles: check the sample height and the tip"
+    )
+
+
+def _centre_fine_range(
+    z: PositionerAxis, loop: ForceLoop, probe: ProbeSignal, cfg: LandingConfig
+) -> None:
+    """Step Z so that the locked fine extension sits mid-range, with room up and down.
+
+    First contact happens near full extension. One known coarse cycle (loop withdrawn) and
+    a re-engage measure the step size from the change of the locked extension; then the
+    remaining offset is stepped away. Every coarse move happens withdrawn.
+    """
+    mid = 0.5 * z.fine_range
+    first = z.fine_extension()
+    if first < 0.7 * z.fine_range:
+        return
+    loop.withdraw()
+    z.step(cfg.steps, amplitude=cfg.amplitude, frequency=cfg.frequency)
+    wait_stopped(z)
+    loop.engage(cfg.setpoint)
+    if not probe.locked():
+        loop.withdraw()
+        raise CrashError("the PLL lost lock while centring Z after landing")
+    second = z.fine_extension()
+    step = (first - second) / cfg.steps
+    if loop.saturated() or step <= 0:
+        return  # no usable measurement: stay where the loop holds
+    n = round((second - mid) / step)
+    if n > 0:
+        loop.withdraw()
+        z.step(n, amplitude=cfg.amplitude, frequency=cfg.frequency)
+        wait_stopped(z)
+        loop.engage(cfg.setpoint)
+        if not probe.locked():
+            loop.withdraw()
+            raise CrashError("the PLL lost lock while centring Z after landing")
+
+
+def retract(z: PositionerAxis, loop: ForceLoop, *, steps: int = 40, amplitude: int = 2000) -> None:
+    """Withdraw the loop, then pull Z back in stepping mode (the safe state)."""
+    loop.withdraw()
+    z.step(-steps, amplitude=amplitude, frequency=1000)
+    wait_stopped(z)
+
+
+@dataclass(frozen=True)
+class PatchResult:
+    """One scanned patch: its lines and its nominal sample-frame origin (metres)."""
+
+    lines: ScanLines
+    origin: tuple[float, float]
+
+
+def acquire_patch(
+    *,
+    stage_x: PositionerAxis,
+    stage_y: PositionerAxis,
+    z: PositionerAxis,
+    loop: ForceLoop,
+    probe: ProbeSignal,
+    scanner: PatchScanner,
+    fine_range: float,
+    origin: tuple[float, float],
+    size: tuple[float, float],
+    pixels: tuple[int, int],
+    line_rate: float,
+    landing: LandingConfig | None = None,
+) -> PatchResult:
+    """Move the sample stage, land, raster in fine mode and retract: one patch.
+
+    The raster is centred in the fine range, so the stage goes to ``start - origin`` with
+    ``start = (fine_range - size) / 2``. Whatever fails, the tip is retracted before the error
+    propagates.
+    """
+    start = ((fine_range - size[0]) / 2, (fine_range - size[1]) / 2)
+    stage_x.move_to(start[0] - origin[0])
+    stage_y.move_to(start[1] - origin[1])
+    wait_stopped(stage_x)
+    wait_stopped(stage_y)
+    try:
+        land(z, loop, probe, landing)
+        lines = scanner.scan_patch(size=size, pixels=pixels, line_rate=line_rate)
+        if loop.saturated():
+            raise SaturationError("Z saturated during the scan: reduce the patch or level it")
+    finally:
+        retract(z, loop)
+    sx, sy = stage_x.position(), stage_y.position()
+    nominal = (
+        lines.origin[0] - (start[0] - origin[0] if sx is None else sx),
+        lines.origin[1] - (start[1] - origin[1] if sy is None else sy),
+    )
+    return PatchResult(lines, nominal)

@@ -1,0 +1,304 @@
+"""The simulated AFM-in-SEM: one world in simulated time, driven through the real drivers.
+
+Geometry (metres). The sample is a :class:`~hardware.sim.surfaces.Surface` in sample (stage)
+coordinates, carried by the sample holder (two MCS channels, X and Y): a sample point ``p``
+sits at lab position ``p + S``. The probe robot (three MCS channels) holds the tip at lab XY
+``T`` (its fine mode rasters) and its Z axis lowers the tip as it extends. So the sample point
+under the tip is ``T - S`` plus the thermal drift, and the tip-sample distance is the tip
+height minus the surface (dilated by the tip's radius) minus the Z drift.
+
+What the control software sees goes through :class:`~hardware.smaract_mcs.MCSController` over
+``socket://`` links to :class:`~hardware.sim.mcs_server.MCSServer`; the physics reads the
+simulated channels directly. The force loop is the analogue Z loop of the AFM controller: it
+drives the robot Z fine level from the frequency shift, with a finite bandwidth, so steep
+edges and fast scans show tracking error.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from hardware.mcs_axis import FineCalibration, MCSAxis
+from hardware.protocols import ScanLines
+from hardware.sim.clock import SimClock
+from hardware.sim.mcs_device import MCSDevice
+from hardware.sim.mcs_server import MCSServer
+from hardware.sim.probe import ProbeModel
+from hardware.sim.surfaces import Surface
+from hardware.smaract_mcs import AxisStatus, MCSController
+
+FloatArray = NDArray[np.float64]
+
+#: Largest approach the loop makes per update off the surface, metres (its slew-rate limit).
+MAX_LOOP_STEP = 20e-9
+
+
+@dataclass(frozen=True)
+class WorldParams:
+    """Drift, noise and tip of the simulated world (SI units)."""
+
+    thermal_xy: float = 2e-9 / 60  # m/s per axis (nm per minute)
+    thermal_z: float = 3e-9 / 60
+    charging: float = 2.0 / 60  # Hz/s of SEM-charging drift of the frequency shift
+    tip_radius: float = 10e-9
+    z_top: float = 5e-6  # tip height (lab) with Z fully retracted
+    loop_bandwidth: float = 300.0  # Hz
+    z_noise: float = 0.3e-9  # noise of the recorded height (Z read-out), m
+    substeps: int = 4  # force-loop updates per pixel
+
+
+class SimulatedAFM:
+    """The instrument: MCS servers and drivers, probe, force loop, scanner, drift.
+
+    Parameters
+    ----------
+    surface : Surface
+        The sample, in sample coordinates.
+    clock : SimClock
+        Simulated time (default: as fast as possible).
+    params : WorldParams
+    probe : ProbeModel
+    seed : int
+        Seed of the drift directions, noise and channel physics.
+    """
+
+    def __init__(
+        self,
+        surface: Surface,
+        *,
+        clock: SimClock | None = None,
+        params: WorldParams | None = None,
+        probe: ProbeModel | None = None,
+        seed: int = 0,
+    ) -> None:
+        self.surface = surface
+        self.clock = clock or SimClock(None)
+        self.params = params or WorldParams()
+        self.probe = probe or ProbeModel()
+        self.rng = np.random.default_rng(seed)
+        self.stage_device = MCSDevice(channels=2, seed=seed + 1)
+        self.robot_device = MCSDevice(channels=3, seed=seed + 2)
+        self.stage_server = MCSServer(self.stage_device, clock=self.clock).start()
+        self.robot_server = MCSServer(self.robot_device, clock=self.clock).start()
+        self.stage = MCSController.open(self.stage_server.url)
+        self.robot = MCSController.open(self.robot_server.url)
+        self.stage_x = MCSAxis(self.stage, 0, name="stage x")
+        self.stage_y = MCSAxis(self.stage, 1, name="stage y")
+        self.robot_x = MCSAxis(self.robot, 0, name="robot x", calibration=FineCalibration(1.6e-6))
+        self.robot_y = MCSAxis(self.robot, 1, name="robot y", calibration=FineCalibration(1.6e-6))
+        self.robot_z = MCSAxis(self.robot, 2, name="robot z", calibration=FineCalibration(1.6e-6))
+        direction = self.rng.normal(size=3)
+        self._drift_v = np.array(
+            [
+                self.params.thermal_xy * direction[0],
+                self.params.thermal_xy * direction[1],
+                self.params.thermal_z * direction[2],
+            ]
+        )
+        self._setpoint: float | None = None
+        self._saturated = False
+        self.crashed = False
+        self.beam_on = True
+        #: where every pixel of the last scan truly was on the sample (simulator-only truth)
+        self.last_scan_positions = np.empty((0, 0, 2))
+
+    # -- lifecycle --------------------------------------------------------------------------
+
+    def close(self) -> None:
+        self.stage.close()
+        self.robot.close()
+        self.stage_server.stop()
+        self.robot_server.stop()
+
+    def __enter__(self) -> SimulatedAFM:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # -- physics (the simulator's view; the software never calls these) ----------------------
+
+    def drift(self, t: float) -> FloatArray:
+        """Thermal drift of the sample under the tip at time ``t``: (dx, dy, dz) metres."""
+        out: FloatArray = self._drift_v * t
+        return out
+
+    def sample_xy(self, t: float) -> tuple[float, float]:
+        """Sample coordinates under the tip at ``t``."""
+        sx, sy = (ch.true_position(t) for ch in self.stage_device.axes)
+        tx, ty = (ch.true_position(t) for ch in self.robot_device.axes[:2])
+        d = self.drift(t)
+        return tx - sx + d[0], ty - sy + d[1]
+
+    def tip_height(self, t: float) -> float:
+        """Lab height of the tip apex: it goes down as the Z axis extends."""
+        return self.params.z_top - self.robot_device.axes[2].true_position(t)
+
+    def surface_height(self, x: FloatArray, y: FloatArray, t: float) -> FloatArray:
+        """Surface under a tip of finite radius (its apex rides on the highest nearby point)."""
+        r = self.params.tip_radius
+        best = self.surface.height(x, y)
+        for ang in np.linspace(0, 2 * np.pi, 8, endpoint=False):
+            for frac in (0.5, 1.0):
+                dx, dy = r * frac * math.cos(ang), r * frac * math.sin(ang)
+                # a sphere of radius r touching the surface at (x+dx, y+dy)
+                lift = r - math.sqrt(max(r * r - (dx * dx + dy * dy), 0.0))
+                best = np.fmax(best, self.surface.height(x + dx, y + dy) - lift)
+        out: FloatArray = best + self.drift(t)[2]
+        return out
+
+    def distance(self, t: float) -> float:
+        x, y = self.sample_xy(t)
+        h = float(self.surface_height(np.array([x]), np.array([y]), t)[0])
+        return self.tip_height(t) - h
+
+    def charging_offset(self, t: float) -> float:
+        return self.params.charging * t if self.beam_on else 0.0
+
+    # -- ProbeSignal ------------------------------------------------------------------------
+
+    def frequency_shift(self) -> float:
+        t = self.clock.now()
+        d = self.distance(t)
+        df = float(self.probe.delta_f(d)) + self.charging_offset(t)
+        df += float(self.rng.normal(0.0, self.probe.noise))
+        if not self.probe.locked(df):
+            self.crashed = self.crashed or d < 0
+        return df
+
+    def amplitude(self) -> float:
+        return self.probe.amplitude if not self.crashed else 0.0
+
+    def locked(self) -> bool:
+        return not self.crashed and self.probe.locked(self.frequency_shift())
+
+    # -- ForceLoop --------------------------------------------------------------------------
+
+    def engage(self, setpoint: float) -> None:
+        """Close the Z loop on ``setpoint`` Hz; it settles within a few loop time constants."""
+        self._setpoint = setpoint
+        self.clock.advance(5.0 / self.params.loop_bandwidth)
+        self._settle_loop(self.clock.now())
+
+    def withdraw(self) -> None:
+        """Open the loop and retract Z fully in fine mode."""
+        self._setpoint = None
+        self._saturated = False
+        t = self.clock.now()
+        self.robot_device.axes[2].drive_level(0, t)
+
+    def engaged(self) -> bool:
+        return self._setpoint is not None
+
+    def saturated(self) -> bool:
+        return self._saturated
+
+    def _wait(self, axis: MCSAxis) -> None:
+        while axis.status() not in (AxisStatus.STOPPED, AxisStatus.HOLDING):
+            if not self.clock.fast:
+                self.clock.advance(0.001)
+
+    def _required_extension(self, height: FloatArray | float, t: float) -> FloatArray:
+        """Fine Z extension that puts the tip at the set-point distance above ``height``."""
+        z = self.robot_device.axes[2]
+        assert self._setpoint is not None
+        d_set = self.probe.distance_at(self._setpoint - self.charging_offset(t))
+        base = z.true_position(t) - z.extension(t)
+        out: FloatArray = self.params.z_top - np.asarray(height) - d_set - base
+        return out
+
+    def _settle_loop(self, t: float) -> None:
+        x, y = self.sample_xy(t)
+        h = self.surface_height(np.array([x]), np.array([y]), t)
+        ext = float(self._required_extension(h, t)[0])
+        z = self.robot_device.axes[2]
+        rng = z.params.fine_range
+        self._saturated = not 0.0 <= ext <= rng
+        z.drive_extension(float(np.clip(ext, 0.0, rng)), t)
+        if self.distance(t) < 0:
+            self.crashed = True
+
+    # -- PatchScanner -----------------------------------------------------------------------
+
+    def scan_patch(
+        self, *, size: tuple[float, float], pixels: tuple[int, int], line_rate: float
+    ) -> ScanLines:
+        """Raster ``size`` (m) with ``pixels`` (nx, ny) from the current stage position.
+
+        The raster is centred in the fine range; ``origin`` of the result is its start in the
+        robot's fine frame. Each line: the robot Y fine axis steps to the line, the robot X fine
+        axis ramps across it (both through the MCS driver) while the force loop tracks the
+        surface; the recorded height is the tip height. Trace only, one line per
+        ``1 / line_rate`` seconds.
+        """
+        if self._setpoint is None:
+            raise RuntimeError("engage the force loop before scanning")
+        nx, ny = pixels
+        w, h = size
+        fine = self.robot_x.fine_range
+        if not (0 < w <= fine and 0 < h <= fine):
+            raise ValueError(f"a patch must fit the fine range ({fine * 1e6:.2f} µm), got {size}")
+        dx, dy = w / nx, h / ny
+        line_time = 1.0 / line_rate
+        heights = np.full((ny, nx), np.nan)
+        times = np.zeros(ny)
+        true_xy = np.full((ny, nx, 2), np.nan)
+        z = self.robot_device.axes[2]
+        zrange = z.params.fine_range
+        sub = self.params.substeps
+        dt = line_time / (nx * sub)
+        gain = 1.0 - math.exp(-2 * math.pi * self.params.loop_bandwidth * dt)
+        branch_end = self.probe.attraction_minimum()
+        crash_depth = self.probe.crash_distance()
+        x0 = 0.5 * (fine - w)
+        y0 = 0.5 * (fine - h)
+        for i in range(ny):
+            # to the line start (fly-back), waiting as the control software does
+            self.robot_y.fine_to(y0 + i * dy, speed=fine)
+            self.robot_x.fine_to(x0, speed=fine * 10)
+            self._wait(self.robot_x)
+            self._wait(self.robot_y)
+            t0 = self.clock.now()
+            times[i] = t0
+            # the loop stays engaged while the tip flies back to the line start: it has
+            # followed the surface there
+            self._settle_loop(t0)
+            self.robot_x.fine_to(x0 + (nx - 1) * dx, speed=(nx - 1) * dx / line_time)
+            ts = t0 + dt * np.arange(nx * sub)
+            xs = np.array([self.sample_xy(t)[0] for t in ts[::sub]])
+            ys = np.array([self.sample_xy(t)[1] for t in ts[::sub]])
+            xs = np.interp(np.arange(nx * sub) / sub, np.arange(nx), xs)
+            ys = np.interp(np.arange(nx * sub) / sub, np.arange(nx), ys)
+            true_xy[i, :, 0], true_xy[i, :, 1] = xs[sub - 1 :: sub], ys[sub - 1 :: sub]
+            surf = self.surface_height(xs, ys, t0)
+            ext = z.extension(t0)
+            tip0 = self.params.z_top - (z.true_position(t0) - ext)
+            set_df = self._setpoint - self.charging_offset(t0)
+            line = np.empty(nx)
+            d_set = self.probe.distance_at(set_df)
+            for k in range(nx * sub):
+                # On the repulsive branch Δf maps one to one onto distance, so the loop acts as
+                # a distance regulator of finite bandwidth; beyond the attractive minimum the
+                # signal is weak and the loop approaches at its slew rate ("parachuting")
+                dist = tip0 - ext - surf[k]
+                error = dist - d_set
+                if dist > branch_end:
+                    error = min(error, MAX_LOOP_STEP)
+                ext = min(max(ext + gain * error, 0.0), zrange)
+                if ext in (0.0, zrange):
+                    self._saturated = True
+                if tip0 - ext - surf[k] < crash_depth:
+                    self.crashed = True
+                    raise RuntimeError(f"the tip crashed into the surface on line {i}")
+                if k % sub == sub - 1:
+                    line[k // sub] = tip0 - ext
+            noise = self.rng.normal(0.0, self.params.z_noise, nx)
+            heights[i] = line + noise
+            self.clock.advance_to(t0 + line_time)
+            z.drive_extension(ext, self.clock.now())
+        self.last_scan_positions = true_xy
+        return ScanLines(heights=heights, line_times=times, origin=(x0, y0), pixel_size=(dx, dy))
