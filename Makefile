@@ -39,6 +39,7 @@ test: lint types unit
 
 bench: install
 	$(BIN)/python benchmarks/merge_bench.py
+	$(BIN)/python benchmarks/sim_bench.py
 
 clean:
 	rm -rf $(VENV) $(OUT) .mypy_cache .ruff_cache .pytest_cache

@@ -9,24 +9,20 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from hardware.errors import CrashError, NoSurfaceError, ProcedureError, SaturationError
 from hardware.protocols import ForceLoop, PatchScanner, PositionerAxis, ProbeSignal, ScanLines
 from hardware.smaract_mcs import AxisStatus
 
-
-class ProcedureError(RuntimeError):
-    """A procedure could not complete; the message says what the operator should know."""
-
-
-class NoSurfaceError(ProcedureError):
-    """Landing reached its travel without finding the surface."""
-
-
-class CrashError(ProcedureError):
-    """The tip was driven into the surface (PLL lost in repulsion)."""
-
-
-class SaturationError(ProcedureError):
-    """Z ran out of fine range during a scan: the patch is too tall or tilted."""
+__all__ = [
+    "CrashError",
+    "LandingConfig",
+    "NoSurfaceError",
+    "ProcedureError",
+    "SaturationError",
+    "acquire_patch",
+    "land",
+    "retract",
+]
 
 
 @dataclass(frozen=True)

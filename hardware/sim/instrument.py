@@ -22,6 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from hardware.errors import CrashError, ProcedureError
 from hardware.mcs_axis import FineCalibration, MCSAxis
 from hardware.protocols import ScanLines
 from hardware.sim.clock import SimClock
@@ -33,6 +34,19 @@ from hardware.smaract_mcs import AxisStatus, MCSController
 
 FloatArray = NDArray[np.float64]
 
+
+def _tip_offsets() -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Unit offsets of the apex and 16 points of a spherical tip, and how far each sits above
+    the apex when the sphere touches there (in tip radii)."""
+    ang = np.linspace(0, 2 * np.pi, 8, endpoint=False)
+    ox = np.concatenate([[0.0], 0.5 * np.cos(ang), np.cos(ang)])
+    oy = np.concatenate([[0.0], 0.5 * np.sin(ang), np.sin(ang)])
+    lift = 1.0 - np.sqrt(np.maximum(1.0 - ox**2 - oy**2, 0.0))
+    return ox, oy, lift
+
+
+_TIP_OFFSETS = _tip_offsets()
+
 #: Largest approach the loop makes per update off the surface, metres (its slew-rate limit).
 MAX_LOOP_STEP = 20e-9
 
@@ -43,7 +57,8 @@ class WorldParams:
 
     thermal_xy: float = 2e-9 / 60  # m/s per axis (nm per minute)
     thermal_z: float = 3e-9 / 60
-    charging: float = 2.0 / 60  # Hz/s of SEM-charging drift of the frequency shift
+    charging: float = 4.0  # Hz: SEM charging shifts Δf towards this, saturating
+    charging_time: float = 600.0  # s: time constant of the charging
     tip_radius: float = 10e-9
     z_top: float = 5e-6  # tip height (lab) with Z fully retracted
     loop_bandwidth: float = 300.0  # Hz
@@ -140,15 +155,14 @@ class SimulatedAFM:
 
     def surface_height(self, x: FloatArray, y: FloatArray, t: float) -> FloatArray:
         """Surface under a tip of finite radius (its apex rides on the highest nearby point)."""
+        xa, ya = np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64)
+        ox, oy, lift = _TIP_OFFSETS
         r = self.params.tip_radius
-        best = self.surface.height(x, y)
-        for ang in np.linspace(0, 2 * np.pi, 8, endpoint=False):
-            for frac in (0.5, 1.0):
-                dx, dy = r * frac * math.cos(ang), r * frac * math.sin(ang)
-                # a sphere of radius r touching the surface at (x+dx, y+dy)
-                lift = r - math.sqrt(max(r * r - (dx * dx + dy * dy), 0.0))
-                best = np.fmax(best, self.surface.height(x + dx, y + dy) - lift)
-        out: FloatArray = best + self.drift(t)[2]
+        # one surface call for the apex and 16 points of a sphere of radius r around it
+        hx = xa.reshape(-1)[None, :] + r * ox[:, None]
+        hy = ya.reshape(-1)[None, :] + r * oy[:, None]
+        touch = self.surface.height(hx, hy) - r * lift[:, None]
+        out: FloatArray = np.nanmax(touch, axis=0).reshape(xa.shape) + self.drift(t)[2]
         return out
 
     def distance(self, t: float) -> float:
@@ -157,7 +171,10 @@ class SimulatedAFM:
         return self.tip_height(t) - h
 
     def charging_offset(self, t: float) -> float:
-        return self.params.charging * t if self.beam_on else 0.0
+        """Δf offset from charging by the electron beam: builds up and saturates."""
+        if not self.beam_on:
+            return 0.0
+        return self.params.charging * (1.0 - math.exp(-t / self.params.charging_time))
 
     # -- ProbeSignal ------------------------------------------------------------------------
 
@@ -236,7 +253,7 @@ class SimulatedAFM:
         ``1 / line_rate`` seconds.
         """
         if self._setpoint is None:
-            raise RuntimeError("engage the force loop before scanning")
+            raise ProcedureError("engage the force loop before scanning")
         nx, ny = pixels
         w, h = size
         fine = self.robot_x.fine_range
@@ -268,11 +285,13 @@ class SimulatedAFM:
             # followed the surface there
             self._settle_loop(t0)
             self.robot_x.fine_to(x0 + (nx - 1) * dx, speed=(nx - 1) * dx / line_time)
+            # the true tip path over the line, from the channels at a few knots (the ramp is
+            # smooth: linear in level, bent slightly by hysteresis and creep)
             ts = t0 + dt * np.arange(nx * sub)
-            xs = np.array([self.sample_xy(t)[0] for t in ts[::sub]])
-            ys = np.array([self.sample_xy(t)[1] for t in ts[::sub]])
-            xs = np.interp(np.arange(nx * sub) / sub, np.arange(nx), xs)
-            ys = np.interp(np.arange(nx * sub) / sub, np.arange(nx), ys)
+            knots = np.linspace(ts[0], ts[-1], 9)
+            path = np.array([self.sample_xy(t) for t in knots])
+            xs = np.interp(ts, knots, path[:, 0])
+            ys = np.interp(ts, knots, path[:, 1])
             true_xy[i, :, 0], true_xy[i, :, 1] = xs[sub - 1 :: sub], ys[sub - 1 :: sub]
             surf = self.surface_height(xs, ys, t0)
             ext = z.extension(t0)
@@ -293,7 +312,10 @@ class SimulatedAFM:
                     self._saturated = True
                 if tip0 - ext - surf[k] < crash_depth:
                     self.crashed = True
-                    raise RuntimeError(f"the tip crashed into the surface on line {i}")
+                    raise CrashError(
+                        f"the tip crashed into the surface on line {i}: the scan is too fast "
+                        "for the force loop here (lower the line rate)"
+                    )
                 if k % sub == sub - 1:
                     line[k // sub] = tip0 - ext
             noise = self.rng.normal(0.0, self.params.z_noise, nx)

@@ -83,12 +83,14 @@ class MCSServer:
         return f"socket://{host}:{port}"
 
     def start(self) -> MCSServer:
-        self._thread = threading.Thread(target=self._tcp.serve_forever, daemon=True)
+        self._thread = threading.Thread(
+            target=self._tcp.serve_forever, kwargs={"poll_interval": 0.02}, daemon=True
+        )
         self._thread.start()
         return self
 
     def serve_forever(self) -> None:
-        self._tcp.serve_forever()
+        self._tcp.serve_forever(poll_interval=0.05)
 
     def stop(self) -> None:
         self._tcp.shutdown()

@@ -127,3 +127,45 @@ def test_sim_mcs_serves_the_protocol() -> None:
     finally:
         proc.terminate()
         proc.wait(timeout=10)
+
+
+def test_sim_scan_writes_a_patch_set_that_merges(tmp_path: Path) -> None:
+    out = tmp_path / "scan"
+    assert (
+        main(
+            [
+                "sim-scan",
+                "--out",
+                str(out),
+                "--rows",
+                "1",
+                "--cols",
+                "2",
+                "--surface",
+                "folded",
+                "--patch",
+                "0.6e-6",
+                "--pixels",
+                "24",
+                "--overlap",
+                "0.5,0",
+            ]
+        )
+        == 0
+    )
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert [p["id"] for p in manifest["patches"]] == ["p000", "p001"]
+    assert main(["merge", str(out / "manifest.json"), "--out", str(tmp_path / "m"), "--quiet"]) == 0
+    doc = json.loads((tmp_path / "m" / "mosaic.json").read_text())
+    assert all(p["correspondences"] > 0 for p in doc["patches"])
+
+
+@pytest.mark.parametrize(
+    "args",
+    [["--patch", "2e-6"], ["--line-rate", "0"], ["--rows", "0"], ["--overlap", "1"]],
+)
+def test_sim_scan_bad_options(
+    args: list[str], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert main(["sim-scan", "--out", str(tmp_path / "x"), *args]) == 2
+    assert "error:" in capsys.readouterr().err
