@@ -1,0 +1,145 @@
+"""The instrument the backend works with, opened from one configuration string.
+
+* ``sim://`` — the simulated AFM-in-SEM. Options as a query: ``surface`` (chessboard, folded),
+  ``seed``, ``speed`` (simulated seconds per wall second, or ``max``), e.g.
+  ``sim://?surface=folded&seed=3&speed=max``.
+* ``mcs://stage=URL;robot=URL`` — real SmarAct MCS controllers on pyserial URLs (device paths,
+  ``socket://``, ``rfc2217://``) for the sample stage and the probe robot. The stages move;
+  landing and scanning also need the AFM controller's probe signal and force loop, which
+  this version drives only in simulation, and say so when asked.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from urllib.parse import parse_qs, urlsplit
+
+from hardware.mcs_axis import MCSAxis
+from hardware.protocols import SEM, ForceLoop, PatchScanner, PositionerAxis, ProbeSignal
+from hardware.smaract_mcs import MCSController
+
+
+class ConfigurationError(ValueError):
+    """The instrument configuration string is wrong; the message says how to fix it."""
+
+
+@dataclass
+class Microscope:
+    """Every hardware role of the AFM-in-SEM; roles a configuration lacks are None."""
+
+    description: str
+    stage_x: PositionerAxis
+    stage_y: PositionerAxis
+    robot_x: PositionerAxis
+    robot_y: PositionerAxis
+    robot_z: PositionerAxis
+    probe: ProbeSignal | None
+    loop: ForceLoop | None
+    scanner: PatchScanner | None
+    sem: SEM | None
+    simulated: bool
+    _closers: tuple[object, ...] = ()
+
+    def require_afm(self) -> tuple[ProbeSignal, ForceLoop, PatchScanner]:
+        """The probe, force loop and scanner, or a clear error where there are none."""
+        if self.probe is None or self.loop is None or self.scanner is None:
+            raise ConfigurationError(
+                f"{self.description}: no AFM controller (probe signal and force loop) is "
+                "configured, so it cannot land or scan; use sim:// or add the controller"
+            )
+        return self.probe, self.loop, self.scanner
+
+    def close(self) -> None:
+        for thing in self._closers:
+            close = getattr(thing, "close", None)
+            if callable(close):
+                close()
+
+
+def open_microscope(config: str) -> Microscope:
+    """Open the instrument described by ``config`` (see the module notes)."""
+    parts = urlsplit(config)
+    if parts.scheme == "sim":
+        return _open_sim(config, parse_qs(parts.query))
+    if parts.scheme == "mcs":
+        return _open_mcs(config, config[len("mcs://") :])
+    raise ConfigurationError(
+        f"unknown instrument {config!r}: use sim://?surface=chessboard or mcs://stage=URL;robot=URL"
+    )
+
+
+def _open_sim(config: str, query: dict[str, list[str]]) -> Microscope:
+    from hardware.sim.clock import SimClock
+    from hardware.sim.instrument import SimulatedAFM
+    from hardware.sim.sem import SimulatedSEM
+    from hardware.sim.surfaces import Chessboard, FoldedSurface, Surface
+
+    known = {"surface", "seed", "speed"}
+    unknown = set(query) - known
+    if unknown:
+        raise ConfigurationError(
+            f"{config}: unknown option(s) {sorted(unknown)}; use {sorted(known)}"
+        )
+    name = query.get("surface", ["chessboard"])[-1]
+    try:
+        seed = int(query.get("seed", ["0"])[-1])
+    except ValueError:
+        raise ConfigurationError(f"{config}: seed must be an integer") from None
+    speed_text = query.get("speed", ["max"])[-1]
+    try:
+        speed = None if speed_text == "max" else float(speed_text)
+        clock = SimClock(speed)
+    except ValueError:
+        raise ConfigurationError(
+            f"{config}: speed must be 'max' or a positive number of simulated s per s"
+        ) from None
+    surfaces = {"chessboard": Chessboard, "folded": FoldedSurface}
+    if name not in surfaces:
+        raise ConfigurationError(f"{config}: surface must be one of {sorted(surfaces)}")
+    surface: Surface = surfaces[name](seed=seed)
+    afm = SimulatedAFM(surface, clock=clock, seed=seed)
+    return Microscope(
+        description=config,
+        stage_x=afm.stage_x,
+        stage_y=afm.stage_y,
+        robot_x=afm.robot_x,
+        robot_y=afm.robot_y,
+        robot_z=afm.robot_z,
+        probe=afm,
+        loop=afm,
+        scanner=afm,
+        sem=SimulatedSEM(surface, seed=seed),
+        simulated=True,
+        _closers=(afm,),
+    )
+
+
+def _open_mcs(config: str, spec: str) -> Microscope:
+    urls: dict[str, str] = {}
+    for item in filter(None, spec.split(";")):
+        key, sep, value = item.partition("=")
+        if not sep or key not in ("stage", "robot") or not value:
+            raise ConfigurationError(f"{config}: expected stage=URL;robot=URL, got {item!r}")
+        urls[key] = value
+    if set(urls) != {"stage", "robot"}:
+        raise ConfigurationError(f"{config}: both stage=URL and robot=URL are needed")
+    stage = MCSController.open(urls["stage"])
+    try:
+        robot = MCSController.open(urls["robot"])
+    except Exception:
+        stage.close()
+        raise
+    return Microscope(
+        description=config,
+        stage_x=MCSAxis(stage, 0, name="stage x"),
+        stage_y=MCSAxis(stage, 1, name="stage y"),
+        robot_x=MCSAxis(robot, 0, name="robot x"),
+        robot_y=MCSAxis(robot, 1, name="robot y"),
+        robot_z=MCSAxis(robot, 2, name="robot z"),
+        probe=None,
+        loop=None,
+        scanner=None,
+        sem=None,
+        simulated=False,
+        _closers=(stage, robot),
+    )
