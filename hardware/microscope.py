@@ -1,7 +1,8 @@
 """The instrument the backend works with, opened from one configuration string.
 
-* ``sim://`` — the simulated AFM-in-SEM. Options as a query: ``surface`` (chessboard, folded),
-  ``seed``, ``speed`` (simulated seconds per wall second, or ``max``), e.g.
+* ``sim://`` — the simulated AFM-in-SEM. Options as a query: ``surface`` (chessboard, folded,
+  image), ``seed``, ``speed`` (simulated seconds per wall second, or ``max``), and for an image
+  ``image`` (a 2-D ``.npy`` of heights in metres) with ``pixel`` (``dx,dy`` metres), e.g.
   ``sim://?surface=folded&seed=3&speed=max``.
 * ``mcs://stage=URL;robot=URL`` — real SmarAct MCS controllers on pyserial URLs (device paths,
   ``socket://``, ``rfc2217://``) for the sample stage and the probe robot. The stages move;
@@ -16,6 +17,7 @@ from urllib.parse import parse_qs, urlsplit
 
 from hardware.mcs_axis import MCSAxis
 from hardware.protocols import SEM, ForceLoop, PatchScanner, PositionerAxis, ProbeSignal
+from hardware.sim.surfaces import ImageSurface
 from hardware.smaract_mcs import MCSController
 
 
@@ -74,7 +76,7 @@ def _open_sim(config: str, query: dict[str, list[str]]) -> Microscope:
     from hardware.sim.sem import SimulatedSEM
     from hardware.sim.surfaces import Chessboard, FoldedSurface, Surface
 
-    known = {"surface", "seed", "speed"}
+    known = {"surface", "seed", "speed", "image", "pixel"}
     unknown = set(query) - known
     if unknown:
         raise ConfigurationError(
@@ -93,10 +95,15 @@ def _open_sim(config: str, query: dict[str, list[str]]) -> Microscope:
         raise ConfigurationError(
             f"{config}: speed must be 'max' or a positive number of simulated s per s"
         ) from None
-    surfaces = {"chessboard": Chessboard, "folded": FoldedSurface}
-    if name not in surfaces:
-        raise ConfigurationError(f"{config}: surface must be one of {sorted(surfaces)}")
-    surface: Surface = surfaces[name](seed=seed)
+    surface: Surface
+    if name == "image":
+        surface = _image_surface(config, query)
+    elif name == "folded":
+        surface = FoldedSurface(seed=seed)
+    elif name == "chessboard":
+        surface = Chessboard(seed=seed)
+    else:
+        raise ConfigurationError(f"{config}: surface must be chessboard, folded or image")
     afm = SimulatedAFM(surface, clock=clock, seed=seed)
     return Microscope(
         description=config,
@@ -112,6 +119,28 @@ def _open_sim(config: str, query: dict[str, list[str]]) -> Microscope:
         simulated=True,
         _closers=(afm,),
     )
+
+
+def image_surface(path: str, pixel: tuple[float, float]) -> ImageSurface:
+    """A height image (``.npy``, metres, rows along y) as a sample centred on the origin."""
+    import numpy as np
+
+    heights = np.load(path, allow_pickle=False)
+    if heights.ndim != 2:
+        raise ValueError(f"{path} must hold a 2-D height array, got shape {heights.shape}")
+    ny, nx = heights.shape
+    origin = (-(nx - 1) * pixel[0] / 2, -(ny - 1) * pixel[1] / 2)
+    return ImageSurface(heights, pixel, origin=origin)
+
+
+def _image_surface(config: str, query: dict[str, list[str]]) -> ImageSurface:
+    if "image" not in query or "pixel" not in query:
+        raise ConfigurationError(f"{config}: surface=image needs image=PATH.npy and pixel=DX,DY")
+    try:
+        dx, dy = (float(v) for v in query["pixel"][-1].split(","))
+        return image_surface(query["image"][-1], (dx, dy))
+    except (OSError, ValueError) as exc:
+        raise ConfigurationError(f"{config}: cannot use the image: {exc}") from None
 
 
 def _open_mcs(config: str, spec: str) -> Microscope:

@@ -18,7 +18,9 @@ def add_parser(sub: Any) -> None:
         "instrument (through the MCS driver and protocol simulator); write a patch set.",
     )
     p.add_argument("--out", required=True, help="output folder for manifest.json and patches")
-    p.add_argument("--surface", default="chessboard", choices=["chessboard", "folded"])
+    p.add_argument("--surface", default="chessboard", choices=["chessboard", "folded", "image"])
+    p.add_argument("--image", help="for --surface image: 2-D .npy of heights in metres")
+    p.add_argument("--image-pixel", type=float_pair, help="pixel size of --image dx[,dy], m")
     p.add_argument("--rows", type=int, default=2)
     p.add_argument("--cols", type=int, default=3)
     p.add_argument("--patch", type=float_pair, default=(0.6e-6, 1.2e-6), help="metres w,h")
@@ -31,6 +33,7 @@ def add_parser(sub: Any) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from hardware.microscope import image_surface
     from hardware.sim.instrument import SimulatedAFM
     from hardware.sim.mosaic import scan_mosaic
     from hardware.sim.surfaces import Chessboard, FoldedSurface, Surface
@@ -46,9 +49,18 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError("--overlap fractions must be in [0, 1)")
     if not args.line_rate > 0:
         raise UsageError("--line-rate must be positive")
-    surface: Surface = (
-        FoldedSurface(seed=args.seed) if args.surface == "folded" else Chessboard(seed=args.seed)
-    )
+    surface: Surface
+    if args.surface == "image":
+        if not args.image or not args.image_pixel:
+            raise UsageError("--surface image needs --image FILE.npy and --image-pixel DX[,DY]")
+        try:
+            surface = image_surface(args.image, args.image_pixel)
+        except (OSError, ValueError) as exc:
+            raise UsageError(f"cannot use {args.image} as a sample: {exc}") from None
+    elif args.surface == "folded":
+        surface = FoldedSurface(seed=args.seed)
+    else:
+        surface = Chessboard(seed=args.seed)
     wall = time.perf_counter()
     with SimulatedAFM(surface, seed=args.seed) as afm:
         scanned = scan_mosaic(

@@ -26,6 +26,7 @@ from hardware.errors import CrashError, ProcedureError
 from hardware.mcs_axis import FineCalibration, MCSAxis
 from hardware.protocols import ScanLines
 from hardware.sim.clock import SimClock
+from hardware.sim.mcs_channel import ChannelParams
 from hardware.sim.mcs_device import MCSDevice
 from hardware.sim.mcs_server import MCSServer
 from hardware.sim.probe import ProbeModel
@@ -56,7 +57,7 @@ class WorldParams:
     """Drift, noise and tip of the simulated world (SI units)."""
 
     thermal_xy: float = 2e-9 / 60  # m/s per axis (nm per minute)
-    thermal_z: float = 3e-9 / 60
+    thermal_z: float = 30e-9 / 60
     charging: float = 4.0  # Hz: SEM charging shifts Δf towards this, saturating
     charging_time: float = 600.0  # s: time constant of the charging
     tip_radius: float = 10e-9
@@ -95,7 +96,12 @@ class SimulatedAFM:
         self.params = params or WorldParams()
         self.probe = probe or ProbeModel()
         self.rng = np.random.default_rng(seed)
-        self.stage_device = MCSDevice(channels=2, seed=seed + 1)
+        # the sample stage's sensors: scale error and encoder periodic error (tens of nm)
+        self.stage_device = MCSDevice(
+            channels=2,
+            seed=seed + 1,
+            params=ChannelParams(sensor_scale_error=3e-3, sensor_periodic_error=25e-9),
+        )
         self.robot_device = MCSDevice(channels=3, seed=seed + 2)
         self.stage_server = MCSServer(self.stage_device, clock=self.clock).start()
         self.robot_server = MCSServer(self.robot_device, clock=self.clock).start()

@@ -13,11 +13,13 @@ The model, in SI units and simulated seconds:
   reads the target; it needs a sensor and respects the soft range limit.
 * **Slider creep**: after stepping, the slider keeps moving a fraction of the stepped distance,
   relaxing exponentially (on a Z axis this is the drift that makes a mosaic's Z staircase).
-* **Sensor**: reads slider + extension with white noise.
+* **Sensor**: reads slider + extension with white noise, a scale error and the periodic error
+  of its encoder, so a closed-loop move lands where the sensor, not the truth, says.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -41,6 +43,9 @@ class ChannelParams:
     step_creep_fraction: float = 0.02
     step_creep_time: float = 60.0
     sensor_noise: float = 1e-9
+    sensor_scale_error: float = 0.0  # relative error of the sensor's scale
+    sensor_periodic_error: float = 0.0  # amplitude (m) of the encoder's periodic error
+    sensor_period: float = 4e-6  # its period, m
     has_sensor: bool = True
     closed_loop_speed: float = 1e-3
 
@@ -133,7 +138,22 @@ class MCSChannel:
         self.level = level
 
     def sensor(self, t: float) -> float:
-        return self.true_position(t) + float(self.rng.normal(0.0, self.params.sensor_noise))
+        return self._reading(self.true_position(t)) + float(
+            self.rng.normal(0.0, self.params.sensor_noise)
+        )
+
+    def _reading(self, x: float) -> float:
+        """What the (noise-free) sensor reports at true position ``x``."""
+        p = self.params
+        periodic = p.sensor_periodic_error * math.sin(2 * math.pi * x / p.sensor_period)
+        return x * (1.0 + p.sensor_scale_error) + periodic
+
+    def _true_for_reading(self, reading: float) -> float:
+        """The true position where the sensor reads ``reading`` (fixed point)."""
+        x = reading
+        for _ in range(20):
+            x += (reading - self._reading(x)) / (1.0 + self.params.sensor_scale_error)
+        return x
 
     # -- commands ------------------------------------------------------------------------------
 
@@ -171,6 +191,7 @@ class MCSChannel:
     def move_to(self, target: float, hold_ms: int, t: float) -> None:
         """Closed loop: slider and fine mode end where the sensor reads ``target``."""
         self._settle(t)
+        target = self._true_for_reading(target)
         duration = abs(target - self.true_position(t)) / self.params.closed_loop_speed + 0.01
         # the controller keeps the fine mode mid-range and places the slider for the rest,
         # reading the sensor, so hysteresis and the creep at arrival are compensated

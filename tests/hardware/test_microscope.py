@@ -72,3 +72,17 @@ def test_sem_calibration_maps_a_feature_to_its_stage_position() -> None:
         > 0.5 * ndimage.gaussian_gradient_magnitude(h, 1).max()
     )
     assert (edges & steep).sum() > 0.5 * edges.sum()
+
+
+def test_a_real_image_as_the_simulated_sample(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    heights = np.random.default_rng(0).normal(0, 5e-9, (64, 64))
+    np.save(tmp_path / "img.npy", heights)
+    scope = open_microscope(f"sim://?surface=image&image={tmp_path / 'img.npy'}&pixel=2e-8,2e-8")
+    try:
+        assert scope.sem is not None
+        img = scope.sem.grab(centre=(0.0, 0.0), field=1e-6, pixels=32)
+        assert np.isfinite(img.pixels).all()
+    finally:
+        scope.close()
+    with pytest.raises(ConfigurationError, match="needs image"):
+        open_microscope("sim://?surface=image")
