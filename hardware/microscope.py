@@ -16,7 +16,7 @@ from dataclasses import dataclass
 from urllib.parse import parse_qs, urlsplit
 
 from hardware.mcs_axis import MCSAxis
-from hardware.protocols import SEM, ForceLoop, PatchScanner, PositionerAxis, ProbeSignal
+from hardware.protocols import SEM, ForceLoop, LineRecorder, PositionerAxis, ProbeSignal
 from hardware.sim.surfaces import ImageSurface
 from hardware.smaract_mcs import MCSController
 
@@ -37,19 +37,19 @@ class Microscope:
     robot_z: PositionerAxis
     probe: ProbeSignal | None
     loop: ForceLoop | None
-    scanner: PatchScanner | None
+    recorder: LineRecorder | None
     sem: SEM | None
     simulated: bool
     _closers: tuple[object, ...] = ()
 
-    def require_afm(self) -> tuple[ProbeSignal, ForceLoop, PatchScanner]:
-        """The probe, force loop and scanner, or a clear error where there are none."""
-        if self.probe is None or self.loop is None or self.scanner is None:
+    def require_afm(self) -> tuple[ProbeSignal, ForceLoop, LineRecorder]:
+        """The probe, force loop and line recorder, or a clear error where there are none."""
+        if self.probe is None or self.loop is None or self.recorder is None:
             raise ConfigurationError(
                 f"{self.description}: no AFM controller (probe signal and force loop) is "
                 "configured, so it cannot land or scan; use sim:// or add the controller"
             )
-        return self.probe, self.loop, self.scanner
+        return self.probe, self.loop, self.recorder
 
     def close(self) -> None:
         for thing in self._closers:
@@ -114,7 +114,7 @@ def _open_sim(config: str, query: dict[str, list[str]]) -> Microscope:
         robot_z=afm.robot_z,
         probe=afm,
         loop=afm,
-        scanner=afm,
+        recorder=afm,
         sem=SimulatedSEM(surface, seed=seed),
         simulated=True,
         _closers=(afm,),
@@ -167,7 +167,7 @@ def _open_mcs(config: str, spec: str) -> Microscope:
         robot_z=MCSAxis(robot, 2, name="robot z"),
         probe=None,
         loop=None,
-        scanner=None,
+        recorder=None,
         sem=None,
         simulated=False,
         _closers=(stage, robot),

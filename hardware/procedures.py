@@ -9,8 +9,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
+
 from hardware.errors import CrashError, NoSurfaceError, ProcedureError, SaturationError
-from hardware.protocols import ForceLoop, PatchScanner, PositionerAxis, ProbeSignal, ScanLines
+from hardware.protocols import ForceLoop, LineRecorder, PositionerAxis, ProbeSignal, ScanLines
 from hardware.smaract_mcs import AxisStatus
 
 __all__ = [
@@ -21,6 +23,7 @@ __all__ = [
     "SaturationError",
     "acquire_patch",
     "land",
+    "raster_patch",
     "retract",
 ]
 
@@ -129,6 +132,45 @@ def retract(z: PositionerAxis, loop: ForceLoop, *, steps: int = 40, amplitude: i
     wait_stopped(z)
 
 
+def raster_patch(
+    x: PositionerAxis,
+    y: PositionerAxis,
+    recorder: LineRecorder,
+    *,
+    size: tuple[float, float],
+    pixels: tuple[int, int],
+    line_rate: float,
+) -> ScanLines:
+    """Raster a patch in fine mode, trace only, with the force loop engaged.
+
+    The patch is centred in the fine range. Each line: Y steps to the line and X flies back
+    to its start (waiting until both stop), then X ramps across at the line speed while the
+    recorder samples the tip height, one line every ``1 / line_rate`` seconds.
+    """
+    nx, ny = pixels
+    w, h = size
+    fine = min(x.fine_range, y.fine_range)
+    if nx < 2 or ny < 2:
+        raise ValueError(f"need at least 2 x 2 pixels, got {pixels}")
+    if not (0 < w <= fine and 0 < h <= fine):
+        raise ValueError(f"a patch must fit the fine range ({fine * 1e6:.2f} µm), got {size}")
+    if not line_rate > 0:
+        raise ValueError(f"line rate must be positive, got {line_rate}")
+    x0, y0 = (x.fine_range - w) / 2, (y.fine_range - h) / 2
+    dx, dy = w / nx, h / ny
+    line_time = 1.0 / line_rate
+    heights = np.full((ny, nx), np.nan)
+    times = np.zeros(ny)
+    for i in range(ny):
+        y.fine_to(y0 + i * dy, speed=y.fine_range)
+        x.fine_to(x0, speed=10 * x.fine_range)
+        wait_stopped(x)
+        wait_stopped(y)
+        x.fine_to(x0 + (nx - 1) * dx, speed=(nx - 1) * dx / line_time)
+        heights[i], times[i] = recorder.record_line(nx, line_time)
+    return ScanLines(heights=heights, line_times=times, origin=(x0, y0), pixel_size=(dx, dy))
+
+
 @dataclass(frozen=True)
 class PatchResult:
     """One scanned patch: its lines and its nominal sample-frame origin (metres)."""
@@ -141,11 +183,12 @@ def acquire_patch(
     *,
     stage_x: PositionerAxis,
     stage_y: PositionerAxis,
+    x: PositionerAxis,
+    y: PositionerAxis,
     z: PositionerAxis,
     loop: ForceLoop,
     probe: ProbeSignal,
-    scanner: PatchScanner,
-    fine_range: float,
+    recorder: LineRecorder,
     origin: tuple[float, float],
     size: tuple[float, float],
     pixels: tuple[int, int],
@@ -154,18 +197,18 @@ def acquire_patch(
 ) -> PatchResult:
     """Move the sample stage, land, raster in fine mode and retract: one patch.
 
-    The raster is centred in the fine range, so the stage goes to ``start - origin`` with
-    ``start = (fine_range - size) / 2``. Whatever fails, the tip is retracted before the error
-    propagates.
+    ``x``, ``y`` and ``z`` are the probe robot's axes. The raster is centred in the fine range,
+    so the stage goes to ``start - origin`` with ``start = (fine_range - size) / 2``. Whatever
+    fails, the tip is retracted before the error propagates.
     """
-    start = ((fine_range - size[0]) / 2, (fine_range - size[1]) / 2)
+    start = ((x.fine_range - size[0]) / 2, (y.fine_range - size[1]) / 2)
     stage_x.move_to(start[0] - origin[0])
     stage_y.move_to(start[1] - origin[1])
     wait_stopped(stage_x)
     wait_stopped(stage_y)
     try:
         land(z, loop, probe, landing)
-        lines = scanner.scan_patch(size=size, pixels=pixels, line_rate=line_rate)
+        lines = raster_patch(x, y, recorder, size=size, pixels=pixels, line_rate=line_rate)
         if loop.saturated():
             raise SaturationError("Z saturated during the scan: reduce the patch or level it")
     finally:

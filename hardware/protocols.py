@@ -2,7 +2,7 @@
 
 Real drivers and the simulated instrument both implement these, so the procedures above them
 (landing, retract, raster) and the server run unchanged on either. Roles that the simulated
-AFM-in-SEM fills in (probe signal, force loop, patch scanner, SEM) are declared here too.
+AFM-in-SEM fills in (probe signal, force loop, line recorder, SEM) are declared here too.
 """
 
 from __future__ import annotations
@@ -96,8 +96,8 @@ class ScanLines:
 
     heights : (ny, nx) metres, rows along y, NaN where the loop lost the surface.
     line_times : (ny,) simulated or wall seconds at the start of every line.
-    origin : fine-mode (x, y) of pixel (0, 0) in the scanner's own frame, metres; the sample
-        position is this minus the sample stage's position.
+    origin : fine-mode (x, y) of pixel (0, 0) in the probe robot's fine frame, metres; the
+        sample position is this minus the sample stage's position.
     pixel_size : (dx, dy) metres.
     """
 
@@ -108,12 +108,13 @@ class ScanLines:
 
 
 @runtime_checkable
-class PatchScanner(Protocol):
-    """Rasters one patch in fine mode with the force loop engaged."""
+class LineRecorder(Protocol):
+    """The AFM controller's acquisition: tip heights sampled while the axes move."""
 
-    def scan_patch(
-        self, *, size: tuple[float, float], pixels: tuple[int, int], line_rate: float
-    ) -> ScanLines: ...
+    def record_line(self, samples: int, duration: float) -> tuple[FloatArray, float]:
+        """Sample the tip height ``samples`` times, evenly over ``duration`` seconds, with the
+        force loop engaged; return the heights (metres) and the start time (seconds)."""
+        ...
 
 
 @dataclass(frozen=True)

@@ -24,14 +24,13 @@ from numpy.typing import NDArray
 
 from hardware.errors import CrashError, ProcedureError
 from hardware.mcs_axis import FineCalibration, MCSAxis
-from hardware.protocols import ScanLines
 from hardware.sim.clock import SimClock
 from hardware.sim.mcs_channel import ChannelParams
 from hardware.sim.mcs_device import MCSDevice
 from hardware.sim.mcs_server import MCSServer
 from hardware.sim.probe import ProbeModel
 from hardware.sim.surfaces import Surface
-from hardware.smaract_mcs import AxisStatus, MCSController
+from hardware.smaract_mcs import MCSController
 
 FloatArray = NDArray[np.float64]
 
@@ -68,7 +67,7 @@ class WorldParams:
 
 
 class SimulatedAFM:
-    """The instrument: MCS servers and drivers, probe, force loop, scanner, drift.
+    """The instrument: MCS servers and drivers, probe, force loop, line recorder, drift.
 
     Parameters
     ----------
@@ -124,8 +123,8 @@ class SimulatedAFM:
         self._saturated = False
         self.crashed = False
         self.beam_on = True
-        #: where every pixel of the last scan truly was on the sample (simulator-only truth)
-        self.last_scan_positions = np.empty((0, 0, 2))
+        #: where every sample of every recorded line truly was (simulator-only truth)
+        self.line_positions: list[FloatArray] = []
 
     # -- lifecycle --------------------------------------------------------------------------
 
@@ -220,11 +219,6 @@ class SimulatedAFM:
     def saturated(self) -> bool:
         return self._saturated
 
-    def _wait(self, axis: MCSAxis) -> None:
-        while axis.status() not in (AxisStatus.STOPPED, AxisStatus.HOLDING):
-            if not self.clock.fast:
-                self.clock.advance(0.001)
-
     def _required_extension(self, height: FloatArray | float, t: float) -> FloatArray:
         """Fine Z extension that puts the tip at the set-point distance above ``height``."""
         z = self.robot_device.axes[2]
@@ -245,88 +239,61 @@ class SimulatedAFM:
         if self.distance(t) < 0:
             self.crashed = True
 
-    # -- PatchScanner -----------------------------------------------------------------------
+    # -- LineRecorder -----------------------------------------------------------------------
 
-    def scan_patch(
-        self, *, size: tuple[float, float], pixels: tuple[int, int], line_rate: float
-    ) -> ScanLines:
-        """Raster ``size`` (m) with ``pixels`` (nx, ny) from the current stage position.
+    def record_line(self, samples: int, duration: float) -> tuple[FloatArray, float]:
+        """Record the tip height ``samples`` times over the next ``duration`` seconds.
 
-        The raster is centred in the fine range; ``origin`` of the result is its start in the
-        robot's fine frame. Each line: the robot Y fine axis steps to the line, the robot X fine
-        axis ramps across it (both through the MCS driver) while the force loop tracks the
-        surface; the recorded height is the tip height. Trace only, one line per
-        ``1 / line_rate`` seconds.
+        The axes move as the control software commanded them just before (the X ramp of a
+        raster line); the force loop, engaged, tracks the surface with its finite bandwidth:
+        the loop had followed the surface during the fly-back, so it starts settled. Returns
+        the heights (metres) and the start time.
         """
         if self._setpoint is None:
-            raise ProcedureError("engage the force loop before scanning")
-        nx, ny = pixels
-        w, h = size
-        fine = self.robot_x.fine_range
-        if not (0 < w <= fine and 0 < h <= fine):
-            raise ValueError(f"a patch must fit the fine range ({fine * 1e6:.2f} µm), got {size}")
-        dx, dy = w / nx, h / ny
-        line_time = 1.0 / line_rate
-        heights = np.full((ny, nx), np.nan)
-        times = np.zeros(ny)
-        true_xy = np.full((ny, nx, 2), np.nan)
+            raise ProcedureError("engage the force loop before recording")
+        if samples < 1 or not duration > 0:
+            raise ValueError("need at least one sample and a positive duration")
+        t0 = self.clock.now()
+        self._settle_loop(t0)
         z = self.robot_device.axes[2]
         zrange = z.params.fine_range
         sub = self.params.substeps
-        dt = line_time / (nx * sub)
+        dt = duration / (samples * sub)
         gain = 1.0 - math.exp(-2 * math.pi * self.params.loop_bandwidth * dt)
         branch_end = self.probe.attraction_minimum()
         crash_depth = self.probe.crash_distance()
-        x0 = 0.5 * (fine - w)
-        y0 = 0.5 * (fine - h)
-        for i in range(ny):
-            # to the line start (fly-back), waiting as the control software does
-            self.robot_y.fine_to(y0 + i * dy, speed=fine)
-            self.robot_x.fine_to(x0, speed=fine * 10)
-            self._wait(self.robot_x)
-            self._wait(self.robot_y)
-            t0 = self.clock.now()
-            times[i] = t0
-            # the loop stays engaged while the tip flies back to the line start: it has
-            # followed the surface there
-            self._settle_loop(t0)
-            self.robot_x.fine_to(x0 + (nx - 1) * dx, speed=(nx - 1) * dx / line_time)
-            # the true tip path over the line, from the channels at a few knots (the ramp is
-            # smooth: linear in level, bent slightly by hysteresis and creep)
-            ts = t0 + dt * np.arange(nx * sub)
-            knots = np.linspace(ts[0], ts[-1], 9)
-            path = np.array([self.sample_xy(t) for t in knots])
-            xs = np.interp(ts, knots, path[:, 0])
-            ys = np.interp(ts, knots, path[:, 1])
-            true_xy[i, :, 0], true_xy[i, :, 1] = xs[sub - 1 :: sub], ys[sub - 1 :: sub]
-            surf = self.surface_height(xs, ys, t0)
-            ext = z.extension(t0)
-            tip0 = self.params.z_top - (z.true_position(t0) - ext)
-            set_df = self._setpoint - self.charging_offset(t0)
-            line = np.empty(nx)
-            d_set = self.probe.distance_at(set_df)
-            for k in range(nx * sub):
-                # On the repulsive branch Δf maps one to one onto distance, so the loop acts as
-                # a distance regulator of finite bandwidth; beyond the attractive minimum the
-                # signal is weak and the loop approaches at its slew rate ("parachuting")
-                dist = tip0 - ext - surf[k]
-                error = dist - d_set
-                if dist > branch_end:
-                    error = min(error, MAX_LOOP_STEP)
-                ext = min(max(ext + gain * error, 0.0), zrange)
-                if ext in (0.0, zrange):
-                    self._saturated = True
-                if tip0 - ext - surf[k] < crash_depth:
-                    self.crashed = True
-                    raise CrashError(
-                        f"the tip crashed into the surface on line {i}: the scan is too fast "
-                        "for the force loop here (lower the line rate)"
-                    )
-                if k % sub == sub - 1:
-                    line[k // sub] = tip0 - ext
-            noise = self.rng.normal(0.0, self.params.z_noise, nx)
-            heights[i] = line + noise
-            self.clock.advance_to(t0 + line_time)
-            z.drive_extension(ext, self.clock.now())
-        self.last_scan_positions = true_xy
-        return ScanLines(heights=heights, line_times=times, origin=(x0, y0), pixel_size=(dx, dy))
+        # the true tip path over the line, from the channels at a few knots (the ramp is
+        # smooth: linear in level, bent slightly by hysteresis and creep)
+        ts = t0 + dt * np.arange(samples * sub)
+        knots = np.linspace(ts[0], ts[-1], 9)
+        path = np.array([self.sample_xy(t) for t in knots])
+        xs = np.interp(ts, knots, path[:, 0])
+        ys = np.interp(ts, knots, path[:, 1])
+        self.line_positions.append(np.column_stack([xs[sub - 1 :: sub], ys[sub - 1 :: sub]]))
+        surf = self.surface_height(xs, ys, t0)
+        ext = z.extension(t0)
+        tip0 = self.params.z_top - (z.true_position(t0) - ext)
+        d_set = self.probe.distance_at(self._setpoint - self.charging_offset(t0))
+        line = np.empty(samples)
+        for k in range(samples * sub):
+            # On the repulsive branch Δf maps one to one onto distance, so the loop acts as
+            # a distance regulator of finite bandwidth; beyond the attractive minimum the
+            # signal is weak and the loop approaches at its slew rate ("parachuting")
+            dist = tip0 - ext - surf[k]
+            error = dist - d_set
+            if dist > branch_end:
+                error = min(error, MAX_LOOP_STEP)
+            ext = min(max(ext + gain * error, 0.0), zrange)
+            if ext in (0.0, zrange):
+                self._saturated = True
+            if tip0 - ext - surf[k] < crash_depth:
+                self.crashed = True
+                raise CrashError(
+                    "the tip crashed into the surface: the scan is too fast for the force "
+                    "loop here (lower the line rate)"
+                )
+            if k % sub == sub - 1:
+                line[k // sub] = tip0 - ext
+        self.clock.advance_to(t0 + duration)
+        z.drive_extension(ext, self.clock.now())
+        return line + self.rng.normal(0.0, self.params.z_noise, samples), t0

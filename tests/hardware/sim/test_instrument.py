@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from hardware.procedures import CrashError, LandingConfig, NoSurfaceError, acquire_patch, land
-from hardware.protocols import ForceLoop, PatchScanner, ProbeSignal
+from hardware.protocols import ForceLoop, LineRecorder, ProbeSignal
 from hardware.sim.instrument import SimulatedAFM, WorldParams
 from hardware.sim.probe import ProbeModel
 from hardware.sim.surfaces import FoldedSurface
@@ -23,7 +23,7 @@ def afm(folded: FoldedSurface) -> Iterator[SimulatedAFM]:
 def test_it_fills_the_roles(afm: SimulatedAFM) -> None:
     assert isinstance(afm, ProbeSignal)
     assert isinstance(afm, ForceLoop)
-    assert isinstance(afm, PatchScanner)
+    assert isinstance(afm, LineRecorder)
 
 
 def test_probe_model() -> None:
@@ -67,18 +67,19 @@ def test_a_scan_reproduces_the_surface_within_noise_and_dilation(afm: SimulatedA
     result = acquire_patch(
         stage_x=afm.stage_x,
         stage_y=afm.stage_y,
+        x=afm.robot_x,
+        y=afm.robot_y,
         z=afm.robot_z,
         loop=afm,
         probe=afm,
-        scanner=afm,
-        fine_range=1.6e-6,
+        recorder=afm,
         origin=(1e-6, 2e-6),
         size=(0.6e-6, 0.6e-6),
         pixels=(30, 30),
         line_rate=2.0,
     )
     h = result.lines.heights
-    where = afm.last_scan_positions  # where each pixel truly was (simulator-only truth)
+    where = np.array(afm.line_positions[-30:])  # where each pixel truly was (simulator truth)
     ideal = afm.surface_height(where[..., 0], where[..., 1], 0.0)  # what a 10 nm tip can touch
     diff = h - ideal
     diff -= np.nanmean(diff, axis=1, keepdims=True)  # set-point distance and drift per line
