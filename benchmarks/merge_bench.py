@@ -31,11 +31,11 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from backend.synthetic import patch_set_from_synth, registration_error
 from hardware.sim.drift import DriftModel
 from hardware.sim.surfaces import Chessboard, FoldedSurface, ImageSurface, Surface
-from hardware.sim.synth import SynthPatch, scan_fraction, synthesize, true_points
-from merge import Patch, PatchSet, PatchTransform, read_result, render_mosaic, write_patch_set
-from merge.kabsch import weighted_rigid_transform
+from hardware.sim.synth import scan_fraction, synthesize
+from merge import Patch, PatchTransform, read_result, render_mosaic, write_patch_set
 
 FloatArray = NDArray[np.float64]
 ROOT = Path(__file__).resolve().parents[1]
@@ -125,32 +125,6 @@ CASES = [
 ]
 
 
-def registration_error(
-    synth: list[SynthPatch], transforms: list[PatchTransform]
-) -> tuple[float, float, tuple[FloatArray, FloatArray]]:
-    """RMS XY and Z error (m) over all points after the best global rigid transform, and it."""
-    est, true = [], []
-    for i, s in enumerate(synth):
-        ny, nx = s.heights.shape
-        xx, yy = np.meshgrid(
-            s.origin[0] + np.arange(nx) * s.pixel_size[0],
-            s.origin[1] + np.arange(ny) * s.pixel_size[1],
-        )
-        p = np.stack([xx, yy, s.heights], axis=-1).reshape(-1, 3)
-        q = true_points(s).reshape(-1, 3)
-        ok = np.isfinite(p).all(axis=1) & np.isfinite(q).all(axis=1)
-        est.append(transforms[i].apply(p[ok]))
-        true.append(q[ok])
-    P, Q = np.concatenate(est), np.concatenate(true)
-    G, g = weighted_rigid_transform(P, Q)
-    e = P @ G.T + g - Q
-    return (
-        float(np.sqrt(np.mean(np.sum(e[:, :2] ** 2, axis=1)))),
-        float(np.sqrt(np.mean(e[:, 2] ** 2))),
-        (G, g),
-    )
-
-
 def map_error(
     heights: FloatArray,
     origin: tuple[float, float],
@@ -196,18 +170,7 @@ def run_case(case: Case, work: Path) -> dict[str, Any]:
         drift=case.drift,
         seed=case.seed,
     )
-    ps = PatchSet(
-        Patch(
-            id=s.id,
-            heights=s.heights,
-            origin=s.origin,
-            pixel_size=s.pixel_size,
-            order=s.order,
-            row=s.row,
-            col=s.col,
-        )
-        for s in synth
-    )
+    ps = patch_set_from_synth(synth)
     folder = work / case.name
     write_patch_set(ps, folder / "patches")
     # the floor: true transforms, drift-free heights, same renderer
@@ -289,12 +252,7 @@ def scaling(work: Path, sides: tuple[int, ...] = (5, 10, 14, 20)) -> list[dict[s
             drift=DriftModel.typical(),
             seed=1,
         )
-        ps = PatchSet(
-            Patch(
-                id=s.id, heights=s.heights, origin=s.origin, pixel_size=s.pixel_size, order=s.order
-            )
-            for s in synth
-        )
+        ps = patch_set_from_synth(synth)
         folder = work / f"scaling-{side}"
         write_patch_set(ps, folder)
         wall, peak, _ = run_cli(

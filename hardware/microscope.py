@@ -17,7 +17,6 @@ from urllib.parse import parse_qs, urlsplit
 
 from hardware.mcs_axis import MCSAxis
 from hardware.protocols import SEM, ForceLoop, LineRecorder, PositionerAxis, ProbeSignal
-from hardware.sim.surfaces import ImageSurface
 from hardware.smaract_mcs import MCSController
 
 
@@ -74,7 +73,7 @@ def _open_sim(config: str, query: dict[str, list[str]]) -> Microscope:
     from hardware.sim.clock import SimClock
     from hardware.sim.instrument import SimulatedAFM
     from hardware.sim.sem import SimulatedSEM
-    from hardware.sim.surfaces import Chessboard, FoldedSurface, Surface
+    from hardware.sim.surfaces import surface_by_name
 
     known = {"surface", "seed", "speed", "image", "pixel"}
     unknown = set(query) - known
@@ -95,15 +94,19 @@ def _open_sim(config: str, query: dict[str, list[str]]) -> Microscope:
         raise ConfigurationError(
             f"{config}: speed must be 'max' or a positive number of simulated s per s"
         ) from None
-    surface: Surface
-    if name == "image":
-        surface = _image_surface(config, query)
-    elif name == "folded":
-        surface = FoldedSurface(seed=seed)
-    elif name == "chessboard":
-        surface = Chessboard(seed=seed)
-    else:
-        raise ConfigurationError(f"{config}: surface must be chessboard, folded or image")
+    pixel = None
+    if "pixel" in query:
+        try:
+            px, py = (float(v) for v in query["pixel"][-1].split(","))
+        except ValueError:
+            raise ConfigurationError(f"{config}: pixel must be DX,DY in metres") from None
+        pixel = (px, py)
+    try:
+        surface = surface_by_name(
+            name, seed=seed, image=query.get("image", [None])[-1], pixel=pixel, centred=True
+        )
+    except (OSError, ValueError) as exc:
+        raise ConfigurationError(f"{config}: {exc}") from None
     afm = SimulatedAFM(surface, clock=clock, seed=seed)
     return Microscope(
         description=config,
@@ -119,28 +122,6 @@ def _open_sim(config: str, query: dict[str, list[str]]) -> Microscope:
         simulated=True,
         _closers=(afm,),
     )
-
-
-def image_surface(path: str, pixel: tuple[float, float]) -> ImageSurface:
-    """A height image (``.npy``, metres, rows along y) as a sample centred on the origin."""
-    import numpy as np
-
-    heights = np.load(path, allow_pickle=False)
-    if heights.ndim != 2:
-        raise ValueError(f"{path} must hold a 2-D height array, got shape {heights.shape}")
-    ny, nx = heights.shape
-    origin = (-(nx - 1) * pixel[0] / 2, -(ny - 1) * pixel[1] / 2)
-    return ImageSurface(heights, pixel, origin=origin)
-
-
-def _image_surface(config: str, query: dict[str, list[str]]) -> ImageSurface:
-    if "image" not in query or "pixel" not in query:
-        raise ConfigurationError(f"{config}: surface=image needs image=PATH.npy and pixel=DX,DY")
-    try:
-        dx, dy = (float(v) for v in query["pixel"][-1].split(","))
-        return image_surface(query["image"][-1], (dx, dy))
-    except (OSError, ValueError) as exc:
-        raise ConfigurationError(f"{config}: cannot use the image: {exc}") from None
 
 
 def _open_mcs(config: str, spec: str) -> Microscope:

@@ -33,10 +33,9 @@ def add_parser(sub: Any) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from hardware.microscope import image_surface
     from hardware.sim.instrument import SimulatedAFM
     from hardware.sim.mosaic import scan_mosaic
-    from hardware.sim.surfaces import Chessboard, FoldedSurface, Surface
+    from hardware.sim.surfaces import surface_by_name
     from merge import Patch, PatchSet, write_patch_set
 
     if args.rows < 1 or args.cols < 1:
@@ -49,18 +48,12 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError("--overlap fractions must be in [0, 1)")
     if not args.line_rate > 0:
         raise UsageError("--line-rate must be positive")
-    surface: Surface
-    if args.surface == "image":
-        if not args.image or not args.image_pixel:
-            raise UsageError("--surface image needs --image FILE.npy and --image-pixel DX[,DY]")
-        try:
-            surface = image_surface(args.image, args.image_pixel)
-        except (OSError, ValueError) as exc:
-            raise UsageError(f"cannot use {args.image} as a sample: {exc}") from None
-    elif args.surface == "folded":
-        surface = FoldedSurface(seed=args.seed)
-    else:
-        surface = Chessboard(seed=args.seed)
+    try:
+        surface = surface_by_name(
+            args.surface, seed=args.seed, image=args.image, pixel=args.image_pixel, centred=True
+        )
+    except (OSError, ValueError) as exc:
+        raise UsageError(f"cannot make the {args.surface} surface: {exc}") from None
     wall = time.perf_counter()
     with SimulatedAFM(surface, seed=args.seed) as afm:
         scanned = scan_mosaic(

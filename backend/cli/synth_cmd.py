@@ -48,10 +48,11 @@ def add_parser(sub: Any) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from backend.synthetic import patch_set_from_synth
     from hardware.sim.drift import DriftModel
-    from hardware.sim.surfaces import Chessboard, FoldedSurface, ImageSurface, Surface
+    from hardware.sim.surfaces import surface_by_name
     from hardware.sim.synth import synthesize
-    from merge import Patch, PatchSet, write_patch_set
+    from merge import write_patch_set
 
     if args.rows < 1 or args.cols < 1 or args.rows * args.cols < 2:
         raise UsageError("need at least two patches (--rows x --cols >= 2)")
@@ -61,19 +62,12 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError("--patch sizes must be positive (metres)")
     if not all(0 <= o < 1 for o in args.overlap):
         raise UsageError("--overlap fractions must be in [0, 1)")
-    surface: Surface
-    if args.surface == "image":
-        if not args.image or not args.image_pixel:
-            raise UsageError("--surface image needs --image FILE.npy and --image-pixel DX[,DY]")
-        try:
-            img = np.load(args.image, allow_pickle=False)
-            surface = ImageSurface(img, args.image_pixel)
-        except (OSError, ValueError) as exc:
-            raise UsageError(f"cannot use {args.image} as a surface: {exc}") from None
-    elif args.surface == "folded":
-        surface = FoldedSurface(seed=args.seed)
-    else:
-        surface = Chessboard(seed=args.seed)
+    try:
+        surface = surface_by_name(
+            args.surface, seed=args.seed, image=args.image, pixel=args.image_pixel
+        )
+    except (OSError, ValueError) as exc:
+        raise UsageError(f"cannot make the {args.surface} surface: {exc}") from None
     model = {
         "typical": DriftModel.typical(),
         "harsh": DriftModel.harsh(),
@@ -93,18 +87,7 @@ def run(args: argparse.Namespace) -> int:
     if any(not np.isfinite(s.heights).any() for s in synth):
         raise UsageError("some patches fall outside the image: reduce --rows/--cols or --patch")
     out = Path(args.out)
-    patch_set = PatchSet(
-        Patch(
-            id=s.id,
-            heights=s.heights,
-            origin=s.origin,
-            pixel_size=s.pixel_size,
-            order=s.order,
-            row=s.row,
-            col=s.col,
-        )
-        for s in synth
-    )
+    patch_set = patch_set_from_synth(synth)
     write_patch_set(patch_set, out)
     # the true surface over the nominal area, at the patch pixel pitch
     dx, dy = synth[0].pixel_size

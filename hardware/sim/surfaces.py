@@ -232,3 +232,35 @@ class ImageSurface:
         inside = (u >= -1e-9) & (u <= nx - 1 + 1e-9) & (v >= -1e-9) & (v <= ny - 1 + 1e-9)
         out: FloatArray = np.where(inside, vals.reshape(xa.shape), np.nan)
         return out
+
+
+SURFACES = ("chessboard", "folded", "image")
+
+
+def surface_by_name(
+    name: str,
+    *,
+    seed: int = 0,
+    image: str | None = None,
+    pixel: tuple[float, float] | None = None,
+    centred: bool = False,
+) -> Surface:
+    """A sample by name: ``chessboard``, ``folded`` or ``image`` (a 2-D ``.npy`` of heights in
+    metres with its ``pixel`` size; ``centred`` puts its centre on the origin).
+
+    Raises ValueError (or OSError for an unreadable image) with a message that says what to fix.
+    """
+    if name == "chessboard":
+        return Chessboard(seed=seed)
+    if name == "folded":
+        return FoldedSurface(seed=seed)
+    if name != "image":
+        raise ValueError(f"surface must be one of {', '.join(SURFACES)}, got {name!r}")
+    if not image or not pixel:
+        raise ValueError("an image surface needs an image file (.npy) and its pixel size")
+    heights = np.load(image, allow_pickle=False)
+    if heights.ndim != 2:
+        raise ValueError(f"{image} must hold a 2-D height array, got shape {heights.shape}")
+    ny, nx = heights.shape
+    origin = (-(nx - 1) * pixel[0] / 2, -(ny - 1) * pixel[1] / 2) if centred else (0.0, 0.0)
+    return ImageSurface(heights, pixel, origin=origin)

@@ -84,5 +84,5 @@ def test_a_real_image_as_the_simulated_sample(tmp_path) -> None:  # type: ignore
         assert np.isfinite(img.pixels).all()
     finally:
         scope.close()
-    with pytest.raises(ConfigurationError, match="needs image"):
+    with pytest.raises(ConfigurationError, match="needs an image file"):
         open_microscope("sim://?surface=image")
