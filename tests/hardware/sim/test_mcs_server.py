@@ -62,3 +62,46 @@ def test_unreachable_controller_is_a_link_error() -> None:
         url = srv.url
     with pytest.raises(MCSLinkError):
         MCSController.open(url, timeout=0.3)
+
+
+def test_every_command_and_error_reply_through_the_socket() -> None:
+    from hardware.sim.mcs_channel import ChannelParams
+    from hardware.sim.mcs_device import MCSDevice
+    from hardware.smaract_errors import (
+        EndStopError,
+        MCSCommandError,
+        NoSensorError,
+        RangeLimitError,
+    )
+
+    device = MCSDevice(channels=2, params=ChannelParams(travel=(-1e-3, 1e-3)))
+    with MCSServer(device) as srv, MCSController.open(srv.url) as c:
+        c.move_relative(0, 5e-6)
+        assert c.position(0) == pytest.approx(5e-6, abs=5e-9)
+        c.scan_absolute(1, 1000, speed=100000)
+        assert c.status(1) is AxisStatus.STOPPED  # a relative scan starts where it stands
+        c.scan_relative(1, -500, speed=100000)
+        assert c.voltage_level(1) == 500
+        c.step(0, 30000, amplitude=4095, frequency=100)  # 5 minutes of steps
+        c.stop(0)
+        assert c.status(0) is AxisStatus.STOPPED
+        c.set_watchdog(0)
+        c.set_position_limit(0, -2e-6, 2e-6)
+        assert c.position_limit(0) == pytest.approx((-2e-6, 2e-6))
+        with pytest.raises(RangeLimitError):
+            c.move_absolute(0, 3e-6)
+        c.set_position_limit(0, 0.0, 0.0)  # removed
+        with pytest.raises(EndStopError):
+            c.move_absolute(0, 5e-3)  # beyond the mechanical travel
+        with pytest.raises(MCSCommandError) as err:
+            c.scan_relative(1, -4000, speed=1)  # below level 0
+        assert err.value.code == 7
+        with pytest.raises(MCSCommandError) as err:
+            c.command("XYZ0")
+        assert err.value.code == 2
+    blind = MCSDevice(channels=1, params=ChannelParams(has_sensor=False))
+    with MCSServer(blind) as srv, MCSController.open(srv.url) as c:
+        with pytest.raises(NoSensorError):
+            c.position(0)
+        with pytest.raises(NoSensorError):
+            c.move_absolute(0, 1e-6)
