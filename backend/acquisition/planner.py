@@ -1,0 +1,161 @@
+"""Planning a mosaic: a region of interest cut into overlapping patches, in snake order.
+
+Pure: an ROI (stage frame, metres), a patch (size and pixels) and overlaps in; the grid out,
+centred on the ROI and covering it, validated against what the instrument can do. Every
+problem is a :class:`PlanError` naming the field to fix (HTTP 422 at the API).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from hardware.mosaic_plan import PlannedPatch, snake_grid
+from hardware.protocols import SEMImage
+
+
+class PlanError(ValueError):
+    """A plan the instrument cannot do; ``field`` names the input to fix."""
+
+    def __init__(self, field: str, message: str) -> None:
+        self.field = field
+        super().__init__(f"{field}: {message}")
+
+
+@dataclass(frozen=True)
+class InstrumentLimits:
+    """What a plan must respect (metres)."""
+
+    fine_range: tuple[float, float] = (1.6e-6, 1.6e-6)
+    travel: tuple[tuple[float, float], tuple[float, float]] = ((-6e-3, 6e-3), (-6e-3, 6e-3))
+    min_pixels: int = 8
+    max_pixels: int = 4096
+    max_patches: int = 2500
+    max_overlap: float = 0.9
+
+
+@dataclass(frozen=True)
+class Roi:
+    """A rectangle in the stage frame: lower-left corner ``(x, y)`` and size, metres."""
+
+    x: float
+    y: float
+    width: float
+    height: float
+
+    @classmethod
+    def from_sem(cls, image: SEMImage, col: float, row: float, width: float, height: float) -> Roi:
+        """The stage rectangle of an SEM pixel rectangle (corner ``col, row``, size in pixels)."""
+        x0, y0 = image.to_stage(col, row)
+        x1, y1 = image.to_stage(col + width, row + height)
+        return cls(min(x0, x1), min(y0, y1), abs(x1 - x0), abs(y1 - y0))
+
+
+@dataclass(frozen=True)
+class PatchSpec:
+    """Scan range ``(width, height)`` (metres) and pixels ``(nx, ny)`` of every patch."""
+
+    width: float
+    height: float
+    pixels: tuple[int, int]
+
+    @property
+    def pixel_size(self) -> tuple[float, float]:
+        return self.width / self.pixels[0], self.height / self.pixels[1]
+
+
+@dataclass(frozen=True)
+class Plan:
+    roi: Roi
+    patch: PatchSpec
+    overlap: tuple[float, float]
+    rows: int
+    cols: int
+    patches: list[PlannedPatch]
+
+    @property
+    def extent(self) -> tuple[float, float, float, float]:
+        """``(xmin, ymin, xmax, ymax)`` covered by the grid, metres."""
+        xs = [p.origin[0] for p in self.patches]
+        ys = [p.origin[1] for p in self.patches]
+        return min(xs), min(ys), max(xs) + self.patch.width, max(ys) + self.patch.height
+
+
+def _count(span: float, size: float, overlap: float) -> int:
+    """Patches of ``size`` overlapping by ``overlap`` needed to cover ``span``."""
+    if span <= size:
+        return 1
+    return math.ceil((span - size) / (size * (1.0 - overlap)) - 1e-9) + 1
+
+
+def _finite_positive(value: float, field: str) -> None:
+    if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
+        raise PlanError(field, f"must be a positive number of metres, got {value!r}")
+
+
+def plan_mosaic(
+    roi: Roi,
+    patch: PatchSpec,
+    overlap: tuple[float, float],
+    *,
+    limits: InstrumentLimits | None = None,
+) -> Plan:
+    """The snake-ordered grid of ``patch`` covering ``roi`` with ``overlap`` (fractions)."""
+    lim = limits or InstrumentLimits()
+    for value, field in ((roi.width, "roi.width"), (roi.height, "roi.height")):
+        _finite_positive(value, field)
+    for value, field in ((roi.x, "roi.x"), (roi.y, "roi.y")):
+        if not math.isfinite(value):
+            raise PlanError(field, f"must be a finite number of metres, got {value!r}")
+    for value, field, fine in (
+        (patch.width, "patch.width", lim.fine_range[0]),
+        (patch.height, "patch.height", lim.fine_range[1]),
+    ):
+        _finite_positive(value, field)
+        if value > fine:
+            raise PlanError(
+                field, f"{value * 1e6:.3g} µm exceeds the fine scan range of {fine * 1e6:.3g} µm"
+            )
+    if len(patch.pixels) != 2:
+        raise PlanError("patch.pixels", "must be two whole numbers [nx, ny]")
+    for n, axis in zip(patch.pixels, "xy", strict=True):
+        if (
+            not isinstance(n, int)
+            or isinstance(n, bool)
+            or not lim.min_pixels <= n <= lim.max_pixels
+        ):
+            raise PlanError(
+                "patch.pixels",
+                f"{axis}: {n!r} pixels; use a whole number in {lim.min_pixels}..{lim.max_pixels}",
+            )
+    if len(overlap) != 2:
+        raise PlanError("overlap", "must be two fractions [ox, oy]")
+    for o, axis in zip(overlap, "xy", strict=True):
+        if not (isinstance(o, int | float) and math.isfinite(o) and 0.0 <= o < lim.max_overlap):
+            raise PlanError("overlap", f"{axis}: {o!r}; use a fraction in [0, {lim.max_overlap})")
+    cols = _count(roi.width, patch.width, overlap[0])
+    rows = _count(roi.height, patch.height, overlap[1])
+    if rows * cols > lim.max_patches:
+        raise PlanError(
+            "roi",
+            f"needs {rows} x {cols} = {rows * cols} patches, more than {lim.max_patches}: "
+            "shrink the ROI, enlarge the patches or lower the overlap",
+        )
+    span_x = patch.width + (cols - 1) * patch.width * (1 - overlap[0])
+    span_y = patch.height + (rows - 1) * patch.height * (1 - overlap[1])
+    start = (
+        roi.x + roi.width / 2 - span_x / 2,
+        roi.y + roi.height / 2 - span_y / 2,
+    )
+    (tx0, tx1), (ty0, ty1) = lim.travel
+    if start[0] < tx0 or start[0] + span_x > tx1 or start[1] < ty0 or start[1] + span_y > ty1:
+        raise PlanError(
+            "roi",
+            f"the grid spans x {start[0] * 1e3:.3f}..{(start[0] + span_x) * 1e3:.3f} mm, "
+            f"y {start[1] * 1e3:.3f}..{(start[1] + span_y) * 1e3:.3f} mm, outside the stage "
+            f"travel x {tx0 * 1e3:g}..{tx1 * 1e3:g} mm, y {ty0 * 1e3:g}..{ty1 * 1e3:g} mm",
+        )
+    patches = snake_grid(
+        rows, cols, patch_size=(patch.width, patch.height), overlap=overlap, start=start
+    )
+    return Plan(roi=roi, patch=patch, overlap=overlap, rows=rows, cols=cols, patches=patches)
