@@ -44,8 +44,10 @@ BATCH = 64
 CHANNEL_WEIGHTS = (0.5, 0.25, 0.25)
 #: Pairs overlapping nominally by fewer cells than this along either axis are not correlated.
 MIN_OVERLAP_CELLS = 3
-#: A correlation peak must keep at least this fraction of the nominal overlap.
-MIN_OVERLAP_FRACTION = 0.4
+#: A correlation peak must keep at least this fraction of the nominal overlap. Low on purpose:
+#: with large stage errors on small overlaps the true peak keeps little of it, and excluding
+#: it hands the pair to a wrong one; the robust network outvotes small-overlap mistakes.
+MIN_OVERLAP_FRACTION = 0.1
 #: A patch whose levelled heights vary less than this many noise sigmas carries no XY texture.
 MIN_TEXTURE = 2.0
 
