@@ -88,6 +88,10 @@ def default_cell(patch_set: PatchSet) -> float:
     return max(max(p.pixel_size) for p in patch_set)
 
 
+#: Prior standard deviation of a patch's XY correction in the refinement, as a fraction of the
+#: searched stage error: it decides only where the data are silent (flat, 1-D structure).
+SHIFT_PRIOR_FRACTION = 0.25
+
 #: The coarse start correlates patches of about this many cells along their shorter side.
 COARSE_CELLS = 32
 
@@ -166,7 +170,7 @@ def run(
                 near,
                 transforms,
                 levels=levels,
-                shift_prior=0.25 * max_shift,
+                shift_prior=SHIFT_PRIOR_FRACTION * max_shift,
                 progress=progress,
                 cancel=cancel,
             )
