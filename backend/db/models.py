@@ -1,0 +1,135 @@
+"""SQLAlchemy 2 models. The schema is created and changed only by the Alembic migrations."""
+
+from __future__ import annotations
+
+from datetime import UTC, datetime
+from typing import Any
+
+from sqlalchemy import JSON, DateTime, Float, ForeignKey, Integer, String, UniqueConstraint
+from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, relationship
+
+
+def utcnow() -> datetime:
+    return datetime.now(UTC)
+
+
+class Base(DeclarativeBase):
+    pass
+
+
+class Run(Base):
+    """One mosaic: its plan, its state and where its data live."""
+
+    __tablename__ = "runs"
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    created_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
+    updated_at: Mapped[datetime] = mapped_column(
+        DateTime(timezone=True), default=utcnow, onupdate=utcnow
+    )
+    state: Mapped[str] = mapped_column(String(16), index=True)
+    roi_x: Mapped[float] = mapped_column(Float)
+    roi_y: Mapped[float] = mapped_column(Float)
+    roi_width: Mapped[float] = mapped_column(Float)
+    roi_height: Mapped[float] = mapped_column(Float)
+    patch_width: Mapped[float] = mapped_column(Float)
+    patch_height: Mapped[float] = mapped_column(Float)
+    pixels_x: Mapped[int] = mapped_column(Integer)
+    pixels_y: Mapped[int] = mapped_column(Integer)
+    overlap_x: Mapped[float] = mapped_column(Float)
+    overlap_y: Mapped[float] = mapped_column(Float)
+    rows: Mapped[int] = mapped_column(Integer)
+    cols: Mapped[int] = mapped_column(Integer)
+    line_rate: Mapped[float] = mapped_column(Float, default=2.0)
+    instrument: Mapped[str] = mapped_column(String(512))
+    current_patch: Mapped[int | None] = mapped_column(Integer, nullable=True)
+    message: Mapped[str | None] = mapped_column(String(2000), nullable=True)
+    data_file: Mapped[str] = mapped_column(String(512))
+
+    patches: Mapped[list[PatchRecord]] = relationship(
+        back_populates="run", order_by="PatchRecord.index", cascade="all, delete-orphan"
+    )
+
+
+class PatchRecord(Base):
+    """One planned patch and its acquisition step; ``stored`` only once its data are on disk."""
+
+    __tablename__ = "patches"
+    __table_args__ = (UniqueConstraint("run_id", "index", name="uq_patch_run_index"),)
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    run_id: Mapped[int] = mapped_column(ForeignKey("runs.id", ondelete="CASCADE"), index=True)
+    index: Mapped[int] = mapped_column(Integer)
+    row: Mapped[int] = mapped_column(Integer)
+    col: Mapped[int] = mapped_column(Integer)
+    origin_x: Mapped[float] = mapped_column(Float)
+    origin_y: Mapped[float] = mapped_column(Float)
+    step: Mapped[str] = mapped_column(String(16), default="pending")
+    stored_at: Mapped[datetime | None] = mapped_column(DateTime(timezone=True), nullable=True)
+    dataset: Mapped[str | None] = mapped_column(String(128), nullable=True)
+
+    run: Mapped[Run] = relationship(back_populates="patches")
+
+
+class MergeJob(Base):
+    """A merge of (some of) a run's patches, run in a worker process."""
+
+    __tablename__ = "merge_jobs"
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    run_id: Mapped[int] = mapped_column(ForeignKey("runs.id", ondelete="CASCADE"), index=True)
+    created_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
+    finished_at: Mapped[datetime | None] = mapped_column(DateTime(timezone=True), nullable=True)
+    state: Mapped[str] = mapped_column(String(16), index=True)
+    method: Mapped[str] = mapped_column(String(16))
+    parameters: Mapped[dict[str, Any]] = mapped_column(JSON, default=dict)
+    patch_ids: Mapped[list[int] | None] = mapped_column(JSON, nullable=True)
+    progress: Mapped[float] = mapped_column(Float, default=0.0)
+    iteration: Mapped[int] = mapped_column(Integer, default=0)
+    residual: Mapped[float | None] = mapped_column(Float, nullable=True)
+    message: Mapped[str | None] = mapped_column(String(2000), nullable=True)
+    result_group: Mapped[str | None] = mapped_column(String(128), nullable=True)
+
+
+class Event(Base):
+    """Everything that happened: state changes, progress, faults (the event stream's log)."""
+
+    __tablename__ = "events"
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    created_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
+    run_id: Mapped[int | None] = mapped_column(
+        ForeignKey("runs.id", ondelete="CASCADE"), nullable=True, index=True
+    )
+    kind: Mapped[str] = mapped_column(String(32), index=True)
+    message: Mapped[str] = mapped_column(String(2000))
+    data: Mapped[dict[str, Any]] = mapped_column(JSON, default=dict)
+
+
+class SemImageRecord(Base):
+    """An SEM image (file in the data dir) and its pixel-to-stage calibration."""
+
+    __tablename__ = "sem_images"
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    created_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
+    source: Mapped[str] = mapped_column(String(32))
+    file: Mapped[str] = mapped_column(String(512))
+    width: Mapped[int] = mapped_column(Integer)
+    height: Mapped[int] = mapped_column(Integer)
+    origin_x: Mapped[float] = mapped_column(Float)
+    origin_y: Mapped[float] = mapped_column(Float)
+    pixel_x: Mapped[float] = mapped_column(Float)
+    pixel_y: Mapped[float] = mapped_column(Float)
+
+
+class Calibration(Base):
+    """A calibration of one axis or instrument quantity (e.g. a fine-mode gain)."""
+
+    __tablename__ = "calibrations"
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    created_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
+    axis: Mapped[str] = mapped_column(String(64), index=True)
+    kind: Mapped[str] = mapped_column(String(64))
+    value: Mapped[dict[str, Any]] = mapped_column(JSON)

@@ -1,0 +1,53 @@
+"""One fail-fast settings class, from the environment (``MOSAIC_*``) or a ``.env`` file."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from pydantic import Field, SecretStr, field_validator
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+
+class Settings(BaseSettings):
+    """Server settings. Every value is checked when the server starts, not when first used."""
+
+    model_config = SettingsConfigDict(env_prefix="MOSAIC_", env_file=".env", extra="ignore")
+
+    data_dir: Path = Field(default=Path("data"), description="patch files, database, token")
+    database_url: str | None = Field(default=None, description="default: SQLite in data_dir")
+    instrument: str = Field(default="sim://", description="sim://... or mcs://stage=..;robot=..")
+    sim_speed: str = Field(default="max", description="simulated s per wall s, or 'max'")
+    api_token: SecretStr | None = Field(default=None, description="bearer token for changes")
+    host: str = "127.0.0.1"
+    port: int = Field(default=8000, ge=1, le=65535)
+    viewer_port: int = Field(default=8080, ge=1, le=65535)
+    auto_merge: bool = True
+    max_upload_bytes: int = Field(default=256 * 1024 * 1024, gt=0)
+
+    @field_validator("sim_speed")
+    @classmethod
+    def _speed(cls, value: str) -> str:
+        if value == "max":
+            return value
+        try:
+            speed = float(value)
+        except ValueError:
+            raise ValueError("sim_speed must be 'max' or a positive number") from None
+        if not speed > 0:
+            raise ValueError("sim_speed must be 'max' or a positive number")
+        return value
+
+    @property
+    def speed(self) -> float | None:
+        """Simulated seconds per wall second; None for as fast as possible."""
+        return None if self.sim_speed == "max" else float(self.sim_speed)
+
+    @property
+    def database(self) -> str:
+        """The SQLAlchemy URL of the database."""
+        return self.database_url or f"sqlite:///{(self.data_dir / 'mosaic.sqlite').as_posix()}"
+
+    @property
+    def runs_dir(self) -> Path:
+        """Where the HDF5 files of the runs live."""
+        return self.data_dir / "runs"
