@@ -58,12 +58,10 @@ class CoarseStart:
 
     translation : (n, 3) metres, ``t`` of ``q = p + t`` per patch.
     xy_measured : (n,) bool, whether any pair measured the patch's XY.
-    pair_score : (k,) NCC at the accepted peak per pair (NaN when not measured).
     """
 
     translation: FloatArray
     xy_measured: NDArray[np.bool_]
-    pair_score: FloatArray
 
 
 def _remove_common_plane(grids: Sequence[GridSample]) -> list[FloatArray]:
@@ -228,7 +226,6 @@ def coarse_start(
     k = len(pairs)
     radius = max_shift / cell
     xy_m, xy_w = np.zeros((k, 2)), np.zeros((k, 2, 2))
-    score = np.full(k, np.nan)
     nominal_overlap = np.zeros(k)
     for i in range(k):
         a, b = int(pairs[i, 0]), int(pairs[i, 1])
@@ -253,7 +250,6 @@ def coarse_start(
             return
         e = expected(i)
         xy_m[i] = [(peak.shift[1] - e[1]) * cell, (peak.shift[0] - e[0]) * cell]
-        score[i] = peak.score
         s_pair = float(np.hypot(sigma[a], sigma[b]) / np.sqrt(2.0))
         xy_w[i] = _information(levelled[a], levelled[b], peak.integer_shift, s_pair) / cell**2
 
@@ -334,4 +330,4 @@ def coarse_start(
     translation[:, 2] = zsol.x[:, 0]
     measured = np.zeros(n, dtype=bool)
     measured[pairs[np.trace(xy_w, axis1=1, axis2=2) > 0].ravel()] = True
-    return CoarseStart(translation=translation, xy_measured=measured, pair_score=score)
+    return CoarseStart(translation=translation, xy_measured=measured)

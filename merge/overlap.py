@@ -49,12 +49,3 @@ def overlapping_pairs(boxes: FloatArray, *, margin: float = 0.0) -> IntArray:
     order = np.lexsort((pairs[:, 1], pairs[:, 0]))
     out: IntArray = pairs[order].astype(np.intp)
     return out
-
-
-def overlap_box(box_a: FloatArray, box_b: FloatArray, *, margin: float = 0.0) -> FloatArray | None:
-    """Intersection ``(xmin, ymin, xmax, ymax)`` of two boxes grown by ``margin``, or None."""
-    lo = np.maximum(box_a[:2], box_b[:2]) - margin
-    hi = np.minimum(box_a[2:], box_b[2:]) + margin
-    if np.any(hi <= lo):
-        return None
-    return np.concatenate([lo, hi])

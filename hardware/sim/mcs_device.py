@@ -22,7 +22,6 @@ from hardware.smaract_mcs import (
     MAX_STEPS,
     MIN_FREQUENCY,
     MIN_SCAN_SPEED,
-    AxisStatus,
 )
 
 # error codes of the ASCII interface (see hardware.smaract_errors.ERROR_MEANINGS)
@@ -208,9 +207,6 @@ class MCSDevice:
         axis = self._axis(a[0])
         low, high = axis.limit or (0.0, 0.0)
         return f":PL{a[0]},{round(low * 1e9)},{round(high * 1e9)}"
-
-    def status(self, ch: int, t: float) -> AxisStatus:
-        return self._axis(ch).status(t)
 
 
 Handler = Callable[[MCSDevice, list[int], float], str | None]
