@@ -22,6 +22,9 @@ class Settings(BaseSettings):
     port: int = Field(default=8000, ge=1, le=65535)
     viewer_port: int = Field(default=8080, ge=1, le=65535)
     auto_merge: bool = True
+    cors_origins: list[str] = Field(
+        default_factory=list, description="origins allowed cross-site (none: CORS closed)"
+    )
     max_upload_bytes: int = Field(default=256 * 1024 * 1024, gt=0)
 
     @field_validator("sim_speed")

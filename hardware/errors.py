@@ -17,3 +17,11 @@ class CrashError(ProcedureError):
 
 class SaturationError(ProcedureError):
     """Z ran out of fine range during a scan: the patch is too tall or tilted."""
+
+
+class Interrupted(ProcedureError):
+    """The caller asked a procedure to stop (an abort); the tip is withdrawn."""
+
+
+class SafeStateError(ProcedureError):
+    """The safe state (loop withdrawn, tip retracted, axes stopped) could not be confirmed."""

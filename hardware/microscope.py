@@ -1,8 +1,9 @@
 """The instrument the backend works with, opened from one configuration string.
 
-* ``sim://`` — the simulated AFM-in-SEM. Options as a query: ``surface`` (chessboard, folded,
-  image), ``seed``, ``speed`` (simulated seconds per wall second, or ``max``), and for an image
-  ``image`` (a 2-D ``.npy`` of heights in metres) with ``pixel`` (``dx,dy`` metres), e.g.
+* ``sim://`` — the simulated AFM-in-SEM. Options as a query: ``surface`` (folded, the default:
+  structure everywhere on 20.48 x 20.48 µm around the origin before its fields repeat;
+  chessboard, a TGX1-like grating; image), ``seed``, ``speed`` (simulated seconds per wall
+  second, or ``max``), and for an image ``image`` (a 2-D ``.npy`` of heights in metres) with ``pixel`` (``dx,dy`` metres), e.g.
   ``sim://?surface=folded&seed=3&speed=max``.
 * ``mcs://stage=URL;robot=URL`` — real SmarAct MCS controllers on pyserial URLs (device paths,
   ``socket://``, ``rfc2217://``) for the sample stage and the probe robot. The stages move;
@@ -13,11 +14,19 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 from urllib.parse import parse_qs, urlsplit
 
 from hardware.mcs_axis import MCSAxis
 from hardware.protocols import SEM, ForceLoop, LineRecorder, PositionerAxis, ProbeSignal
 from hardware.smaract_mcs import MCSController
+
+if TYPE_CHECKING:
+    from hardware.sim.instrument import SimulatedAFM
+
+
+#: Side of the default simulated sample (metres): its structure does not repeat within it.
+SIM_SAMPLE_SIZE = 20e-6
 
 
 class ConfigurationError(ValueError):
@@ -39,6 +48,8 @@ class Microscope:
     recorder: LineRecorder | None
     sem: SEM | None
     simulated: bool
+    #: the simulated world, for its truth and fault injection (None on real hardware)
+    sim: SimulatedAFM | None = None
     _closers: tuple[object, ...] = ()
 
     def require_afm(self) -> tuple[ProbeSignal, ForceLoop, LineRecorder]:
@@ -81,7 +92,7 @@ def _open_sim(config: str, query: dict[str, list[str]]) -> Microscope:
         raise ConfigurationError(
             f"{config}: unknown option(s) {sorted(unknown)}; use {sorted(known)}"
         )
-    name = query.get("surface", ["chessboard"])[-1]
+    name = query.get("surface", ["folded"])[-1]
     try:
         seed = int(query.get("seed", ["0"])[-1])
     except ValueError:
@@ -103,7 +114,12 @@ def _open_sim(config: str, query: dict[str, list[str]]) -> Microscope:
         pixel = (px, py)
     try:
         surface = surface_by_name(
-            name, seed=seed, image=query.get("image", [None])[-1], pixel=pixel, centred=True
+            name,
+            seed=seed,
+            image=query.get("image", [None])[-1],
+            pixel=pixel,
+            centred=True,
+            size=SIM_SAMPLE_SIZE,
         )
     except (OSError, ValueError) as exc:
         raise ConfigurationError(f"{config}: {exc}") from None
@@ -120,6 +136,7 @@ def _open_sim(config: str, query: dict[str, list[str]]) -> Microscope:
         recorder=afm,
         sem=SimulatedSEM(surface, seed=seed),
         simulated=True,
+        sim=afm,
         _closers=(afm,),
     )
 

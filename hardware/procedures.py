@@ -7,24 +7,37 @@ ends withdrawn (the callers put the instrument in its safe state).
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
-from hardware.errors import CrashError, NoSurfaceError, ProcedureError, SaturationError
+from hardware.errors import (
+    CrashError,
+    Interrupted,
+    NoSurfaceError,
+    ProcedureError,
+    SafeStateError,
+    SaturationError,
+)
 from hardware.protocols import ForceLoop, LineRecorder, PositionerAxis, ProbeSignal, ScanLines
 from hardware.smaract_mcs import AxisStatus
 
 __all__ = [
     "CrashError",
+    "Interrupted",
     "LandingConfig",
     "NoSurfaceError",
     "ProcedureError",
+    "SafeStateError",
     "SaturationError",
     "acquire_patch",
     "land",
+    "move_stage",
     "raster_patch",
     "retract",
+    "safe_state",
+    "sample_origin",
 ]
 
 
@@ -125,9 +138,12 @@ def _centre_fine_range(
             raise CrashError("the PLL lost lock while centring Z after landing")
 
 
-def retract(z: PositionerAxis, loop: ForceLoop, *, steps: int = 40, amplitude: int = 2000) -> None:
-    """Withdraw the loop, then pull Z back in stepping mode (the safe state)."""
-    loop.withdraw()
+def retract(
+    z: PositionerAxis, loop: ForceLoop | None, *, steps: int = 40, amplitude: int = 2000
+) -> None:
+    """Withdraw the loop (if there is one), then pull Z back in stepping mode."""
+    if loop is not None:
+        loop.withdraw()
     z.step(-steps, amplitude=amplitude, frequency=1000)
     wait_stopped(z)
 
@@ -140,12 +156,14 @@ def raster_patch(
     size: tuple[float, float],
     pixels: tuple[int, int],
     line_rate: float,
+    stop: Callable[[], bool] | None = None,
 ) -> ScanLines:
     """Raster a patch in fine mode, trace only, with the force loop engaged.
 
     The patch is centred in the fine range. Each line: Y steps to the line and X flies back
     to its start (waiting until both stop), then X ramps across at the line speed while the
-    recorder samples the tip height, one line every ``1 / line_rate`` seconds.
+    recorder samples the tip height, one line every ``1 / line_rate`` seconds. ``stop`` is
+    polled before every line; when it returns true the scan ends with :class:`Interrupted`.
     """
     nx, ny = pixels
     w, h = size
@@ -162,6 +180,8 @@ def raster_patch(
     heights = np.full((ny, nx), np.nan)
     times = np.zeros(ny)
     for i in range(ny):
+        if stop is not None and stop():
+            raise Interrupted(f"scan stopped on request after {i} of {ny} lines")
         y.fine_to(y0 + i * dy, speed=y.fine_range)
         x.fine_to(x0, speed=10 * x.fine_range)
         wait_stopped(x)
@@ -169,6 +189,104 @@ def raster_patch(
         x.fine_to(x0 + (nx - 1) * dx, speed=(nx - 1) * dx / line_time)
         heights[i], times[i] = recorder.record_line(nx, line_time)
     return ScanLines(heights=heights, line_times=times, origin=(x0, y0), pixel_size=(dx, dy))
+
+
+def scan_start(
+    x: PositionerAxis, y: PositionerAxis, size: tuple[float, float]
+) -> tuple[float, float]:
+    """Fine-mode position of a patch's first pixel: the raster is centred in the fine range."""
+    return (x.fine_range - size[0]) / 2, (y.fine_range - size[1]) / 2
+
+
+def move_stage(
+    stage_x: PositionerAxis,
+    stage_y: PositionerAxis,
+    x: PositionerAxis,
+    y: PositionerAxis,
+    *,
+    origin: tuple[float, float],
+    size: tuple[float, float],
+) -> None:
+    """Move the sample stage (stepping mode, closed loop on its sensors) so that the patch
+    with sample-frame ``origin`` lies under the centred raster; wait until it stops."""
+    start = scan_start(x, y, size)
+    stage_x.move_to(start[0] - origin[0])
+    stage_y.move_to(start[1] - origin[1])
+    wait_stopped(stage_x)
+    wait_stopped(stage_y)
+
+
+def sample_origin(
+    lines: ScanLines,
+    stage_x: PositionerAxis,
+    stage_y: PositionerAxis,
+    *,
+    planned: tuple[float, float],
+    size: tuple[float, float],
+    x: PositionerAxis,
+    y: PositionerAxis,
+) -> tuple[float, float]:
+    """Nominal sample-frame origin of scanned lines: the raster origin minus the stage
+    position its sensors read (the planned target where an axis has no sensor)."""
+    start = scan_start(x, y, size)
+    sx, sy = stage_x.position(), stage_y.position()
+    return (
+        lines.origin[0] - (start[0] - planned[0] if sx is None else sx),
+        lines.origin[1] - (start[1] - planned[1] if sy is None else sy),
+    )
+
+
+def scan(
+    x: PositionerAxis,
+    y: PositionerAxis,
+    loop: ForceLoop,
+    recorder: LineRecorder,
+    *,
+    size: tuple[float, float],
+    pixels: tuple[int, int],
+    line_rate: float,
+    stop: Callable[[], bool] | None = None,
+) -> ScanLines:
+    """:func:`raster_patch`, then fail if Z saturated on the way (the data would be clipped)."""
+    lines = raster_patch(x, y, recorder, size=size, pixels=pixels, line_rate=line_rate, stop=stop)
+    if loop.saturated():
+        raise SaturationError(
+            "Z ran out of its fine range during the scan: the patch is too tall or tilted "
+            "for one scan; use smaller patches or level the sample"
+        )
+    return lines
+
+
+def safe_state(
+    loop: ForceLoop | None,
+    z: PositionerAxis,
+    axes: Sequence[PositionerAxis],
+    *,
+    attempts: int = 3,
+) -> None:
+    """Withdraw the loop, retract Z in stepping mode and stop every axis; confirm it.
+
+    Tries ``attempts`` times (a link may recover); raises :class:`SafeStateError` naming
+    what could not be done when the state cannot be confirmed.
+    """
+    problem = "not tried"
+    for _ in range(max(1, attempts)):
+        try:
+            if loop is not None:
+                loop.withdraw()
+            for axis in axes:
+                axis.stop()
+            retract(z, loop)
+            for axis in (*axes, z):
+                wait_stopped(axis, polls=2000)
+            if loop is not None and loop.engaged():
+                raise ProcedureError("the force loop is still engaged")
+            return
+        except Exception as exc:  # every failure is reported; the next attempt may succeed
+            problem = f"{type(exc).__name__}: {exc}"
+    raise SafeStateError(
+        f"safe state not confirmed ({problem}): check the instrument before resetting the run"
+    )
 
 
 @dataclass(frozen=True)
@@ -197,25 +315,14 @@ def acquire_patch(
 ) -> PatchResult:
     """Move the sample stage, land, raster in fine mode and retract: one patch.
 
-    ``x``, ``y`` and ``z`` are the probe robot's axes. The raster is centred in the fine range,
-    so the stage goes to ``start - origin`` with ``start = (fine_range - size) / 2``. Whatever
-    fails, the tip is retracted before the error propagates.
+    ``x``, ``y`` and ``z`` are the probe robot's axes. Whatever fails, the tip is retracted
+    before the error propagates. (The acquisition server runs the same steps one by one.)
     """
-    start = ((x.fine_range - size[0]) / 2, (y.fine_range - size[1]) / 2)
-    stage_x.move_to(start[0] - origin[0])
-    stage_y.move_to(start[1] - origin[1])
-    wait_stopped(stage_x)
-    wait_stopped(stage_y)
+    move_stage(stage_x, stage_y, x, y, origin=origin, size=size)
     try:
         land(z, loop, probe, landing)
-        lines = raster_patch(x, y, recorder, size=size, pixels=pixels, line_rate=line_rate)
-        if loop.saturated():
-            raise SaturationError("Z saturated during the scan: reduce the patch or level it")
+        lines = scan(x, y, loop, recorder, size=size, pixels=pixels, line_rate=line_rate)
     finally:
         retract(z, loop)
-    sx, sy = stage_x.position(), stage_y.position()
-    nominal = (
-        lines.origin[0] - (start[0] - origin[0] if sx is None else sx),
-        lines.origin[1] - (start[1] - origin[1] if sy is None else sy),
-    )
+    nominal = sample_origin(lines, stage_x, stage_y, planned=origin, size=size, x=x, y=y)
     return PatchResult(lines, nominal)

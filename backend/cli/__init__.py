@@ -6,7 +6,7 @@ import argparse
 import sys
 from collections.abc import Sequence
 
-from backend.cli import merge_cmd, sim_cmd, sim_scan_cmd, synth_cmd
+from backend.cli import merge_cmd, serve_cmd, sim_cmd, sim_scan_cmd, synth_cmd
 from backend.cli.common import UsageError
 
 
@@ -21,6 +21,7 @@ def build_parser() -> argparse.ArgumentParser:
     synth_cmd.add_parser(sub)
     sim_cmd.add_parser(sub)
     sim_scan_cmd.add_parser(sub)
+    serve_cmd.add_parser(sub)
     return parser
 
 

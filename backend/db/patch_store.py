@@ -15,7 +15,11 @@ data is not in the store has not been scanned).
 
 from __future__ import annotations
 
+import json
 import os
+import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
@@ -31,8 +35,34 @@ from backend.db.models import Event, PatchRecord, Run
 FloatArray = NDArray[np.float64]
 
 
+_LOCKS: dict[str, threading.RLock] = {}
+_LOCKS_GUARD = threading.Lock()
+
+
+@contextmanager
+def locked(path: Path) -> Iterator[None]:
+    """Serialise every access to one run file in this process (HDF5 allows one writer)."""
+    key = str(Path(path).resolve())
+    with _LOCKS_GUARD:
+        lock = _LOCKS.setdefault(key, threading.RLock())
+    with lock:
+        yield
+
+
+def _fsync(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
 def dataset_name(index: int) -> str:
     return f"patches/{index:05d}"
+
+
+def merge_group(job_id: int) -> str:
+    return f"merges/{job_id:05d}"
 
 
 @dataclass(frozen=True)
@@ -57,7 +87,7 @@ def write_patch(
     """Write one patch durably (steps 1 and 2 of the module notes); return its dataset name."""
     path.parent.mkdir(parents=True, exist_ok=True)
     name = dataset_name(index)
-    with h5py.File(path, "a") as f:
+    with locked(path), h5py.File(path, "a") as f:
         if name in f:
             del f[name]  # an earlier, unfinished attempt of the same patch
         ds = f.create_dataset(name, data=np.asarray(heights, dtype=np.float64))
@@ -69,17 +99,13 @@ def write_patch(
             ds.attrs[key] = value
         ds.attrs["complete"] = True  # last: a dataset without it was cut short
         f.flush()
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
+    _fsync(path)
     return name
 
 
 def read_patch(path: Path, index: int) -> StoredPatch:
     """Read a complete patch; KeyError when it is not stored."""
-    with h5py.File(path, "r") as f:
+    with locked(path), h5py.File(path, "r") as f:
         name = dataset_name(index)
         if name not in f or not f[name].attrs.get("complete", False):
             raise KeyError(f"patch {index} is not stored in {path}")
@@ -104,7 +130,7 @@ def _scan(path: Path) -> tuple[set[int], set[int]]:
     partial: set[int] = set()
     if not path.exists():
         return complete, partial
-    with h5py.File(path, "r") as f:
+    with locked(path), h5py.File(path, "r") as f:
         group = f.get("patches")
         if group is None:
             return complete, partial
@@ -119,7 +145,7 @@ def reconcile(session: Session, run: Run) -> list[str]:
     complete, partial = _scan(path)
     notes: list[str] = []
     if partial:
-        with h5py.File(path, "a") as f:
+        with locked(path), h5py.File(path, "a") as f:
             for index in sorted(partial):
                 del f[dataset_name(index)]
         notes.extend(f"patch {i}: removed data cut short by a crash" for i in sorted(partial))
@@ -137,7 +163,7 @@ def reconcile(session: Session, run: Run) -> list[str]:
     known = {p.index for p in run.patches}
     stray = sorted(complete - known)
     if stray:
-        with h5py.File(path, "a") as f:
+        with locked(path), h5py.File(path, "a") as f:
             for index in stray:
                 del f[dataset_name(index)]
         notes.extend(f"patch {i}: removed data of no planned patch" for i in stray)
@@ -151,3 +177,28 @@ def mark_stored(session: Session, patch: PatchRecord, dataset: str) -> None:
     """Step 3: commit the row only after :func:`write_patch` returned."""
     patch.step, patch.dataset, patch.stored_at = "stored", dataset, datetime.now(UTC)
     session.commit()
+
+
+def write_merge(path: Path, job_id: int, heights: FloatArray, document: dict[str, Any]) -> str:
+    """Store a merge result (mosaic heights and its ``mosaic.json`` document) durably."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    name = merge_group(job_id)
+    with locked(path), h5py.File(path, "a") as f:
+        if name in f:
+            del f[name]
+        group = f.create_group(name)
+        group.create_dataset("mosaic", data=np.asarray(heights, dtype=np.float64))
+        group.attrs["document"] = json.dumps(document)
+        group.attrs["complete"] = True
+        f.flush()
+    _fsync(path)
+    return name
+
+
+def read_merge(path: Path, group: str) -> tuple[FloatArray, dict[str, Any]]:
+    """A stored merge result: mosaic heights (metres) and its document; KeyError if absent."""
+    with locked(path), h5py.File(path, "r") as f:
+        if group not in f or not f[group].attrs.get("complete", False):
+            raise KeyError(f"merge result {group} is not stored in {path}")
+        g = f[group]
+        return np.asarray(g["mosaic"][()], dtype=np.float64), json.loads(g.attrs["document"])

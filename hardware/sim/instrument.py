@@ -123,6 +123,8 @@ class SimulatedAFM:
         self._saturated = False
         self.crashed = False
         self.beam_on = True
+        #: height of the sample holder, metres: lower it far to take the sample out of reach
+        self.sample_z = 0.0
         #: where every sample of every recorded line truly was (simulator-only truth)
         self.line_positions: list[FloatArray] = []
 
@@ -167,7 +169,18 @@ class SimulatedAFM:
         hx = xa.reshape(-1)[None, :] + r * ox[:, None]
         hy = ya.reshape(-1)[None, :] + r * oy[:, None]
         touch = self.surface.height(hx, hy) - r * lift[:, None]
-        out: FloatArray = np.nanmax(touch, axis=0).reshape(xa.shape) + self.drift(t)[2]
+        top = np.nanmax(touch, axis=0).reshape(xa.shape)
+        out: FloatArray = top + self.drift(t)[2] + self.sample_z
+        return out
+
+    def true_heights(
+        self, x0: float, y0: float, shape: tuple[int, int], pixel: float
+    ) -> FloatArray:
+        """The sample's true heights (no tip, drift or noise) on a grid: ``shape`` = (ny, nx)
+        points from ``(x0, y0)`` every ``pixel`` metres, sample frame."""
+        ny, nx = shape
+        xx, yy = np.meshgrid(x0 + pixel * np.arange(nx), y0 + pixel * np.arange(ny))
+        out: FloatArray = np.asarray(self.surface.height(xx, yy), dtype=np.float64)
         return out
 
     def distance(self, t: float) -> float:

@@ -14,6 +14,7 @@ from __future__ import annotations
 import socket
 import socketserver
 import threading
+from collections import deque
 from dataclasses import dataclass
 from io import BufferedIOBase
 from types import TracebackType
@@ -30,6 +31,16 @@ _READS = ("GS", "GP", "GVL")
 class _FaultState:
     mode: Fault | None = None
     code: int = 150
+    remaining: int | None = None  # commands left to misbehave on; None: until healed
+
+    def take(self) -> Fault | None:
+        """The fault for the next command, counting it down."""
+        mode = self.mode
+        if mode is not None and self.remaining is not None:
+            self.remaining -= 1
+            if self.remaining <= 0:
+                self.mode, self.remaining = None, None
+        return mode
 
 
 class MCSServer:
@@ -57,7 +68,8 @@ class MCSServer:
         self.clock = clock or SimClock(None)
         self.faults = _FaultState()
         self.lock = threading.Lock()
-        self.log: list[tuple[str, str | None]] = []
+        #: the latest (command, reply) pairs, for transcripts and diagnosis (bounded)
+        self.log: deque[tuple[str, str | None]] = deque(maxlen=10_000)
         server = self
 
         class Handler(socketserver.StreamRequestHandler):
@@ -104,9 +116,14 @@ class MCSServer:
     ) -> None:
         self.stop()
 
-    def inject(self, mode: Fault | None, *, code: int = 150) -> None:
-        """Misbehave from the next command on (``None`` heals the link)."""
-        self.faults.mode, self.faults.code = mode, code
+    def inject(self, mode: Fault | None, *, code: int = 150, count: int | None = None) -> None:
+        """Misbehave from the next command on (``None`` heals the link): for ``count``
+        commands, or until healed when ``count`` is None."""
+        if count is not None and count < 1:
+            raise ValueError(f"count must be a positive number of commands, got {count}")
+        with self.lock:
+            self.faults.mode, self.faults.code = mode, code
+            self.faults.remaining = count if mode is not None else None
 
     def _serve(self, conn: socket.socket, rfile: BufferedIOBase, wfile: BufferedIOBase) -> None:
         while True:
@@ -119,7 +136,8 @@ class MCSServer:
             line = raw.decode("ascii", errors="replace").strip()
             if not line:
                 continue
-            mode = self.faults.mode
+            with self.lock:
+                mode = self.faults.take()
             if mode == "drop":
                 conn.shutdown(socket.SHUT_RDWR)
                 conn.close()

@@ -6,6 +6,7 @@ serves the synthetic patch sets of the merge benchmark and the simulated instrum
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Protocol
 
@@ -156,7 +157,7 @@ class FoldedSurface:
 
     def __post_init__(self) -> None:
         rng = np.random.default_rng(self.seed)
-        n_fold = 1024
+        n_fold = max(64, round(self.tile / 10e-9))  # 10 nm samples of the fold field
         sp = self.tile / n_fold
         f = _gaussian_field(n_fold, sp, self.fold_length, rng)
         g = _gaussian_field(n_fold, sp, self.fold_length * 0.6, rng)
@@ -244,16 +245,20 @@ def surface_by_name(
     image: str | None = None,
     pixel: tuple[float, float] | None = None,
     centred: bool = False,
+    size: float | None = None,
 ) -> Surface:
     """A sample by name: ``chessboard``, ``folded`` or ``image`` (a 2-D ``.npy`` of heights in
-    metres with its ``pixel`` size; ``centred`` puts its centre on the origin).
+    metres with its ``pixel`` size; ``centred`` puts its centre on the origin). ``size`` (metres)
+    makes the folded surface's fields at least that large before they repeat.
 
     Raises ValueError (or OSError for an unreadable image) with a message that says what to fix.
     """
     if name == "chessboard":
         return Chessboard(seed=seed)
     if name == "folded":
-        return FoldedSurface(seed=seed)
+        if size is None:
+            return FoldedSurface(seed=seed)
+        return FoldedSurface(seed=seed, tile=10.24e-6 * 2 ** math.ceil(math.log2(size / 10.24e-6)))
     if name != "image":
         raise ValueError(f"surface must be one of {', '.join(SURFACES)}, got {name!r}")
     if not image or not pixel:

@@ -1,0 +1,510 @@
+"""The acquisition runner: one worker thread drives the instrument through a run's patches.
+
+The state machine (:mod:`backend.acquisition.state`) decides what may happen; this module
+makes it happen on the hardware. Every transition is committed to the database and published
+as an event before the next step starts. The HTTP handlers only ask (start, pause, resume,
+abort, reset); the worker thread alone touches the instrument while a run is active.
+
+* Pause takes effect at the next step boundary where the tip is off the surface (before a
+  patch's ``move`` or ``land``): a pause asked for during landing or scanning waits for that
+  patch to be stored.
+* Abort is checked between steps and before every scan line; then the safe state.
+* Any fault: the safe state, the run ``failed`` with a message for the operator, the patch
+  back to ``pending``. If the safe state cannot be confirmed the run goes to ``fault``, which
+  blocks the instrument until an operator resets it.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+from sqlalchemy import select
+from sqlalchemy.orm import Session, sessionmaker
+
+from backend.acquisition.state import (
+    ACTIVE,
+    STARTABLE,
+    PatchStep,
+    RunState,
+    StateMachine,
+    Transition,
+    patch_machine,
+    run_machine,
+)
+from backend.db.models import PatchRecord, Run
+from backend.db.patch_store import reconcile, write_patch
+from backend.events import EventBus
+from hardware.errors import Interrupted, ProcedureError, SafeStateError
+from hardware.microscope import Microscope
+from hardware.procedures import land, move_stage, retract, safe_state, sample_origin, scan
+from hardware.smaract_errors import MCSError
+
+log = logging.getLogger("mosaic_afm.runner")
+
+
+class Conflict(RuntimeError):
+    """The request cannot be done in the present state (HTTP 409); says why."""
+
+
+class NotFound(LookupError):
+    """No such run (HTTP 404)."""
+
+
+class _Abort(Exception):
+    """Raised inside the worker at a checkpoint after an abort request."""
+
+
+@dataclass
+class _Control:
+    """Requests from the API to the worker of one run."""
+
+    run_id: int
+    pause: bool = False
+    abort: bool = False
+    actor: str = "system"
+    reason: str = ""
+    shutdown: bool = False  # the server is stopping: the run stays resumable
+    wake: threading.Condition = field(default_factory=threading.Condition)
+
+    def request(self) -> str | None:
+        return "abort" if self.abort else "pause" if self.pause else None
+
+
+def describe(exc: BaseException) -> str:
+    """A message an operator understands, for any failure of a step."""
+    if isinstance(exc, ProcedureError):
+        return str(exc)
+    if isinstance(exc, MCSError):
+        return f"positioner controller: {exc}"
+    if isinstance(exc, OSError):
+        return f"instrument link: {exc}"
+    return f"unexpected {type(exc).__name__}: {exc} (see the server log)"
+
+
+class Runner:
+    """Runs acquisitions on one instrument, one run at a time.
+
+    Parameters
+    ----------
+    microscope : Microscope
+    sessions : sessionmaker
+    events : EventBus
+    on_completed : callable(run_id), optional
+        Called (from the worker thread) when a run completes, e.g. to start its merge.
+    """
+
+    def __init__(
+        self,
+        microscope: Microscope,
+        sessions: sessionmaker[Session],
+        events: EventBus,
+        *,
+        on_completed: Callable[[int], None] | None = None,
+    ) -> None:
+        self.microscope = microscope
+        self.sessions = sessions
+        self.events = events
+        self.on_completed = on_completed
+        self._lock = threading.Lock()
+        self._thread: threading.Thread | None = None
+        self._control: _Control | None = None
+        self._io = threading.Lock()  # one user of the instrument links at a time
+        self._snapshot: dict[str, Any] = {}
+
+    # -- start-up ---------------------------------------------------------------------------
+
+    def recover(self) -> list[str]:
+        """After a (re)start: runs that were active become ``interrupted``; every run's file
+        and rows are reconciled. Return what was done."""
+        notes: list[str] = []
+        with self.sessions() as session:
+            runs = session.scalars(select(Run).order_by(Run.id)).all()
+            for run in runs:
+                if RunState(run.state) in ACTIVE:
+                    reason = "the server stopped during the run; resume to continue"
+                    self._transition(session, run, RunState.INTERRUPTED, reason, "server")
+                    notes.append(f"run {run.id}: interrupted")
+                for patch in run.patches:
+                    if patch.step not in (PatchStep.PENDING.value, PatchStep.STORED.value):
+                        patch.step = PatchStep.PENDING.value
+                session.commit()
+                notes.extend(f"run {run.id}: {n}" for n in reconcile(session, run))
+        for note in notes:
+            self.events.emit("recovery", note, data={})
+        return notes
+
+    # -- what the API asks ------------------------------------------------------------------
+
+    @property
+    def active_run(self) -> int | None:
+        with self._lock:
+            alive = self._thread is not None and self._thread.is_alive()
+            return self._control.run_id if alive and self._control else None
+
+    def pending_request(self, run_id: int) -> str | None:
+        with self._lock:
+            control = self._control
+        if control is None or control.run_id != run_id or self.active_run != run_id:
+            return None
+        return control.request()
+
+    def start(self, run_id: int, *, actor: str) -> None:
+        """Start (or resume from its first patch not stored) a planned, failed or
+        interrupted run."""
+        with self._lock:
+            busy = self._thread is not None and self._thread.is_alive()
+            if busy and self._control is not None:
+                raise Conflict(
+                    f"run {self._control.run_id} is using the instrument: pause or abort it "
+                    "first (one active run per instrument)"
+                )
+            with self.sessions() as session:
+                run = self._get(session, run_id)
+                blocked = session.scalars(
+                    select(Run.id).where(Run.state == RunState.FAULT.value)
+                ).first()
+                if blocked is not None:
+                    raise Conflict(
+                        f"run {blocked} is in fault (safe state not confirmed): check the "
+                        f"instrument and reset run {blocked} first"
+                    )
+                if RunState(run.state) not in STARTABLE | {RunState.COMPLETED, RunState.ABORTED}:
+                    raise Conflict(
+                        f"run {run_id} is {run.state}: only a planned, failed or interrupted "
+                        "run can start"
+                    )
+                # completed and aborted runs are final: the table refuses them (HTTP 409)
+                self._transition(session, run, RunState.RUNNING, "started", actor)
+            control = _Control(run_id)
+            self._control = control
+            self._thread = threading.Thread(
+                target=self._work, args=(control,), name=f"run-{run_id}", daemon=True
+            )
+            self._thread.start()
+
+    def pause(self, run_id: int, *, actor: str) -> None:
+        control = self._active_control(run_id, "pause")
+        with control.wake:
+            if control.abort:
+                raise Conflict(f"run {run_id} is being aborted")
+            control.pause, control.actor = True, actor
+        self.events.emit(
+            "request",
+            f"run {run_id}: pause asked by {actor}; it takes effect once the tip is off the "
+            "surface",
+            run_id=run_id,
+            data={"request": "pause", "actor": actor},
+        )
+
+    def resume(self, run_id: int, *, actor: str, wait: float = 5.0) -> None:
+        """Resume a paused run, or restart a failed or interrupted one."""
+        if self.active_run != run_id:
+            self.start(run_id, actor=actor)
+            return
+        control = self._active_control(run_id, "resume")
+        with control.wake:
+            if not control.pause:
+                raise Conflict(f"run {run_id} is running, not paused")
+            control.pause, control.actor = False, actor
+            control.wake.notify_all()
+        self._wait_for(run_id, lambda s: s != RunState.PAUSED, wait)
+
+    def abort(self, run_id: int, *, actor: str, reason: str, wait: float = 30.0) -> None:
+        """Abort a run; an active one ends in the safe state (waits up to ``wait`` s)."""
+        if self.active_run == run_id:
+            control = self._active_control(run_id, "abort")
+            with control.wake:
+                control.abort, control.actor, control.reason = True, actor, reason
+                control.wake.notify_all()
+            with self._lock:
+                thread = self._thread
+            if thread is not None:
+                thread.join(wait)
+            return
+        with self._lock, self.sessions() as session:
+            run = self._get(session, run_id)
+            if self.active_run == run_id:  # started meanwhile
+                raise Conflict(f"run {run_id} has just started: abort it again")
+            self._transition(session, run, RunState.ABORTED, reason or "aborted", actor)
+
+    def reset(self, run_id: int, *, actor: str) -> None:
+        """Leave ``fault`` after an operator's check: confirm the safe state, then ``failed``."""
+        with self._lock, self.sessions() as session:
+            run = self._get(session, run_id)
+            if RunState(run.state) != RunState.FAULT:
+                raise Conflict(f"run {run_id} is {run.state}, not in fault: nothing to reset")
+            try:
+                self._safe_state()
+            except SafeStateError as exc:
+                raise Conflict(f"run {run_id} stays in fault: {exc}") from None
+            self._transition(
+                session, run, RunState.FAILED, "reset by the operator: safe state confirmed", actor
+            )
+
+    def wait_idle(self, timeout: float) -> bool:
+        with self._lock:
+            thread = self._thread
+        if thread is not None:
+            thread.join(timeout)
+            return not thread.is_alive()
+        return True
+
+    def close(self, timeout: float = 30.0) -> None:
+        """Server shutdown: stop an active run in the safe state (it stays resumable)."""
+        with self._lock:
+            control, thread = self._control, self._thread
+        if control is not None and thread is not None and thread.is_alive():
+            with control.wake:
+                control.abort, control.shutdown, control.actor = True, True, "server"
+                control.reason = "the server stopped during the run; resume to continue"
+                control.wake.notify_all()
+            thread.join(timeout)
+
+    # -- instrument status ------------------------------------------------------------------
+
+    def instrument_status(self) -> dict[str, Any]:
+        """What the instrument is doing: live when idle, the worker's last reading when busy."""
+        active = self.active_run
+        if active is None and self._io.acquire(timeout=0.2):
+            try:
+                self._snapshot = self._read_instrument()
+            except Exception as exc:  # a broken link is a status, not a server error
+                self._snapshot = {"error": describe(exc)}
+            finally:
+                self._io.release()
+        return {"active_run": active, **self._snapshot}
+
+    def _read_instrument(self) -> dict[str, Any]:
+        m = self.microscope
+        z = m.robot_z
+        out: dict[str, Any] = {
+            "positions": {
+                "stage_x": m.stage_x.position(),
+                "stage_y": m.stage_y.position(),
+                "robot_z_fine_extension": z.fine_extension(),
+            },
+            "frequency_shift": m.probe.frequency_shift() if m.probe is not None else None,
+            "loop_engaged": m.loop.engaged() if m.loop is not None else None,
+            "read_at": datetime.now(UTC).isoformat(),
+        }
+        out["safe_state"] = not out["loop_engaged"]
+        return out
+
+    # -- the worker -------------------------------------------------------------------------
+
+    def _work(self, control: _Control) -> None:
+        with self._io, self.sessions() as session:
+            run = session.get(Run, control.run_id)
+            if run is None:  # deleted under us: nothing to do
+                return
+            try:
+                self._run_patches(session, run, control)
+            except (_Abort, Interrupted):
+                target = RunState.INTERRUPTED if control.shutdown else RunState.ABORTED
+                reason = control.reason or "aborted"
+                self._finish(session, run, target, reason, control.actor, safe=True)
+            except Exception as exc:
+                log.exception("run %s: step failed", run.id)
+                self._finish(session, run, RunState.FAILED, describe(exc), "instrument", safe=True)
+            else:
+                self._finish(session, run, RunState.COMPLETED, "every patch stored", "system")
+                if self.on_completed is not None:
+                    try:
+                        self.on_completed(run.id)
+                    except Exception:
+                        log.exception("run %s: starting its merge failed", run.id)
+
+    def _finish(
+        self,
+        session: Session,
+        run: Run,
+        target: RunState,
+        reason: str,
+        actor: str,
+        *,
+        safe: bool = False,
+    ) -> None:
+        for patch in run.patches:
+            if patch.step not in (PatchStep.PENDING.value, PatchStep.STORED.value):
+                self._patch_machine(session, run, patch).go(
+                    PatchStep.PENDING, reason="not stored: it will be scanned again"
+                )
+        if safe:
+            try:
+                self._safe_state()
+            except SafeStateError as exc:
+                self._transition(session, run, RunState.FAULT, f"{reason}; {exc}", actor)
+                self.events.emit("fault", str(exc), run_id=run.id, data={"state": "fault"})
+                return
+        self._transition(session, run, target, reason, actor)
+        if target == RunState.FAILED:
+            self.events.emit("fault", reason, run_id=run.id, data={"state": target.value})
+
+    def _safe_state(self) -> None:
+        m = self.microscope
+        safe_state(m.loop, m.robot_z, (m.stage_x, m.stage_y, m.robot_x, m.robot_y))
+        self._snapshot = {**self._snapshot, "safe_state": True, "loop_engaged": False}
+
+    def _checkpoint(
+        self, session: Session, run: Run, control: _Control, *, may_pause: bool
+    ) -> None:
+        """Between steps: honour an abort; a pause where ``may_pause`` (tip off the surface)."""
+        with control.wake:
+            if control.abort:
+                raise _Abort
+            if not (control.pause and may_pause):
+                return
+            self._transition(session, run, RunState.PAUSED, "paused", control.actor)
+            control.wake.wait_for(lambda: not control.pause or control.abort)
+            if control.request() == "abort":
+                raise _Abort
+            self._transition(session, run, RunState.RUNNING, "resumed", control.actor)
+
+    def _run_patches(self, session: Session, run: Run, control: _Control) -> None:
+        m = self.microscope
+        probe, loop, recorder = m.require_afm()
+        size = (run.patch_width, run.patch_height)
+        pixels = (run.pixels_x, run.pixels_y)
+        total = len(run.patches)
+        for patch in run.patches:
+            if patch.step == PatchStep.STORED.value:
+                continue
+            machine = self._patch_machine(session, run, patch)
+            planned = (patch.origin_x, patch.origin_y)
+            self._checkpoint(session, run, control, may_pause=True)
+            run.current_patch = patch.index
+            machine.go(PatchStep.MOVE)
+            move_stage(m.stage_x, m.stage_y, m.robot_x, m.robot_y, origin=planned, size=size)
+            self._checkpoint(session, run, control, may_pause=True)
+            machine.go(PatchStep.LAND)
+            landing = land(m.robot_z, loop, probe)
+            self._checkpoint(session, run, control, may_pause=False)
+            machine.go(PatchStep.SCAN)
+            lines = scan(
+                m.robot_x,
+                m.robot_y,
+                loop,
+                recorder,
+                size=size,
+                pixels=pixels,
+                line_rate=run.line_rate,
+                stop=lambda: control.abort,
+            )
+            machine.go(PatchStep.RETRACT)
+            retract(m.robot_z, loop)
+            origin = sample_origin(
+                lines, m.stage_x, m.stage_y, planned=planned, size=size, x=m.robot_x, y=m.robot_y
+            )
+            name = write_patch(
+                Path(run.data_file),
+                patch.index,
+                lines.heights,
+                origin=origin,
+                pixel_size=lines.pixel_size,
+                line_times=lines.line_times,
+                attrs={
+                    "planned_origin": planned,
+                    "row": patch.row,
+                    "col": patch.col,
+                    "frequency_shift": landing.frequency_shift,
+                    "landing_cycles": landing.cycles,
+                    "line_rate": run.line_rate,
+                    "instrument": m.description,
+                },
+            )
+            patch.dataset = name
+            machine.go(PatchStep.STORED)
+            self._snapshot = {
+                **self._read_instrument(),
+                "last_patch": patch.index,
+            }
+            stored = sum(p.step == PatchStep.STORED.value for p in run.patches)
+            self.events.emit(
+                "progress",
+                f"run {run.id}: patch {patch.index} stored ({stored}/{total})",
+                run_id=run.id,
+                data={"stored": stored, "total": total, "patch": patch.index},
+            )
+
+    # -- persistence of transitions ---------------------------------------------------------
+
+    def _patch_machine(
+        self, session: Session, run: Run, patch: PatchRecord
+    ) -> StateMachine[PatchStep]:
+        def persist(change: Transition[PatchStep]) -> None:
+            patch.step = change.target.value
+            if change.target == PatchStep.STORED:
+                patch.stored_at = datetime.now(UTC)
+            session.commit()
+            self.events.emit(
+                "patch",
+                f"run {run.id} patch {patch.index}: {change.target.value}",
+                run_id=run.id,
+                data={
+                    "patch": patch.index,
+                    "step": change.target.value,
+                    "from": change.source.value,
+                },
+            )
+
+        return patch_machine(
+            f"run {run.id} patch {patch.index}", PatchStep(patch.step), observer=persist
+        )
+
+    def _transition(
+        self, session: Session, run: Run, target: RunState, reason: str, actor: str
+    ) -> None:
+        def persist(change: Transition[RunState]) -> None:
+            run.state = change.target.value
+            run.message = f"{change.reason} ({change.actor})" if change.reason else None
+            session.commit()
+            self.events.emit(
+                "run",
+                f"run {run.id}: {change.source.value} -> {change.target.value}"
+                + (f" ({change.actor}: {change.reason})" if change.reason else ""),
+                run_id=run.id,
+                data={
+                    "state": change.target.value,
+                    "from": change.source.value,
+                    "reason": change.reason,
+                    "actor": change.actor,
+                },
+            )
+
+        run_machine(f"run {run.id}", RunState(run.state), observer=persist).go(
+            target, reason=reason, actor=actor
+        )
+
+    # -- helpers ----------------------------------------------------------------------------
+
+    def _get(self, session: Session, run_id: int) -> Run:
+        run = session.get(Run, run_id)
+        if run is None:
+            raise NotFound(f"no run {run_id}")
+        return run
+
+    def _active_control(self, run_id: int, what: str) -> _Control:
+        with self._lock:
+            control = self._control
+            alive = self._thread is not None and self._thread.is_alive()
+        if control is None or not alive or control.run_id != run_id:
+            with self.sessions() as session:
+                run = self._get(session, run_id)
+                raise Conflict(f"cannot {what} run {run_id}: it is {run.state}, not running")
+        return control
+
+    def _wait_for(self, run_id: int, done: Callable[[RunState], bool], timeout: float) -> None:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            with self.sessions() as session:
+                run = self._get(session, run_id)
+                if done(RunState(run.state)):
+                    return
+            time.sleep(0.01)

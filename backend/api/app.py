@@ -1,0 +1,102 @@
+"""The FastAPI application: factory, lifespan, error handlers, routers."""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from collections.abc import AsyncIterator, Awaitable, Callable
+from contextlib import asynccontextmanager
+
+from fastapi import FastAPI, Request, Response
+from fastapi.middleware.cors import CORSMiddleware
+from fastapi.responses import JSONResponse
+
+from backend.acquisition.planner import PlanError
+from backend.acquisition.runner import Conflict, NotFound
+from backend.acquisition.state import TransitionError
+from backend.api import events, instrument, merges, runs, sem
+from backend.merge_jobs import JobError
+from backend.services import Services
+from backend.settings import Settings
+from hardware.errors import ProcedureError
+from hardware.microscope import ConfigurationError
+
+log = logging.getLogger("mosaic_afm.server")
+
+
+def create_app(settings: Settings | None = None, *, services: Services | None = None) -> FastAPI:
+    """The server. ``services`` (already open) is for tests; otherwise the lifespan opens
+    them from ``settings``: migrations, instrument, recovery of an earlier stop."""
+    cfg = settings or Settings()
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        owned = services is None
+        svc = services if services is not None else await asyncio.to_thread(Services.open, cfg)
+        svc.events.attach(asyncio.get_running_loop())
+        app.state.services = svc
+        if svc.token_created and not svc.token_announced:
+            svc.token_announced = True
+            print(
+                f"API token (also in {cfg.data_dir / 'api_token'}): {svc.token}",
+                flush=True,
+            )
+        try:
+            yield
+        finally:
+            if owned:
+                await asyncio.to_thread(svc.close)
+
+    app = FastAPI(
+        title="Mosaic AFM",
+        version="0.1.0",
+        summary="Long-range AFM by mosaics: plan, acquire, merge (SI units throughout).",
+        lifespan=lifespan,
+    )
+    if cfg.cors_origins:
+        app.add_middleware(
+            CORSMiddleware,
+            allow_origins=cfg.cors_origins,
+            allow_methods=["GET", "POST"],
+            allow_headers=["Authorization", "Content-Type", "X-Operator", "Last-Event-ID"],
+        )
+
+    @app.middleware("http")
+    async def limit_body(
+        request: Request, call_next: Callable[[Request], Awaitable[Response]]
+    ) -> Response:
+        length = request.headers.get("content-length")
+        if length is not None:
+            if not length.isdigit():
+                return JSONResponse({"detail": "Content-Length must be a number"}, 400)
+            if int(length) > cfg.max_upload_bytes:
+                return JSONResponse(
+                    {"detail": f"the body is larger than the {cfg.max_upload_bytes} byte limit"},
+                    413,
+                )
+        return await call_next(request)
+
+    def handler(status: int) -> Callable[[Request, Exception], Awaitable[JSONResponse]]:
+        async def handle(_: Request, exc: Exception) -> JSONResponse:
+            body: dict[str, object] = {"detail": str(exc)}
+            if isinstance(exc, PlanError):
+                body["field"] = exc.field
+            return JSONResponse(body, status)
+
+        return handle
+
+    for exc_type, status in (
+        (PlanError, 422),
+        (TransitionError, 409),
+        (Conflict, 409),
+        (JobError, 409),
+        (NotFound, 404),
+        (LookupError, 404),
+        (ConfigurationError, 409),
+        (ProcedureError, 409),
+    ):
+        app.add_exception_handler(exc_type, handler(status))
+
+    for module in (runs, merges, instrument, sem, events):
+        app.include_router(module.router)
+    return app

@@ -1,0 +1,118 @@
+"""The instrument: its state, and on the simulated one its truth and fault injection."""
+
+from __future__ import annotations
+
+import math
+from typing import Annotated, Literal
+
+from fastapi import APIRouter, HTTPException, Query, Response
+from sqlalchemy import select
+
+from backend.api.deps import OperatorDep, ServicesDep, SessionDep
+from backend.api.runs import NPY, npy_response
+from backend.api.schemas import InstrumentOut, SimFaultIn
+from backend.db.models import Run
+from hardware.sim.instrument import SimulatedAFM
+
+router = APIRouter(prefix="/api/instrument", tags=["instrument"])
+
+#: Largest truth grid served at once (points).
+MAX_TRUTH_POINTS = 4096 * 4096
+#: How far a ``no_surface`` fault lowers the simulated sample, metres (beyond any landing).
+NO_SURFACE_DROP = 1e-3
+
+
+@router.get("", response_model=InstrumentOut)
+def instrument(services: ServicesDep, session: SessionDep) -> InstrumentOut:
+    """State, positions (metres), frequency shift (Hz) and whether it is in the safe state."""
+    m = services.microscope
+    status = services.runner.instrument_status()
+    fault = session.scalars(select(Run.id).where(Run.state == "fault")).first()
+    state: Literal["idle", "running", "fault", "error"] = (
+        "fault"
+        if fault is not None
+        else "running"
+        if status.get("active_run") is not None
+        else "error"
+        if "error" in status
+        else "idle"
+    )
+    message = (
+        f"run {fault} is in fault: check the instrument, then reset the run"
+        if fault is not None
+        else status.get("error")
+    )
+    return InstrumentOut(
+        description=m.description,
+        simulated=m.simulated,
+        state=state,
+        active_run=status.get("active_run"),
+        safe_state=status.get("safe_state"),
+        positions=status.get("positions"),
+        frequency_shift=status.get("frequency_shift"),
+        loop_engaged=status.get("loop_engaged"),
+        fine_range=(m.robot_x.fine_range, m.robot_y.fine_range),
+        message=message,
+    )
+
+
+def _sim(services: ServicesDep) -> SimulatedAFM:
+    sim = services.microscope.sim
+    if sim is None:
+        raise HTTPException(
+            404, "only the simulated instrument (MOSAIC_INSTRUMENT=sim://) has this"
+        )
+    return sim
+
+
+@router.get(
+    "/sim/surface",
+    response_class=Response,
+    responses={200: {"content": {NPY: {}}, "description": "true heights (ny, nx), metres"}},
+)
+def sim_surface(
+    services: ServicesDep,
+    x: Annotated[float, Query(description="left edge, metres (sample frame)")],
+    y: Annotated[float, Query(description="bottom edge, metres")],
+    width: Annotated[float, Query(gt=0, description="metres")],
+    height: Annotated[float, Query(gt=0, description="metres")],
+    pixel: Annotated[float, Query(gt=0, description="grid pitch, metres")],
+) -> Response:
+    """The simulated sample's true heights on a grid from ``(x, y)``: points at
+    ``x + j * pixel``, ``y + i * pixel`` covering ``width`` x ``height`` (score a merge
+    against it)."""
+    sim = _sim(services)
+    values = (x, y, width, height, pixel)
+    if not all(math.isfinite(v) for v in values):
+        raise HTTPException(422, "x, y, width, height and pixel must be finite numbers of metres")
+    nx, ny = int(width / pixel) + 1, int(height / pixel) + 1
+    if nx * ny > MAX_TRUTH_POINTS:
+        raise HTTPException(
+            422,
+            f"{nx} x {ny} points is more than {MAX_TRUTH_POINTS}: use a larger pixel or a "
+            "smaller area",
+        )
+    return npy_response(sim.true_heights(x, y, (ny, nx), pixel), "surface.npy")
+
+
+@router.post("/sim/fault", status_code=204)
+def sim_fault(body: SimFaultIn, services: ServicesDep, operator: OperatorDep) -> Response:
+    """Make the simulated instrument misbehave: a serial link goes silent, answers garbage
+    or an error code, or drops; or the sample goes out of reach (``no_surface``).
+    ``none`` heals everything."""
+    sim = _sim(services)
+    if body.fault == "none":
+        sim.stage_server.inject(None)
+        sim.robot_server.inject(None)
+        sim.sample_z = 0.0
+    elif body.fault == "no_surface":
+        sim.sample_z = -NO_SURFACE_DROP
+    else:
+        server = sim.stage_server if body.link == "stage" else sim.robot_server
+        server.inject(body.fault, code=body.code, count=body.count)
+    services.events.emit(
+        "simulation",
+        f"simulated fault {body.fault!r} on the {body.link} link ({operator})",
+        data=body.model_dump(),
+    )
+    return Response(status_code=204)

@@ -1,0 +1,130 @@
+"""Merge jobs: start one from a run, follow it, cancel it, download its mosaic."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from fastapi import APIRouter, HTTPException, Response
+from fastapi.responses import JSONResponse
+
+from backend.api.deps import OperatorDep, ServicesDep, SessionDep
+from backend.api.runs import NPY, get_run, npy_response
+from backend.api.schemas import MergeIn, MergeOut
+from backend.db.models import MergeJob, Run
+from backend.db.patch_store import read_merge
+from merge import MergeConfig
+
+router = APIRouter(tags=["merges"])
+
+
+def merge_out(job: MergeJob) -> MergeOut:
+    done = job.state == "done"
+    return MergeOut(
+        id=job.id,
+        run_id=job.run_id,
+        state=job.state,
+        method=job.method,
+        parameters=job.parameters or {},
+        patches=job.patch_ids,
+        progress=job.progress,
+        iteration=job.iteration,
+        residual=job.residual,
+        message=job.message,
+        created_at=job.created_at,
+        finished_at=job.finished_at,
+        mosaic_npy=f"/api/merges/{job.id}/mosaic.npy" if done else None,
+        mosaic_json=f"/api/merges/{job.id}/mosaic.json" if done else None,
+    )
+
+
+def _job(session: SessionDep, job_id: int) -> MergeJob:
+    job = session.get(MergeJob, job_id)
+    if job is None:
+        raise HTTPException(404, f"no merge job {job_id}")
+    return job
+
+
+@router.post("/api/runs/{run_id}/merges", status_code=202, response_model=MergeOut)
+def start_merge(
+    run_id: int, body: MergeIn, services: ServicesDep, session: SessionDep, _: OperatorDep
+) -> MergeOut:
+    """Queue a merge of the run's stored patches (all, or the listed indices)."""
+    get_run(session, run_id)
+    parameters: dict[str, Any] = body.parameters.model_dump(exclude_none=True)
+    if "pixel_size" in parameters:
+        parameters["pixel_size"] = list(parameters["pixel_size"])
+    try:
+        p = body.parameters
+        MergeConfig(
+            method=body.method,
+            cell=p.cell,
+            max_iter=p.max_iter,
+            max_shift=p.max_shift,
+            init=p.init or "auto",
+            pixel_size=p.pixel_size,
+            feather=0.15 if p.feather is None else p.feather,
+        )
+    except ValueError as exc:
+        raise HTTPException(422, f"parameters: {exc}") from None
+    job_id = services.merges.submit(
+        run_id, method=body.method, parameters=parameters, patches=body.patches
+    )
+    return merge_out(_job(session, job_id))
+
+
+@router.get("/api/runs/{run_id}/merges", response_model=list[MergeOut])
+def list_merges(run_id: int, session: SessionDep) -> list[MergeOut]:
+    return [
+        merge_out(j)
+        for j in session.query(MergeJob).filter_by(run_id=get_run(session, run_id).id).all()
+    ]
+
+
+@router.get("/api/merges/{job_id}", response_model=MergeOut)
+def read_merge_job(job_id: int, session: SessionDep) -> MergeOut:
+    return merge_out(_job(session, job_id))
+
+
+@router.post("/api/merges/{job_id}/cancel", response_model=MergeOut, status_code=202)
+def cancel_merge(
+    job_id: int, services: ServicesDep, session: SessionDep, _: OperatorDep
+) -> MergeOut:
+    _job(session, job_id)
+    services.merges.cancel(job_id)
+    session.expire_all()
+    return merge_out(_job(session, job_id))
+
+
+def _result(session: SessionDep, job_id: int) -> tuple[Any, dict[str, Any]]:
+    job = _job(session, job_id)
+    if job.state != "done" or not job.result_group:
+        raise HTTPException(
+            404, f"merge {job_id} is {job.state}: its mosaic exists once it is done"
+        )
+    run = session.get(Run, job.run_id)
+    if run is None:
+        raise HTTPException(404, f"the run of merge {job_id} was deleted")
+    try:
+        return read_merge(Path(run.data_file), job.result_group)
+    except (KeyError, OSError) as exc:
+        raise HTTPException(404, f"merge {job_id}: result not readable ({exc})") from None
+
+
+@router.get(
+    "/api/merges/{job_id}/mosaic.npy",
+    response_class=Response,
+    responses={200: {"content": {NPY: {}}, "description": "mosaic heights, metres, .npy"}},
+)
+def mosaic_npy(job_id: int, session: SessionDep) -> Response:
+    """The merged height map (``mosaic.npy`` of DESIGN.md): metres, NaN where uncovered."""
+    heights, _ = _result(session, job_id)
+    return npy_response(heights, f"merge{job_id}-mosaic.npy")
+
+
+@router.get("/api/merges/{job_id}/mosaic.json")
+def mosaic_json(job_id: int, session: SessionDep) -> JSONResponse:
+    """The result document (``mosaic.json`` of DESIGN.md): grid, per-patch transforms and
+    quality report."""
+    _, document = _result(session, job_id)
+    return JSONResponse(document)

@@ -1,0 +1,274 @@
+"""Runs: plan, create, start, pause, resume, abort, reset; patches and their data."""
+
+from __future__ import annotations
+
+import io
+from pathlib import Path
+from typing import Annotated
+
+import numpy as np
+from fastapi import APIRouter, Body, HTTPException, Response
+from sqlalchemy import select
+from sqlalchemy.orm import Session
+
+from backend.acquisition.planner import PatchSpec, Plan, PlanError, Roi, plan_mosaic
+from backend.acquisition.state import RunState
+from backend.api.deps import OperatorDep, ServicesDep, SessionDep
+from backend.api.schemas import (
+    AbortIn,
+    PatchIn,
+    PatchOut,
+    PlanIn,
+    PlanOut,
+    ProgressOut,
+    RoiIn,
+    RunOut,
+)
+from backend.db.models import MergeJob, PatchRecord, Run, SemImageRecord
+from backend.db.patch_store import read_patch
+from backend.services import Services
+from hardware.protocols import SEMImage
+
+router = APIRouter(prefix="/api/runs", tags=["runs"])
+
+NPY = "application/x-npy"
+
+
+def npy_response(array: np.ndarray, filename: str) -> Response:
+    buffer = io.BytesIO()
+    np.save(buffer, np.asarray(array, dtype=np.float64), allow_pickle=False)
+    return Response(
+        buffer.getvalue(),
+        media_type=NPY,
+        headers={"Content-Disposition": f'attachment; filename="{filename}"'},
+    )
+
+
+def _plan(body: PlanIn, services: Services, session: Session) -> Plan:
+    if body.sem_roi is not None:
+        sem = session.get(SemImageRecord, body.sem_roi.sem_id)
+        if sem is None:
+            raise HTTPException(404, f"sem_roi.sem_id: no SEM image {body.sem_roi.sem_id}")
+        r = body.sem_roi
+        if r.col + r.width > sem.width or r.row + r.height > sem.height:
+            raise HTTPException(
+                422,
+                f"sem_roi: the rectangle leaves the {sem.width} x {sem.height} px image",
+            )
+        image = SEMImage(np.zeros((1, 1)), (sem.origin_x, sem.origin_y), (sem.pixel_x, sem.pixel_y))
+        roi = Roi.from_sem(image, r.col, r.row, r.width, r.height)
+    elif body.roi is not None:
+        roi = Roi(body.roi.x, body.roi.y, body.roi.width, body.roi.height)
+    else:  # the schema already refuses this
+        raise HTTPException(422, "give roi (stage metres) or sem_roi (SEM pixels)")
+    patch = PatchSpec(body.patch.width, body.patch.height, body.patch.pixels)
+    return plan_mosaic(roi, patch, body.overlap, limits=services.limits)
+
+
+def _patch_out(p: PatchRecord) -> PatchOut:
+    return PatchOut(
+        index=p.index,
+        row=p.row,
+        col=p.col,
+        origin=(p.origin_x, p.origin_y),
+        step=p.step,
+        stored_at=p.stored_at,
+    )
+
+
+def run_out(run: Run, services: Services, session: Session, *, patches: bool) -> RunOut:
+    stored = sum(p.step == "stored" for p in run.patches)
+    current = next((p for p in run.patches if p.step not in ("pending", "stored")), None)
+    merges = session.scalars(
+        select(MergeJob.id).where(MergeJob.run_id == run.id).order_by(MergeJob.id)
+    ).all()
+    return RunOut(
+        id=run.id,
+        state=run.state,
+        created_at=run.created_at,
+        updated_at=run.updated_at,
+        roi=RoiIn(x=run.roi_x, y=run.roi_y, width=run.roi_width, height=run.roi_height),
+        patch=PatchIn(
+            width=run.patch_width, height=run.patch_height, pixels=(run.pixels_x, run.pixels_y)
+        ),
+        overlap=(run.overlap_x, run.overlap_y),
+        line_rate=run.line_rate,
+        rows=run.rows,
+        cols=run.cols,
+        instrument=run.instrument,
+        progress=ProgressOut(stored=stored, total=len(run.patches)),
+        current_patch=current.index if current else run.current_patch,
+        current_step=current.step if current else None,
+        pending_request=services.runner.pending_request(run.id),
+        message=run.message,
+        merges=list(merges),
+        patches=[_patch_out(p) for p in run.patches] if patches else None,
+    )
+
+
+def get_run(session: Session, run_id: int) -> Run:
+    run = session.get(Run, run_id)
+    if run is None:
+        raise HTTPException(404, f"no run {run_id}: list them with GET /api/runs")
+    return run
+
+
+@router.post("/preview", response_model=PlanOut)
+def preview(body: PlanIn, services: ServicesDep, session: SessionDep) -> PlanOut:
+    """Plan a mosaic without creating a run (nothing moves)."""
+    plan = _plan(body, services, session)
+    return PlanOut(
+        rows=plan.rows,
+        cols=plan.cols,
+        count=len(plan.patches),
+        roi=RoiIn(x=plan.roi.x, y=plan.roi.y, width=plan.roi.width, height=plan.roi.height),
+        extent=plan.extent,
+        patches=[
+            PatchOut(index=p.index, row=p.row, col=p.col, origin=p.origin, step="pending")
+            for p in plan.patches
+        ],
+    )
+
+
+@router.post("", status_code=201, response_model=RunOut)
+def create_run(
+    body: PlanIn, services: ServicesDep, session: SessionDep, operator: OperatorDep
+) -> RunOut:
+    """Plan a mosaic and create its run (state ``planned``); start it with ``/start``."""
+    plan = _plan(body, services, session)
+    run = Run(
+        state=RunState.PLANNED.value,
+        roi_x=plan.roi.x,
+        roi_y=plan.roi.y,
+        roi_width=plan.roi.width,
+        roi_height=plan.roi.height,
+        patch_width=plan.patch.width,
+        patch_height=plan.patch.height,
+        pixels_x=plan.patch.pixels[0],
+        pixels_y=plan.patch.pixels[1],
+        overlap_x=plan.overlap[0],
+        overlap_y=plan.overlap[1],
+        rows=plan.rows,
+        cols=plan.cols,
+        line_rate=body.line_rate,
+        instrument=services.microscope.description,
+        message=f"planned by {operator}",
+        data_file="",
+    )
+    run.patches = [
+        PatchRecord(index=p.index, row=p.row, col=p.col, origin_x=p.origin[0], origin_y=p.origin[1])
+        for p in plan.patches
+    ]
+    session.add(run)
+    session.flush()
+    run.data_file = str(Path(services.settings.runs_dir).resolve() / f"run-{run.id:05d}.h5")
+    session.commit()
+    services.events.emit(
+        "run",
+        f"run {run.id}: planned, {plan.rows} x {plan.cols} patches ({operator})",
+        run_id=run.id,
+        data={"state": "planned", "actor": operator},
+    )
+    return run_out(run, services, session, patches=True)
+
+
+@router.get("", response_model=list[RunOut])
+def list_runs(services: ServicesDep, session: SessionDep) -> list[RunOut]:
+    runs = session.scalars(select(Run).order_by(Run.id.desc())).all()
+    return [run_out(r, services, session, patches=False) for r in runs]
+
+
+@router.get("/{run_id}", response_model=RunOut)
+def read_run(run_id: int, services: ServicesDep, session: SessionDep) -> RunOut:
+    return run_out(get_run(session, run_id), services, session, patches=True)
+
+
+@router.post("/{run_id}/start", response_model=RunOut, status_code=202)
+def start_run(
+    run_id: int, services: ServicesDep, session: SessionDep, operator: OperatorDep
+) -> RunOut:
+    """Start a planned run, or resume a failed or interrupted one from its first patch
+    not stored."""
+    get_run(session, run_id)
+    services.runner.start(run_id, actor=operator)
+    session.expire_all()
+    return run_out(get_run(session, run_id), services, session, patches=False)
+
+
+@router.post("/{run_id}/pause", response_model=RunOut, status_code=202)
+def pause_run(
+    run_id: int, services: ServicesDep, session: SessionDep, operator: OperatorDep
+) -> RunOut:
+    """Ask a running run to pause; it does once the tip is off the surface."""
+    get_run(session, run_id)
+    services.runner.pause(run_id, actor=operator)
+    session.expire_all()
+    return run_out(get_run(session, run_id), services, session, patches=False)
+
+
+@router.post("/{run_id}/resume", response_model=RunOut, status_code=202)
+def resume_run(
+    run_id: int, services: ServicesDep, session: SessionDep, operator: OperatorDep
+) -> RunOut:
+    """Resume a paused run (or restart a failed or interrupted one)."""
+    get_run(session, run_id)
+    services.runner.resume(run_id, actor=operator)
+    session.expire_all()
+    return run_out(get_run(session, run_id), services, session, patches=False)
+
+
+@router.post("/{run_id}/abort", response_model=RunOut)
+def abort_run(
+    run_id: int,
+    services: ServicesDep,
+    session: SessionDep,
+    operator: OperatorDep,
+    body: Annotated[AbortIn | None, Body()] = None,
+) -> RunOut:
+    """Abort a run: an active one stops, retracts the tip and stops the axes (safe state)."""
+    get_run(session, run_id)
+    reason = (body.reason if body else "") or f"aborted by {operator}"
+    services.runner.abort(run_id, actor=operator, reason=reason)
+    session.expire_all()
+    return run_out(get_run(session, run_id), services, session, patches=False)
+
+
+@router.post("/{run_id}/reset", response_model=RunOut)
+def reset_run(
+    run_id: int, services: ServicesDep, session: SessionDep, operator: OperatorDep
+) -> RunOut:
+    """After a fault: confirm the safe state and release the instrument (run -> failed)."""
+    get_run(session, run_id)
+    services.runner.reset(run_id, actor=operator)
+    session.expire_all()
+    return run_out(get_run(session, run_id), services, session, patches=False)
+
+
+@router.get("/{run_id}/patches", response_model=list[PatchOut])
+def list_patches(run_id: int, session: SessionDep) -> list[PatchOut]:
+    return [_patch_out(p) for p in get_run(session, run_id).patches]
+
+
+@router.get(
+    "/{run_id}/patches/{index}/data",
+    response_class=Response,
+    responses={200: {"content": {NPY: {}}, "description": "heights (ny, nx), metres, .npy"}},
+)
+def patch_data(run_id: int, index: int, session: SessionDep) -> Response:
+    """The stored heights of one patch as an ``.npy`` file (rows along y, metres)."""
+    run = get_run(session, run_id)
+    patch = next((p for p in run.patches if p.index == index), None)
+    if patch is None:
+        raise HTTPException(
+            404, f"run {run_id} has no patch {index}: indices are 0..{len(run.patches) - 1}"
+        )
+    if patch.step != "stored":
+        raise HTTPException(404, f"patch {index} of run {run_id} is {patch.step}, not stored")
+    stored = read_patch(Path(run.data_file), index)
+    response = npy_response(stored.heights, f"run{run_id}-patch{index:03d}.npy")
+    response.headers["X-Origin"] = f"{stored.origin[0]!r},{stored.origin[1]!r}"
+    response.headers["X-Pixel-Size"] = f"{stored.pixel_size[0]!r},{stored.pixel_size[1]!r}"
+    return response
+
+
+__all__ = ["PlanError", "get_run", "npy_response", "router", "run_out"]

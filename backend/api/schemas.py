@@ -1,0 +1,193 @@
+"""Request and response bodies of the REST API (SI units: metres, seconds, hertz)."""
+
+from __future__ import annotations
+
+from datetime import datetime
+from typing import Annotated, Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, FiniteFloat, model_validator
+
+Metres = Annotated[FiniteFloat, Field(description="metres")]
+PositiveMetres = Annotated[FiniteFloat, Field(gt=0, description="metres")]
+
+
+class Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+# -- requests ----------------------------------------------------------------------------------
+
+
+class RoiIn(Strict):
+    """Region of interest in the stage frame: lower-left corner and size, metres."""
+
+    x: Metres
+    y: Metres
+    width: PositiveMetres
+    height: PositiveMetres
+
+
+class SemRoiIn(Strict):
+    """Region of interest as a rectangle of pixels of a stored SEM image."""
+
+    sem_id: int = Field(gt=0)
+    col: FiniteFloat = Field(ge=0, description="left column, pixels")
+    row: FiniteFloat = Field(ge=0, description="top row, pixels")
+    width: FiniteFloat = Field(gt=0, description="pixels")
+    height: FiniteFloat = Field(gt=0, description="pixels")
+
+
+class PatchIn(Strict):
+    width: PositiveMetres
+    height: PositiveMetres
+    pixels: tuple[int, int] = Field(description="[nx, ny] pixels per patch")
+
+
+class PlanIn(Strict):
+    """A mosaic to plan: an ROI (stage metres, or SEM pixels), the patch and the overlaps."""
+
+    roi: RoiIn | None = None
+    sem_roi: SemRoiIn | None = None
+    patch: PatchIn
+    overlap: tuple[FiniteFloat, FiniteFloat] = Field(description="[ox, oy] fractions in [0, 0.9)")
+    line_rate: FiniteFloat = Field(default=2.0, gt=0, le=50, description="scan lines per second")
+
+    @model_validator(mode="after")
+    def _one_roi(self) -> PlanIn:
+        if (self.roi is None) == (self.sem_roi is None):
+            raise ValueError("give exactly one of roi (stage metres) or sem_roi (SEM pixels)")
+        return self
+
+
+class AbortIn(Strict):
+    reason: str = Field(default="", max_length=500, description="why, for the record")
+
+
+class MergeParams(Strict):
+    """Merge options (see ``mosaic-afm merge --help``); omitted ones take their defaults."""
+
+    cell: PositiveMetres | None = None
+    max_iter: int | None = Field(default=None, ge=1, le=1000)
+    max_shift: PositiveMetres | None = None
+    init: Literal["auto", "nominal"] | None = None
+    pixel_size: tuple[PositiveMetres, PositiveMetres] | None = None
+    feather: FiniteFloat | None = Field(default=None, ge=0, le=0.5)
+
+
+class MergeIn(Strict):
+    method: Literal["default", "paper", "nominal", "zlevel"] = "default"
+    patches: list[int] | None = Field(
+        default=None, description="patch indices to merge; default every stored patch"
+    )
+    parameters: MergeParams = Field(default_factory=MergeParams)
+
+
+class SemAcquireIn(Strict):
+    centre: tuple[Metres, Metres] = (0.0, 0.0)
+    field: PositiveMetres = Field(default=24e-6, le=1e-2, description="image width, metres")
+    pixels: int = Field(default=512, ge=8, le=4096)
+
+
+SimFault = Literal["silent", "garbage", "error", "drop", "no_surface", "none"]
+
+
+class SimFaultIn(Strict):
+    """Make the simulated instrument misbehave (``none`` heals everything)."""
+
+    fault: SimFault
+    link: Literal["stage", "robot"] = "robot"
+    count: int | None = Field(
+        default=None, ge=1, le=100000, description="commands to misbehave on; default: until healed"
+    )
+    code: int = Field(default=150, ge=1, le=65535, description="controller error code to answer")
+
+
+# -- responses ---------------------------------------------------------------------------------
+
+
+class PatchOut(BaseModel):
+    index: int
+    row: int
+    col: int
+    origin: tuple[float, float]
+    step: str
+    stored_at: datetime | None = None
+
+
+class ProgressOut(BaseModel):
+    stored: int
+    total: int
+
+
+class PlanOut(BaseModel):
+    rows: int
+    cols: int
+    count: int
+    roi: RoiIn
+    extent: tuple[float, float, float, float] = Field(description="xmin, ymin, xmax, ymax")
+    patches: list[PatchOut]
+
+
+class RunOut(BaseModel):
+    id: int
+    state: str
+    created_at: datetime
+    updated_at: datetime
+    roi: RoiIn
+    patch: PatchIn
+    overlap: tuple[float, float]
+    line_rate: float
+    rows: int
+    cols: int
+    instrument: str
+    progress: ProgressOut
+    current_patch: int | None
+    current_step: str | None
+    pending_request: str | None = Field(description="pause or abort asked, not yet in effect")
+    message: str | None
+    merges: list[int]
+    patches: list[PatchOut] | None = None
+
+
+class MergeOut(BaseModel):
+    id: int
+    run_id: int
+    state: str
+    method: str
+    parameters: dict[str, Any]
+    patches: list[int] | None
+    progress: float
+    iteration: int
+    residual: float | None
+    message: str | None
+    created_at: datetime
+    finished_at: datetime | None
+    mosaic_npy: str | None
+    mosaic_json: str | None
+
+
+class SemOut(BaseModel):
+    id: int
+    created_at: datetime
+    source: str
+    width: int
+    height: int
+    origin: tuple[float, float] = Field(description="stage position of pixel (0, 0), metres")
+    pixel_size: tuple[float, float]
+
+
+class InstrumentOut(BaseModel):
+    description: str
+    simulated: bool
+    state: Literal["idle", "running", "fault", "error"]
+    active_run: int | None
+    safe_state: bool | None
+    positions: dict[str, float | None] | None
+    frequency_shift: float | None
+    loop_engaged: bool | None
+    fine_range: tuple[float, float]
+    message: str | None = None
+
+
+class ErrorOut(BaseModel):
+    detail: Any

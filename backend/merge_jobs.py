@@ -1,0 +1,324 @@
+"""Merge jobs: a run's stored patches merged in a separate process, one job at a time.
+
+The API thread only queues a job. A dispatcher thread reads the patches from the run's HDF5
+file, hands them to a worker process (``spawn``: the server's threads are not forked), relays
+its progress (iteration, residual) as events, and stores the result in the run's file before
+the job row says ``done``. Cancelling sets an event the merge polls every iteration; a worker
+that does not stop within a few seconds is terminated.
+"""
+
+from __future__ import annotations
+
+import logging
+import multiprocessing as mp
+import queue
+import threading
+from dataclasses import dataclass
+from datetime import UTC, datetime
+from multiprocessing.synchronize import Event as MpEvent
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+from sqlalchemy import select
+from sqlalchemy.orm import Session, sessionmaker
+
+from backend.db.models import MergeJob, Run
+from backend.db.patch_store import read_patch, write_merge
+from backend.events import EventBus
+
+log = logging.getLogger("mosaic_afm.merge_jobs")
+
+STATES = ("queued", "running", "done", "failed", "cancelled")
+FINAL = frozenset({"done", "failed", "cancelled"})
+#: Seconds a cancelled worker gets to stop on its own before it is terminated.
+CANCEL_GRACE = 5.0
+
+
+class JobError(RuntimeError):
+    """A job request that cannot be done (HTTP 409/422 at the API); says why."""
+
+
+@dataclass(frozen=True)
+class PatchInput:
+    id: str
+    heights: NDArray[np.float64]
+    origin: tuple[float, float]
+    pixel_size: tuple[float, float]
+    order: int
+    row: int
+    col: int
+
+
+def _merge_child(
+    patches: list[PatchInput], options: dict[str, Any], out: Any, cancel: MpEvent
+) -> None:
+    """Worker process: merge, report progress, send the result (or the error) back."""
+    import merge
+    from merge.result import result_document
+
+    try:
+        patch_set = merge.PatchSet(
+            merge.Patch(
+                id=p.id,
+                heights=p.heights,
+                origin=p.origin,
+                pixel_size=p.pixel_size,
+                order=p.order,
+                row=p.row,
+                col=p.col,
+            )
+            for p in patches
+        )
+        config = merge.MergeConfig(**options)
+        result = merge.run(
+            patch_set,
+            config,
+            progress=lambda it, res: out.put(("progress", it, float(res))),
+            cancel=cancel.is_set,
+        )
+        out.put(("done", result.mosaic.heights, result_document(result, patch_set)))
+    except merge.MergeCancelled:
+        out.put(("cancelled",))
+    except (merge.PatchSetError, ValueError) as exc:
+        out.put(("failed", str(exc)))
+    except Exception as exc:  # reported to the operator; the server keeps going
+        out.put(("failed", f"merge crashed: {type(exc).__name__}: {exc}"))
+
+
+class MergeService:
+    """Queue, run, cancel and store merge jobs."""
+
+    def __init__(self, sessions: sessionmaker[Session], events: EventBus) -> None:
+        self.sessions = sessions
+        self.events = events
+        self._queue: queue.Queue[int | None] = queue.Queue()
+        self._ctx = mp.get_context("spawn")
+        self._cancel: dict[int, MpEvent] = {}
+        self._lock = threading.Lock()
+        self._thread = threading.Thread(target=self._dispatch, name="merge-jobs", daemon=True)
+        self._started = False
+
+    def start(self) -> None:
+        if not self._started:
+            self._thread.start()
+            self._started = True
+
+    def recover(self) -> None:
+        """After a restart: a job that was running failed; queued jobs run again."""
+        with self.sessions() as session:
+            for job in session.scalars(select(MergeJob).where(MergeJob.state == "running")):
+                job.state, job.message = "failed", "the server stopped during the merge"
+                job.finished_at = datetime.now(UTC)
+            session.commit()
+            queued = session.scalars(
+                select(MergeJob.id).where(MergeJob.state == "queued").order_by(MergeJob.id)
+            ).all()
+        for job_id in queued:
+            self._queue.put(job_id)
+
+    def submit(
+        self,
+        run_id: int,
+        *,
+        method: str,
+        parameters: dict[str, Any],
+        patches: list[int] | None,
+    ) -> int:
+        """Queue a merge of the run's stored patches (``patches``: indices, or all)."""
+        with self.sessions() as session:
+            run = session.get(Run, run_id)
+            if run is None:
+                raise LookupError(f"no run {run_id}")
+            stored = {p.index for p in run.patches if p.step == "stored"}
+            chosen = sorted(stored) if patches is None else sorted(set(patches))
+            missing = [i for i in chosen if i not in stored]
+            if missing:
+                raise JobError(
+                    f"patches {missing} of run {run_id} are not stored; stored: "
+                    f"{sorted(stored) if len(stored) < 50 else f'{len(stored)} patches'}"
+                )
+            if len(chosen) < 2:
+                raise JobError(
+                    f"run {run_id} has {len(chosen)} stored patch(es) to merge; need at least 2"
+                )
+            job = MergeJob(
+                run_id=run_id,
+                state="queued",
+                method=method,
+                parameters=parameters,
+                patch_ids=chosen,
+            )
+            session.add(job)
+            session.commit()
+            job_id = job.id
+        self.events.emit(
+            "merge",
+            f"merge {job_id} of run {run_id} queued ({method}, {len(chosen)} patches)",
+            run_id=run_id,
+            data={"job": job_id, "state": "queued", "progress": 0.0},
+        )
+        self._queue.put(job_id)
+        return job_id
+
+    def cancel(self, job_id: int) -> None:
+        with self.sessions() as session:
+            job = session.get(MergeJob, job_id)
+            if job is None:
+                raise LookupError(f"no merge job {job_id}")
+            if job.state in FINAL:
+                raise JobError(f"merge {job_id} is already {job.state}")
+            if job.state == "queued":
+                self._set(session, job, "cancelled", "cancelled before it started")
+                return
+        with self._lock:
+            event = self._cancel.get(job_id)
+        if event is not None:
+            event.set()
+
+    def close(self) -> None:
+        with self._lock:
+            for event in self._cancel.values():
+                event.set()
+        self._queue.put(None)
+        if self._started:
+            self._thread.join(CANCEL_GRACE + 5)
+
+    # -- the dispatcher ---------------------------------------------------------------------
+
+    def _dispatch(self) -> None:
+        while True:
+            job_id = self._queue.get()
+            if job_id is None:
+                return
+            try:
+                self._run(job_id)
+            except Exception as exc:
+                log.exception("merge %s failed", job_id)
+                with self.sessions() as session:
+                    job = session.get(MergeJob, job_id)
+                    if job is not None and job.state not in FINAL:
+                        self._set(session, job, "failed", f"merge failed: {exc}")
+
+    def _run(self, job_id: int) -> None:
+        with self.sessions() as session:
+            job = session.get(MergeJob, job_id)
+            if job is None or job.state != "queued":
+                return
+            run = session.get(Run, job.run_id)
+            if run is None:
+                return
+            path = Path(run.data_file)
+            records = {p.index: p for p in run.patches}
+            inputs = []
+            for index in job.patch_ids or []:
+                stored = read_patch(path, index)
+                rec = records[index]
+                inputs.append(
+                    PatchInput(
+                        id=f"p{index:03d}",
+                        heights=stored.heights,
+                        origin=stored.origin,
+                        pixel_size=stored.pixel_size,
+                        order=index,
+                        row=rec.row,
+                        col=rec.col,
+                    )
+                )
+            options = {"method": job.method, **(job.parameters or {})}
+            if "pixel_size" in options and options["pixel_size"] is not None:
+                options["pixel_size"] = tuple(options["pixel_size"])
+            cancel = self._ctx.Event()
+            with self._lock:
+                self._cancel[job_id] = cancel
+            self._set(session, job, "running", "merging")
+            out: Any = self._ctx.Queue()
+            worker = self._ctx.Process(
+                target=_merge_child, args=(inputs, options, out, cancel), daemon=True
+            )
+            worker.start()
+            try:
+                self._follow(session, job, path, worker, out, cancel)
+            finally:
+                with self._lock:
+                    self._cancel.pop(job_id, None)
+                if worker.is_alive():
+                    worker.terminate()
+                worker.join(5)
+
+    def _follow(
+        self,
+        session: Session,
+        job: MergeJob,
+        path: Path,
+        worker: Any,
+        out: Any,
+        cancel: MpEvent,
+    ) -> None:
+        cap = job.parameters.get("max_iter") or (200 if job.method == "paper" else 40)
+        cancelled_at: float | None = None
+        while True:
+            try:
+                message = out.get(timeout=0.5)
+            except queue.Empty:
+                if cancel.is_set():
+                    import time
+
+                    now = time.monotonic()
+                    cancelled_at = cancelled_at or now
+                    if now - cancelled_at > CANCEL_GRACE:
+                        worker.terminate()
+                        self._set(session, job, "cancelled", "cancelled (worker terminated)")
+                        return
+                if not worker.is_alive() and out.empty():
+                    self._set(session, job, "failed", "the merge process ended unexpectedly")
+                    return
+                continue
+            kind = message[0]
+            if kind == "progress":
+                _, iteration, residual = message
+                job.iteration, job.residual = int(iteration), float(residual)
+                job.progress = min(0.95, iteration / cap)
+                session.commit()
+                self.events.emit(
+                    "merge",
+                    f"merge {job.id}: iteration {iteration}, residual {residual * 1e9:.3f} nm",
+                    run_id=job.run_id,
+                    data={
+                        "job": job.id,
+                        "state": "running",
+                        "iteration": int(iteration),
+                        "residual": float(residual),
+                        "progress": job.progress,
+                    },
+                )
+            elif kind == "done":
+                _, heights, document = message
+                job.result_group = write_merge(path, job.id, heights, document)
+                job.progress = 1.0
+                self._set(
+                    session,
+                    job,
+                    "done",
+                    f"merged: mosaic {heights.shape[1]} x {heights.shape[0]} px",
+                )
+                return
+            elif kind == "cancelled":
+                self._set(session, job, "cancelled", "cancelled")
+                return
+            else:
+                self._set(session, job, "failed", str(message[1]))
+                return
+
+    def _set(self, session: Session, job: MergeJob, state: str, message: str) -> None:
+        job.state, job.message = state, message
+        if state in FINAL:
+            job.finished_at = datetime.now(UTC)
+        session.commit()
+        self.events.emit(
+            "merge",
+            f"merge {job.id} of run {job.run_id}: {state} ({message})",
+            run_id=job.run_id,
+            data={"job": job.id, "state": state, "progress": job.progress, "message": message},
+        )
