@@ -112,7 +112,7 @@ class Runner:
         self.sessions = sessions
         self.events = events
         self.on_completed = on_completed
-        self._lock = threading.Lock()
+        self._lock = threading.RLock()
         self._thread: threading.Thread | None = None
         self._control: _Control | None = None
         self._io = threading.Lock()  # one user of the instrument links at a time

@@ -85,13 +85,14 @@ def sim_surface(
     values = (x, y, width, height, pixel)
     if not all(math.isfinite(v) for v in values):
         raise HTTPException(422, "x, y, width, height and pixel must be finite numbers of metres")
-    nx, ny = int(width / pixel) + 1, int(height / pixel) + 1
-    if nx * ny > MAX_TRUTH_POINTS:
+    fx, fy = width / pixel + 1, height / pixel + 1
+    if not fx * fy <= MAX_TRUTH_POINTS:
         raise HTTPException(
             422,
-            f"{nx} x {ny} points is more than {MAX_TRUTH_POINTS}: use a larger pixel or a "
-            "smaller area",
+            f"{fx:.3g} x {fy:.3g} points is more than {MAX_TRUTH_POINTS}: use a larger pixel "
+            "or a smaller area",
         )
+    nx, ny = int(fx), int(fy)
     return npy_response(sim.true_heights(x, y, (ny, nx), pixel), "surface.npy")
 
 

@@ -6,6 +6,7 @@ serves the synthetic patch sets of the merge benchmark and the simulated instrum
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, field
 from typing import Protocol
@@ -238,6 +239,17 @@ class ImageSurface:
 SURFACES = ("chessboard", "folded", "image")
 
 
+# Surfaces are immutable and costly to build (their random fields): build each one once.
+@functools.lru_cache(maxsize=8)
+def _folded(seed: int, tile: float) -> FoldedSurface:
+    return FoldedSurface(seed=seed, tile=tile)
+
+
+@functools.lru_cache(maxsize=8)
+def _chessboard(seed: int) -> Chessboard:
+    return Chessboard(seed=seed)
+
+
 def surface_by_name(
     name: str,
     *,
@@ -254,11 +266,10 @@ def surface_by_name(
     Raises ValueError (or OSError for an unreadable image) with a message that says what to fix.
     """
     if name == "chessboard":
-        return Chessboard(seed=seed)
+        return _chessboard(seed)
     if name == "folded":
-        if size is None:
-            return FoldedSurface(seed=seed)
-        return FoldedSurface(seed=seed, tile=10.24e-6 * 2 ** math.ceil(math.log2(size / 10.24e-6)))
+        tile = 10.24e-6 if size is None else 10.24e-6 * 2 ** math.ceil(math.log2(size / 10.24e-6))
+        return _folded(seed, max(tile, 10.24e-6))
     if name != "image":
         raise ValueError(f"surface must be one of {', '.join(SURFACES)}, got {name!r}")
     if not image or not pixel:
