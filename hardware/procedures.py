@@ -84,6 +84,8 @@ def land(
     """
     cfg = config or LandingConfig()
     loop.withdraw()
+    travelled = 0  # coarse steps towards the sample so far
+    began = z.position()  # None without a sensor
     for cycle in range(1, cfg.max_cycles + 1):
         loop.engage(cfg.setpoint)
         if not probe.locked():
@@ -94,12 +96,21 @@ def land(
             return LandingReport(cycle, probe.frequency_shift())
         extended = z.fine_extension() > 0.5 * z.fine_range
         loop.withdraw()
-        z.step(
-            cfg.steps if extended else -cfg.steps, amplitude=cfg.amplitude, frequency=cfg.frequency
-        )
+        steps = cfg.steps if extended else -cfg.steps
+        z.step(steps, amplitude=cfg.amplitude, frequency=cfg.frequency)
+        wait_stopped(z)
+        travelled += steps
+    # give up with the tip back where the landing began, not deep down in Z: closed loop on
+    # the sensor, else twice the steps (steps back are shorter; the end stop is harmless)
+    if travelled > 0:
+        if began is not None:
+            z.move_to(began)
+        else:
+            z.step(-2 * travelled, amplitude=cfg.amplitude, frequency=cfg.frequency)
         wait_stopped(z)
     raise NoSurfaceError(
-        f"no surface within {cfg.max_cycles} landing cycles: check the sample height and the tip"
+        f"no surface within {cfg.max_cycles} landing cycles ({travelled} coarse steps down): "
+        "check the sample height and the tip; Z is back where the landing began"
     )
 
 
