@@ -3,8 +3,8 @@
 * ``sim://`` — the simulated AFM-in-SEM. Options as a query: ``surface`` (folded, the default:
   structure everywhere on 20.48 x 20.48 µm around the origin before its fields repeat;
   chessboard, a TGX1-like grating; image), ``seed``, ``speed`` (simulated seconds per wall
-  second, or ``max``), and for an image ``image`` (a 2-D ``.npy`` of heights in metres) with ``pixel`` (``dx,dy`` metres), e.g.
-  ``sim://?surface=folded&seed=3&speed=max``.
+  second, or ``max``), and for an image ``image`` (a 2-D ``.npy`` of heights in metres) with
+  ``pixel`` (``dx,dy`` metres), e.g. ``sim://?surface=folded&seed=3&speed=max``.
 * ``mcs://stage=URL;robot=URL`` — real SmarAct MCS controllers on pyserial URLs (device paths,
   ``socket://``, ``rfc2217://``) for the sample stage and the probe robot. The stages move;
   landing and scanning also need the AFM controller's probe signal and force loop, which
