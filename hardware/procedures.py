@@ -34,6 +34,7 @@ __all__ = [
     "acquire_patch",
     "land",
     "move_stage",
+    "preposition",
     "raster_patch",
     "retract",
     "safe_state",
@@ -159,6 +160,27 @@ def retract(
     wait_stopped(z)
 
 
+def preposition(
+    x: PositionerAxis, y: PositionerAxis, *, size: tuple[float, float], pixels: tuple[int, int]
+) -> None:
+    """Put the fine axes where a raster of ``size`` starts, Y arriving from below.
+
+    Piezo hysteresis depends on the direction of the last move: every row of a raster is
+    reached going up, so the first must be too (down to the bottom of the range, then up).
+    Done before landing, the creep of this long move relaxes while the tip approaches.
+    """
+    w, h = size
+    start_x = (x.fine_range - w) / 2
+    first_row = (y.fine_range - h) / 2 + h / pixels[1] / 2
+    if abs(y.fine_extension() - first_row) > 1e-10:
+        y.fine_to(0.0, speed=y.fine_range)
+        wait_stopped(y)
+        y.fine_to(first_row, speed=y.fine_range)
+    x.fine_to(start_x, speed=10 * x.fine_range)
+    wait_stopped(x)
+    wait_stopped(y)
+
+
 def raster_patch(
     x: PositionerAxis,
     y: PositionerAxis,
@@ -185,8 +207,13 @@ def raster_patch(
         raise ValueError(f"a patch must fit the fine range ({fine * 1e6:.2f} µm), got {size}")
     if not line_rate > 0:
         raise ValueError(f"line rate must be positive, got {line_rate}")
-    x0, y0 = (x.fine_range - w) / 2, (y.fine_range - h) / 2
+    # The X ramp spans the patch width exactly, centred in the fine range: pixel k is what
+    # the recorder integrates over the k-th of nx equal time slices, so its centre lies at
+    # start + (k + 1/2) dx. Rows sit at the centres of their slices the same way.
     dx, dy = w / nx, h / ny
+    start_x, start_y = (x.fine_range - w) / 2, (y.fine_range - h) / 2
+    x0, y0 = start_x + dx / 2, start_y + dy / 2
+    preposition(x, y, size=size, pixels=pixels)
     line_time = 1.0 / line_rate
     heights = np.full((ny, nx), np.nan)
     times = np.zeros(ny)
@@ -194,10 +221,10 @@ def raster_patch(
         if stop is not None and stop():
             raise Interrupted(f"scan stopped on request after {i} of {ny} lines")
         y.fine_to(y0 + i * dy, speed=y.fine_range)
-        x.fine_to(x0, speed=10 * x.fine_range)
+        x.fine_to(start_x, speed=10 * x.fine_range)
         wait_stopped(x)
         wait_stopped(y)
-        x.fine_to(x0 + (nx - 1) * dx, speed=(nx - 1) * dx / line_time)
+        x.fine_to(start_x + w, speed=w / line_time)
         heights[i], times[i] = recorder.record_line(nx, line_time)
     return ScanLines(heights=heights, line_times=times, origin=(x0, y0), pixel_size=(dx, dy))
 
@@ -330,6 +357,7 @@ def acquire_patch(
     before the error propagates. (The acquisition server runs the same steps one by one.)
     """
     move_stage(stage_x, stage_y, x, y, origin=origin, size=size)
+    preposition(x, y, size=size, pixels=pixels)
     try:
         land(z, loop, probe, landing)
         lines = scan(x, y, loop, recorder, size=size, pixels=pixels, line_rate=line_rate)

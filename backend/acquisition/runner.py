@@ -43,7 +43,15 @@ from backend.db.patch_store import reconcile, write_patch
 from backend.events import EventBus
 from hardware.errors import Interrupted, ProcedureError, SafeStateError
 from hardware.microscope import Microscope
-from hardware.procedures import land, move_stage, retract, safe_state, sample_origin, scan
+from hardware.procedures import (
+    land,
+    move_stage,
+    preposition,
+    retract,
+    safe_state,
+    sample_origin,
+    scan,
+)
 from hardware.smaract_errors import MCSError
 
 log = logging.getLogger("mosaic_afm.runner")
@@ -382,6 +390,7 @@ class Runner:
             run.current_patch = patch.index
             machine.go(PatchStep.MOVE)
             move_stage(m.stage_x, m.stage_y, m.robot_x, m.robot_y, origin=planned, size=size)
+            preposition(m.robot_x, m.robot_y, size=size, pixels=pixels)
             self._checkpoint(session, run, control, may_pause=True)
             machine.go(PatchStep.LAND)
             landing = land(m.robot_z, loop, probe)

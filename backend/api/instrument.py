@@ -77,10 +77,13 @@ def sim_surface(
     width: Annotated[float, Query(gt=0, description="metres")],
     height: Annotated[float, Query(gt=0, description="metres")],
     pixel: Annotated[float, Query(gt=0, description="grid pitch, metres")],
+    tip: Annotated[
+        bool, Query(description="as the tip's apex rides over it: a perfect AFM's image")
+    ] = False,
 ) -> Response:
     """The simulated sample's true heights on a grid from ``(x, y)``: points at
     ``x + j * pixel``, ``y + i * pixel`` covering ``width`` x ``height`` (score a merge
-    against it)."""
+    against it). ``tip=true`` gives the heights dilated by the simulated tip instead."""
     sim = _sim(services)
     values = (x, y, width, height, pixel)
     if not all(math.isfinite(v) for v in values):
@@ -93,7 +96,7 @@ def sim_surface(
             "or a smaller area",
         )
     nx, ny = int(fx), int(fy)
-    return npy_response(sim.true_heights(x, y, (ny, nx), pixel), "surface.npy")
+    return npy_response(sim.true_heights(x, y, (ny, nx), pixel, tip=tip), "surface.npy")
 
 
 @router.post("/sim/fault", status_code=204)

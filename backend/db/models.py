@@ -51,9 +51,7 @@ class Run(Base):
 
     id: Mapped[int] = mapped_column(Integer, primary_key=True)
     created_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
-    updated_at: Mapped[datetime] = mapped_column(
-        UTCDateTime(), default=utcnow, onupdate=utcnow
-    )
+    updated_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow, onupdate=utcnow)
     state: Mapped[str] = mapped_column(String(16), index=True)
     roi_x: Mapped[float] = mapped_column(Float)
     roi_y: Mapped[float] = mapped_column(Float)

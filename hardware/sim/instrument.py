@@ -174,14 +174,25 @@ class SimulatedAFM:
         return out
 
     def true_heights(
-        self, x0: float, y0: float, shape: tuple[int, int], pixel: float
+        self, x0: float, y0: float, shape: tuple[int, int], pixel: float, *, tip: bool = False
     ) -> FloatArray:
-        """The sample's true heights (no tip, drift or noise) on a grid: ``shape`` = (ny, nx)
-        points from ``(x0, y0)`` every ``pixel`` metres, sample frame."""
+        """The sample's true heights (no drift or noise) on a grid: ``shape`` = (ny, nx)
+        points from ``(x0, y0)`` every ``pixel`` metres, sample frame. With ``tip``, as the
+        tip's apex would ride over it (dilated by the tip): what a perfect AFM would record."""
         ny, nx = shape
         xx, yy = np.meshgrid(x0 + pixel * np.arange(nx), y0 + pixel * np.arange(ny))
-        out: FloatArray = np.asarray(self.surface.height(xx, yy), dtype=np.float64)
-        return out
+        if not tip:
+            out: FloatArray = np.asarray(self.surface.height(xx, yy), dtype=np.float64)
+            return out
+        ox, oy, lift = _TIP_OFFSETS
+        r = self.params.tip_radius
+        rows = []
+        for k in range(ny):  # row by row: 17 surface points per grid point
+            hx = xx[k][None, :] + r * ox[:, None]
+            hy = yy[k][None, :] + r * oy[:, None]
+            rows.append(np.nanmax(self.surface.height(hx, hy) - r * lift[:, None], axis=0))
+        dilated: FloatArray = np.asarray(rows, dtype=np.float64)
+        return dilated
 
     def distance(self, t: float) -> float:
         x, y = self.sample_xy(t)
@@ -277,17 +288,20 @@ class SimulatedAFM:
         crash_depth = self.probe.crash_distance()
         # the true tip path over the line, from the channels at a few knots (the ramp is
         # smooth: linear in level, bent slightly by hysteresis and creep)
-        ts = t0 + dt * np.arange(samples * sub)
+        ts = t0 + dt * (np.arange(samples * sub) + 0.5)
         knots = np.linspace(ts[0], ts[-1], 9)
         path = np.array([self.sample_xy(t) for t in knots])
         xs = np.interp(ts, knots, path[:, 0])
         ys = np.interp(ts, knots, path[:, 1])
-        self.line_positions.append(np.column_stack([xs[sub - 1 :: sub], ys[sub - 1 :: sub]]))
+        # a pixel is the mean over its time slice (the controller averages its samples)
+        self.line_positions.append(
+            np.column_stack([xs.reshape(samples, sub).mean(1), ys.reshape(samples, sub).mean(1)])
+        )
         surf = self.surface_height(xs, ys, t0)
         ext = z.extension(t0)
         tip0 = self.params.z_top - (z.true_position(t0) - ext)
         d_set = self.probe.distance_at(self._setpoint - self.charging_offset(t0))
-        line = np.empty(samples)
+        line = np.zeros(samples)
         for k in range(samples * sub):
             # On the repulsive branch Δf maps one to one onto distance, so the loop acts as
             # a distance regulator of finite bandwidth; beyond the attractive minimum the
@@ -305,8 +319,7 @@ class SimulatedAFM:
                     "the tip crashed into the surface: the scan is too fast for the force "
                     "loop here (lower the line rate)"
                 )
-            if k % sub == sub - 1:
-                line[k // sub] = tip0 - ext
+            line[k // sub] += (tip0 - ext) / sub
         self.clock.advance_to(t0 + duration)
         z.drive_extension(ext, self.clock.now())
         return line + self.rng.normal(0.0, self.params.z_noise, samples), t0

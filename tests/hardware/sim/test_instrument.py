@@ -83,7 +83,8 @@ def test_a_scan_reproduces_the_surface_within_noise_and_dilation(afm: SimulatedA
     ideal = afm.surface_height(where[..., 0], where[..., 1], 0.0)  # what a 10 nm tip can touch
     diff = h - ideal
     diff -= np.nanmean(diff, axis=1, keepdims=True)  # set-point distance and drift per line
-    assert np.nanstd(diff) < 2.5e-9  # read-out noise, drift within a line, loop tracking
+    # read-out noise, drift within a line, loop tracking, averaging over the pixel
+    assert np.nanstd(diff) < 3e-9
     nominal_x = result.origin[0] + np.arange(30) * 2e-8
     assert np.nanmax(np.abs(where[..., 0] - nominal_x)) < 40e-9  # fine-mode hysteresis, creep
     assert not afm.engaged()  # retracted after the patch
