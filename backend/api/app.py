@@ -99,4 +99,6 @@ def create_app(settings: Settings | None = None, *, services: Services | None = 
 
     for module in (runs, merges, instrument, sem, events):
         app.include_router(module.router)
+    if services is not None:
+        app.state.services = services  # usable before (or without) the lifespan, as in tests
     return app

@@ -29,15 +29,17 @@ def _frame(event: dict[str, Any]) -> str:
 )
 async def events(
     services: ServicesDep,
-    run_id: Annotated[int | None, Query(description="only this run's events")] = None,
-    after: Annotated[int, Query(ge=0, description="replay stored events after this id")] = 0,
+    run_id: Annotated[int | None, Query(ge=1, le=2**53, description="only this run")] = None,
+    after: Annotated[
+        int, Query(ge=0, le=2**53, description="replay stored events after this id")
+    ] = 0,
     follow: Annotated[bool, Query(description="false: send the stored events and end")] = True,
     last_event_id: Annotated[str | None, Header(max_length=20)] = None,
 ) -> StreamingResponse:
     """Stored events after ``after`` (or ``Last-Event-ID``), then live ones as they happen.
     Each has an ``id``, ``kind`` (run, patch, progress, merge, fault, ...) and JSON data."""
     if last_event_id is not None and last_event_id.strip().isdigit():
-        after = max(after, int(last_event_id))
+        after = min(max(after, int(last_event_id)), 2**53)
     bus = services.events
 
     async def stream() -> AsyncIterator[str]:

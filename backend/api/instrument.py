@@ -18,6 +18,8 @@ router = APIRouter(prefix="/api/instrument", tags=["instrument"])
 
 #: Largest truth grid served at once (points).
 MAX_TRUTH_POINTS = 4096 * 4096
+#: Half side of the region the truth route covers (the stage's travel), metres.
+SAMPLE_EXTENT = 12e-3
 #: How far a ``no_surface`` fault lowers the simulated sample, metres (beyond any landing).
 NO_SURFACE_DROP = 1e-3
 
@@ -88,6 +90,10 @@ def sim_surface(
     values = (x, y, width, height, pixel)
     if not all(math.isfinite(v) for v in values):
         raise HTTPException(422, "x, y, width, height and pixel must be finite numbers of metres")
+    if max(abs(x), abs(y), abs(x + width), abs(y + height)) > SAMPLE_EXTENT:
+        raise HTTPException(
+            422, f"x, y, width, height: stay within ±{SAMPLE_EXTENT * 1e3:g} mm of the origin"
+        )
     fx, fy = width / pixel + 1, height / pixel + 1
     if not fx * fy <= MAX_TRUTH_POINTS:
         raise HTTPException(

@@ -10,7 +10,7 @@ from fastapi.responses import JSONResponse
 
 from backend.api.deps import OperatorDep, ServicesDep, SessionDep
 from backend.api.runs import NPY, get_run, npy_response
-from backend.api.schemas import MergeIn, MergeOut
+from backend.api.schemas import JobId, MergeIn, MergeOut, RunId
 from backend.db.models import MergeJob, Run
 from backend.db.patch_store import read_merge
 from merge import MergeConfig
@@ -47,7 +47,7 @@ def _job(session: SessionDep, job_id: int) -> MergeJob:
 
 @router.post("/api/runs/{run_id}/merges", status_code=202, response_model=MergeOut)
 def start_merge(
-    run_id: int, body: MergeIn, services: ServicesDep, session: SessionDep, _: OperatorDep
+    run_id: RunId, body: MergeIn, services: ServicesDep, session: SessionDep, _: OperatorDep
 ) -> MergeOut:
     """Queue a merge of the run's stored patches (all, or the listed indices)."""
     get_run(session, run_id)
@@ -74,7 +74,7 @@ def start_merge(
 
 
 @router.get("/api/runs/{run_id}/merges", response_model=list[MergeOut])
-def list_merges(run_id: int, session: SessionDep) -> list[MergeOut]:
+def list_merges(run_id: RunId, session: SessionDep) -> list[MergeOut]:
     return [
         merge_out(j)
         for j in session.query(MergeJob).filter_by(run_id=get_run(session, run_id).id).all()
@@ -82,13 +82,13 @@ def list_merges(run_id: int, session: SessionDep) -> list[MergeOut]:
 
 
 @router.get("/api/merges/{job_id}", response_model=MergeOut)
-def read_merge_job(job_id: int, session: SessionDep) -> MergeOut:
+def read_merge_job(job_id: JobId, session: SessionDep) -> MergeOut:
     return merge_out(_job(session, job_id))
 
 
 @router.post("/api/merges/{job_id}/cancel", response_model=MergeOut, status_code=202)
 def cancel_merge(
-    job_id: int, services: ServicesDep, session: SessionDep, _: OperatorDep
+    job_id: JobId, services: ServicesDep, session: SessionDep, _: OperatorDep
 ) -> MergeOut:
     _job(session, job_id)
     services.merges.cancel(job_id)
@@ -116,14 +116,14 @@ def _result(session: SessionDep, job_id: int) -> tuple[Any, dict[str, Any]]:
     response_class=Response,
     responses={200: {"content": {NPY: {}}, "description": "mosaic heights, metres, .npy"}},
 )
-def mosaic_npy(job_id: int, session: SessionDep) -> Response:
+def mosaic_npy(job_id: JobId, session: SessionDep) -> Response:
     """The merged height map (``mosaic.npy`` of DESIGN.md): metres, NaN where uncovered."""
     heights, _ = _result(session, job_id)
     return npy_response(heights, f"merge{job_id}-mosaic.npy")
 
 
 @router.get("/api/merges/{job_id}/mosaic.json")
-def mosaic_json(job_id: int, session: SessionDep) -> JSONResponse:
+def mosaic_json(job_id: JobId, session: SessionDep) -> JSONResponse:
     """The result document (``mosaic.json`` of DESIGN.md): grid, per-patch transforms and
     quality report."""
     _, document = _result(session, job_id)

@@ -17,11 +17,13 @@ from backend.api.deps import OperatorDep, ServicesDep, SessionDep
 from backend.api.schemas import (
     AbortIn,
     PatchIn,
+    PatchIndex,
     PatchOut,
     PlanIn,
     PlanOut,
     ProgressOut,
     RoiIn,
+    RunId,
     RunOut,
 )
 from backend.db.models import MergeJob, PatchRecord, Run, SemImageRecord
@@ -179,13 +181,13 @@ def list_runs(services: ServicesDep, session: SessionDep) -> list[RunOut]:
 
 
 @router.get("/{run_id}", response_model=RunOut)
-def read_run(run_id: int, services: ServicesDep, session: SessionDep) -> RunOut:
+def read_run(run_id: RunId, services: ServicesDep, session: SessionDep) -> RunOut:
     return run_out(get_run(session, run_id), services, session, patches=True)
 
 
 @router.post("/{run_id}/start", response_model=RunOut, status_code=202)
 def start_run(
-    run_id: int, services: ServicesDep, session: SessionDep, operator: OperatorDep
+    run_id: RunId, services: ServicesDep, session: SessionDep, operator: OperatorDep
 ) -> RunOut:
     """Start a planned run, or resume a failed or interrupted one from its first patch
     not stored."""
@@ -197,7 +199,7 @@ def start_run(
 
 @router.post("/{run_id}/pause", response_model=RunOut, status_code=202)
 def pause_run(
-    run_id: int, services: ServicesDep, session: SessionDep, operator: OperatorDep
+    run_id: RunId, services: ServicesDep, session: SessionDep, operator: OperatorDep
 ) -> RunOut:
     """Ask a running run to pause; it does once the tip is off the surface."""
     get_run(session, run_id)
@@ -208,7 +210,7 @@ def pause_run(
 
 @router.post("/{run_id}/resume", response_model=RunOut, status_code=202)
 def resume_run(
-    run_id: int, services: ServicesDep, session: SessionDep, operator: OperatorDep
+    run_id: RunId, services: ServicesDep, session: SessionDep, operator: OperatorDep
 ) -> RunOut:
     """Resume a paused run (or restart a failed or interrupted one)."""
     get_run(session, run_id)
@@ -219,7 +221,7 @@ def resume_run(
 
 @router.post("/{run_id}/abort", response_model=RunOut)
 def abort_run(
-    run_id: int,
+    run_id: RunId,
     services: ServicesDep,
     session: SessionDep,
     operator: OperatorDep,
@@ -235,7 +237,7 @@ def abort_run(
 
 @router.post("/{run_id}/reset", response_model=RunOut)
 def reset_run(
-    run_id: int, services: ServicesDep, session: SessionDep, operator: OperatorDep
+    run_id: RunId, services: ServicesDep, session: SessionDep, operator: OperatorDep
 ) -> RunOut:
     """After a fault: confirm the safe state and release the instrument (run -> failed)."""
     get_run(session, run_id)
@@ -245,7 +247,7 @@ def reset_run(
 
 
 @router.get("/{run_id}/patches", response_model=list[PatchOut])
-def list_patches(run_id: int, session: SessionDep) -> list[PatchOut]:
+def list_patches(run_id: RunId, session: SessionDep) -> list[PatchOut]:
     return [_patch_out(p) for p in get_run(session, run_id).patches]
 
 
@@ -254,7 +256,7 @@ def list_patches(run_id: int, session: SessionDep) -> list[PatchOut]:
     response_class=Response,
     responses={200: {"content": {NPY: {}}, "description": "heights (ny, nx), metres, .npy"}},
 )
-def patch_data(run_id: int, index: int, session: SessionDep) -> Response:
+def patch_data(run_id: RunId, index: PatchIndex, session: SessionDep) -> Response:
     """The stored heights of one patch as an ``.npy`` file (rows along y, metres)."""
     run = get_run(session, run_id)
     patch = next((p for p in run.patches if p.index == index), None)

@@ -5,7 +5,15 @@ from __future__ import annotations
 from datetime import datetime
 from typing import Annotated, Any, Literal
 
+from fastapi import Path
 from pydantic import BaseModel, ConfigDict, Field, FiniteFloat, model_validator
+
+#: Largest id or index accepted (the database's integers are 64-bit; JSON's exact to 2^53).
+MAX_ID = 2**53
+RunId = Annotated[int, Path(ge=1, le=MAX_ID, description="run id")]
+JobId = Annotated[int, Path(ge=1, le=MAX_ID, description="merge job id")]
+SemId = Annotated[int, Path(ge=1, le=MAX_ID, description="SEM image id")]
+PatchIndex = Annotated[int, Path(ge=0, le=MAX_ID, description="patch index (acquisition order)")]
 
 Metres = Annotated[FiniteFloat, Field(description="metres")]
 PositiveMetres = Annotated[FiniteFloat, Field(gt=0, description="metres")]
@@ -30,7 +38,7 @@ class RoiIn(Strict):
 class SemRoiIn(Strict):
     """Region of interest as a rectangle of pixels of a stored SEM image."""
 
-    sem_id: int = Field(gt=0)
+    sem_id: int = Field(gt=0, le=MAX_ID)
     col: FiniteFloat = Field(ge=0, description="left column, pixels")
     row: FiniteFloat = Field(ge=0, description="top row, pixels")
     width: FiniteFloat = Field(gt=0, description="pixels")
@@ -76,7 +84,7 @@ class MergeParams(Strict):
 
 class MergeIn(Strict):
     method: Literal["default", "paper", "nominal", "zlevel"] = "default"
-    patches: list[int] | None = Field(
+    patches: list[Annotated[int, Field(ge=0, le=MAX_ID)]] | None = Field(
         default=None, description="patch indices to merge; default every stored patch"
     )
     parameters: MergeParams = Field(default_factory=MergeParams)

@@ -11,7 +11,7 @@ from fastapi import APIRouter, File, Form, HTTPException, Request, Response, Upl
 
 from backend.api.deps import OperatorDep, ServicesDep, SessionDep
 from backend.api.runs import NPY, npy_response
-from backend.api.schemas import SemAcquireIn, SemOut
+from backend.api.schemas import SemAcquireIn, SemId, SemOut
 from backend.db.models import SemImageRecord
 from backend.sem_files import TiffError, read_sem_tiff, save_pixels, sem_path
 
@@ -147,7 +147,7 @@ def _record(session: SessionDep, sem_id: int) -> SemImageRecord:
 
 
 @router.get("/{sem_id}", response_model=SemOut)
-def read_sem(sem_id: int, session: SessionDep) -> SemOut:
+def read_sem(sem_id: SemId, session: SessionDep) -> SemOut:
     return sem_out(_record(session, sem_id))
 
 
@@ -156,7 +156,7 @@ def read_sem(sem_id: int, session: SessionDep) -> SemOut:
     response_class=Response,
     responses={200: {"content": {NPY: {}}, "description": "grey levels (ny, nx)"}},
 )
-def sem_image(sem_id: int, session: SessionDep) -> Response:
+def sem_image(sem_id: SemId, session: SessionDep) -> Response:
     record = _record(session, sem_id)
     try:
         pixels = np.load(Path(record.file), allow_pickle=False)

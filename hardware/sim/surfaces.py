@@ -56,10 +56,14 @@ class _Tile:
     def __call__(self, x: FloatArray, y: FloatArray) -> FloatArray:
         xa, ya = np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64)
         coords = np.stack([ya.ravel() / self.spacing, xa.ravel() / self.spacing])
+        # periodic: fold into one period first (far or non-finite coordinates must never
+        # reach the interpolator, which indexes with C integers)
+        finite = np.isfinite(coords).all(axis=0)
+        coords = np.where(finite, coords, 0.0) % np.asarray(self.coeffs.shape, float)[:, None]
         vals = ndimage.map_coordinates(
             self.coeffs, coords, order=3, mode="grid-wrap", prefilter=False
         )
-        out: FloatArray = vals.reshape(xa.shape)
+        out: FloatArray = np.where(finite, vals, np.nan).reshape(xa.shape)
         return out
 
 
@@ -226,11 +230,17 @@ class ImageSurface:
         ya = np.asarray(y, dtype=np.float64)
         u = (xa - self.origin[0]) / self.pixel_size[0]
         v = (ya - self.origin[1]) / self.pixel_size[1]
-        coords = np.stack([v.ravel(), u.ravel()])
+        ny, nx = self.heights.shape
+        # outside is NaN anyway: keep far or non-finite coordinates from the interpolator
+        coords = np.stack(
+            [
+                np.clip(np.nan_to_num(v.ravel()), -2, ny + 1),
+                np.clip(np.nan_to_num(u.ravel()), -2, nx + 1),
+            ]
+        )
         vals = ndimage.map_coordinates(
             self._coeffs, coords, order=3, mode="mirror", prefilter=False
         )
-        ny, nx = self.heights.shape
         inside = (u >= -1e-9) & (u <= nx - 1 + 1e-9) & (v >= -1e-9) & (v <= ny - 1 + 1e-9)
         out: FloatArray = np.where(inside, vals.reshape(xa.shape), np.nan)
         return out
