@@ -16,8 +16,15 @@ $(STAMP): pyproject.toml constraints.txt
 	$(BIN)/python -m pip install --quiet -c constraints.txt -e '.[dev]'
 	touch $(STAMP)
 
-# Until the acquisition server exists, `make run` runs the merge demo on a synthetic mosaic.
-run: demo
+# The acquisition server on the simulated instrument (migrates the database at start-up).
+HOST ?= 127.0.0.1
+PORT ?= 8000
+DATA ?= data
+
+run: install
+	@echo "Mosaic AFM server: pages and API http://$(HOST):$(PORT)/, API docs http://$(HOST):$(PORT)/docs"
+	@echo "Change it with MOSAIC_* variables (see README); the API token is printed once at first start."
+	$(BIN)/mosaic-afm serve --host $(HOST) --port $(PORT) --data-dir $(DATA)
 
 demo: install
 	$(BIN)/mosaic-afm synth --out $(OUT)/demo-patches --surface chessboard --seed 1
@@ -40,6 +47,7 @@ test: lint types unit
 bench: install
 	$(BIN)/python benchmarks/merge_bench.py
 	$(BIN)/python benchmarks/sim_bench.py
+	$(BIN)/python benchmarks/server_bench.py
 
 clean:
 	rm -rf $(VENV) $(OUT) .mypy_cache .ruff_cache .pytest_cache

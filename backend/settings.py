@@ -27,6 +27,15 @@ class Settings(BaseSettings):
     )
     max_upload_bytes: int = Field(default=256 * 1024 * 1024, gt=0)
 
+    @field_validator("api_token")
+    @classmethod
+    def _token(cls, value: SecretStr | None) -> SecretStr | None:
+        if value is None or not value.get_secret_value().strip():
+            return None  # unset or empty: one is generated into the data dir
+        if len(value.get_secret_value()) < 16:
+            raise ValueError("api_token must be at least 16 characters (or unset to generate one)")
+        return value
+
     @field_validator("sim_speed")
     @classmethod
     def _speed(cls, value: str) -> str:

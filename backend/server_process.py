@@ -1,4 +1,5 @@
-"""The server as its own process (``mosaic-afm serve``), for tests that kill and restart it."""
+"""The server as a child process (``mosaic-afm serve``): for integration tests that kill and
+restart it, and for benchmarks that measure it from outside."""
 
 from __future__ import annotations
 
@@ -13,8 +14,9 @@ from typing import Any
 
 import httpx
 
-TOKEN = "integration-token-0123456789"
-AUTH = {"Authorization": f"Bearer {TOKEN}", "X-Operator": "integration"}
+#: The token the child server is given (it serves the simulated instrument by default).
+TOKEN = "server-process-token-0123456789"
+AUTH = {"Authorization": f"Bearer {TOKEN}", "X-Operator": "server_process"}
 
 
 def free_port() -> int:
