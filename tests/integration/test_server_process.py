@@ -9,8 +9,8 @@ import h5py
 import numpy as np
 import pytest
 
-from merge.evaluate import Grid, score_mosaic
 from backend.server_process import AUTH, ServerProcess, wait_for
+from merge.evaluate import Grid, score_mosaic
 
 #: The paper's grid: 5 x 10 patches of 0.6 x 1.2 µm, 50 % / 33 % overlap, 20 nm pixels.
 PAPER_GRID = {
