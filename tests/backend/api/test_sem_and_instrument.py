@@ -97,9 +97,12 @@ def test_instrument_status_and_the_simulated_truth(server: Server) -> None:
     assert r.status_code == 200
     truth = np.load(io.BytesIO(r.content))
     assert truth.shape == (51, 101) and truth.std() > 5e-9  # structure, metres
-    huge = {"x": 0, "y": 0, "width": 1, "height": 1, "pixel": 1e-9}
+    huge = {"x": 0, "y": 0, "width": 1e-3, "height": 1e-3, "pixel": 1e-9}
     r = server.client.get("/api/instrument/sim/surface", params=huge)
     assert r.status_code == 422 and "larger pixel" in r.json()["detail"]
+    far = {"x": 1.0, "y": 0, "width": 1e-6, "height": 1e-6, "pixel": 1e-8}
+    r = server.client.get("/api/instrument/sim/surface", params=far)
+    assert r.status_code == 422 and "12 mm" in r.json()["detail"]
 
 
 def test_the_default_sample_has_structure_everywhere_on_20_um(server: Server) -> None:
