@@ -115,6 +115,12 @@ def get_run(session: Session, run_id: int) -> Run:
     return run
 
 
+def _current(run_id: int, services: Services, session: Session) -> RunOut:
+    """The run as it is now, after the runner changed it from another session."""
+    session.expire_all()
+    return run_out(get_run(session, run_id), services, session, patches=False)
+
+
 @router.post("/preview", response_model=PlanOut)
 def preview(body: PlanIn, services: ServicesDep, session: SessionDep) -> PlanOut:
     """Plan a mosaic without creating a run (nothing moves)."""
@@ -193,8 +199,7 @@ def start_run(
     not stored."""
     get_run(session, run_id)
     services.runner.start(run_id, actor=operator)
-    session.expire_all()
-    return run_out(get_run(session, run_id), services, session, patches=False)
+    return _current(run_id, services, session)
 
 
 @router.post("/{run_id}/pause", response_model=RunOut, status_code=202)
@@ -204,8 +209,7 @@ def pause_run(
     """Ask a running run to pause; it does once the tip is off the surface."""
     get_run(session, run_id)
     services.runner.pause(run_id, actor=operator)
-    session.expire_all()
-    return run_out(get_run(session, run_id), services, session, patches=False)
+    return _current(run_id, services, session)
 
 
 @router.post("/{run_id}/resume", response_model=RunOut, status_code=202)
@@ -215,8 +219,7 @@ def resume_run(
     """Resume a paused run (or restart a failed or interrupted one)."""
     get_run(session, run_id)
     services.runner.resume(run_id, actor=operator)
-    session.expire_all()
-    return run_out(get_run(session, run_id), services, session, patches=False)
+    return _current(run_id, services, session)
 
 
 @router.post("/{run_id}/abort", response_model=RunOut)
@@ -231,8 +234,7 @@ def abort_run(
     get_run(session, run_id)
     reason = (body.reason if body else "") or f"aborted by {operator}"
     services.runner.abort(run_id, actor=operator, reason=reason)
-    session.expire_all()
-    return run_out(get_run(session, run_id), services, session, patches=False)
+    return _current(run_id, services, session)
 
 
 @router.post("/{run_id}/reset", response_model=RunOut)
@@ -242,8 +244,7 @@ def reset_run(
     """After a fault: confirm the safe state and release the instrument (run -> failed)."""
     get_run(session, run_id)
     services.runner.reset(run_id, actor=operator)
-    session.expire_all()
-    return run_out(get_run(session, run_id), services, session, patches=False)
+    return _current(run_id, services, session)
 
 
 @router.get("/{run_id}/patches", response_model=list[PatchOut])
