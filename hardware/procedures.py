@@ -11,6 +11,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import NDArray
 
 from hardware.errors import (
     CrashError,
@@ -22,6 +23,8 @@ from hardware.errors import (
 )
 from hardware.protocols import ForceLoop, LineRecorder, PositionerAxis, ProbeSignal, ScanLines
 from hardware.smaract_mcs import AxisStatus
+
+FloatArray = NDArray[np.float64]
 
 __all__ = [
     "CrashError",
@@ -217,6 +220,7 @@ def raster_patch(
     line_time = 1.0 / line_rate
     heights = np.full((ny, nx), np.nan)
     times = np.zeros(ny)
+    row_y = np.full(ny, np.nan)  # where the Y sensor says each row was
     for i in range(ny):
         if stop is not None and stop():
             raise Interrupted(f"scan stopped on request after {i} of {ny} lines")
@@ -224,9 +228,42 @@ def raster_patch(
         x.fine_to(start_x, speed=10 * x.fine_range)
         wait_stopped(x)
         wait_stopped(y)
+        reading = y.position()
+        row_y[i] = np.nan if reading is None else reading
         x.fine_to(start_x + w, speed=w / line_time)
         heights[i], times[i] = recorder.record_line(nx, line_time)
-    return ScanLines(heights=heights, line_times=times, origin=(x0, y0), pixel_size=(dx, dy))
+    return ScanLines(
+        heights=linearize_rows(heights, row_y, dy),
+        line_times=times,
+        origin=(x0, y0),
+        pixel_size=(dx, dy),
+        row_readings=row_y,
+    )
+
+
+def linearize_rows(heights: FloatArray, row_y: FloatArray, dy: float) -> FloatArray:
+    """Resample rows from where the Y sensor read them to an even pitch ``dy``.
+
+    The fine mode's hysteresis and creep bend the row positions by several nm over a patch
+    (the same way in every patch, so a rigid merge cannot undo it). The sensor reads each
+    row's position with ~1 nm noise; a cubic in the row index keeps the bend and drops the
+    noise. Without readings (no sensor) the rows are returned as they are.
+
+    heights : (ny, nx) metres; row_y : (ny,) sensor readings, metres (NaN where unread).
+    """
+    ny = heights.shape[0]
+    index = np.arange(ny, dtype=np.float64)
+    ok = np.isfinite(row_y)
+    if ny < 8 or ok.sum() < ny:
+        return heights
+    fit = np.polynomial.Polynomial.fit(index, row_y, deg=3)
+    where = (fit(index) - fit(0.0)) / dy  # rows, in nominal row units from the first
+    if not np.all(np.diff(where) > 0) or abs(where[-1] - (ny - 1)) > 0.2 * ny:
+        return heights  # not a plausible raster: keep the data unchanged
+    out = np.empty_like(heights)
+    for j in range(heights.shape[1]):
+        out[:, j] = np.interp(index, where, heights[:, j])  # a fraction of a row at the ends
+    return out
 
 
 def scan_start(

@@ -105,6 +105,9 @@ class ScanLines:
     line_times: FloatArray
     origin: tuple[float, float]
     pixel_size: tuple[float, float]
+    #: (ny,) the Y sensor's reading at each row, metres (NaN without a sensor); the heights
+    #: are already resampled from these positions to the even pitch
+    row_readings: FloatArray | None = None
 
 
 @runtime_checkable

@@ -25,6 +25,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
@@ -426,6 +427,9 @@ class Runner:
                     "landing_cycles": landing.cycles,
                     "line_rate": run.line_rate,
                     "instrument": m.description,
+                    "row_readings": lines.row_readings
+                    if lines.row_readings is not None
+                    else np.zeros(0),
                 },
             )
             patch.dataset = name
