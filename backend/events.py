@@ -11,6 +11,7 @@ import asyncio
 import contextlib
 import logging
 import threading
+from collections.abc import Callable
 from typing import Any
 
 from sqlalchemy import select
@@ -43,6 +44,11 @@ class EventBus:
         self._lock = threading.Lock()
         self._subscribers: set[asyncio.Queue[dict[str, Any] | None]] = set()
         self._loop: asyncio.AbstractEventLoop | None = None
+        self._listeners: list[Callable[[dict[str, Any]], None]] = []
+
+    def listen(self, callback: Callable[[dict[str, Any]], None]) -> None:
+        """Call ``callback(event)`` on every event, in the emitting thread (keep it quick)."""
+        self._listeners.append(callback)
 
     def attach(self, loop: asyncio.AbstractEventLoop) -> None:
         """Publish on ``loop`` (the server's), from whichever thread emits."""
@@ -58,6 +64,11 @@ class EventBus:
             session.commit()
             event = event_dict(row)
         log.debug("event %s: %s", kind, message)
+        for listener in self._listeners:
+            try:
+                listener(event)
+            except Exception:  # a listener's failure is not the emitter's
+                log.exception("event listener failed on %s", kind)
         loop = self._loop
         if loop is not None and not loop.is_closed():
             with self._lock:

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
 from urllib.parse import parse_qs, urlsplit
 
 from sqlalchemy import Engine
@@ -12,10 +14,13 @@ from sqlalchemy.orm import Session, sessionmaker
 from backend.acquisition.planner import InstrumentLimits
 from backend.acquisition.runner import Runner
 from backend.auth import load_or_create_token
+from backend.db.models import MergeJob, Run
+from backend.db.patch_store import read_merge, read_patch
 from backend.db.session import make_engine, migrate, session_factory
 from backend.events import EventBus
 from backend.merge_jobs import MergeService
 from backend.settings import Settings
+from backend.viewer import HeightMap, Viewer
 from hardware.microscope import Microscope, open_microscope
 
 log = logging.getLogger("mosaic_afm.server")
@@ -40,6 +45,7 @@ class Services:
     merges: MergeService
     token: str
     token_created: bool
+    viewer: Viewer | None = None
     token_announced: bool = False
 
     @property
@@ -61,17 +67,68 @@ class Services:
         runner = Runner(microscope, sessions, events)
         if settings.auto_merge:
             runner.on_completed = lambda run_id: _auto_merge(merges, run_id)
+        viewer = None
+        if settings.viewer:
+            viewer = Viewer(host=settings.host, port=settings.viewer_port)
+            events.listen(ViewerFeed(viewer, sessions))
         runner.recover()
         merges.recover()
         merges.start()
-        return cls(settings, engine, sessions, events, microscope, runner, merges, token, created)
+        return cls(
+            settings, engine, sessions, events, microscope, runner, merges, token, created, viewer
+        )
 
     def close(self) -> None:
         self.runner.close()
         self.merges.close()
         self.events.close()
+        if self.viewer is not None:
+            self.viewer.close()
         self.microscope.close()
         self.engine.dispose()
+
+
+class ViewerFeed:
+    """Event listener: stored patches and finished merges go to the 3D viewer."""
+
+    def __init__(self, viewer: Viewer, sessions: sessionmaker[Session]) -> None:
+        self.viewer = viewer
+        self.sessions = sessions
+
+    def __call__(self, event: dict[str, Any]) -> None:
+        data = event.get("data") or {}
+        if event["kind"] == "progress" and "patch" in data:
+            run_id, index, total = event["run_id"], int(data["patch"]), int(data["total"])
+            self.viewer.submit(lambda: self._patch(run_id, index, total))
+        elif event["kind"] == "merge" and data.get("state") == "done":
+            job_id = int(data["job"])
+            self.viewer.submit(lambda: self._mosaic(job_id))
+
+    def _patch(self, run_id: int, index: int, total: int) -> None:
+        with self.sessions() as session:
+            run = session.get(Run, run_id)
+            if run is None:
+                return
+            path = Path(run.data_file)
+        stored = read_patch(path, index)
+        self.viewer.show_patch(
+            run_id,
+            index,
+            HeightMap(stored.heights, stored.origin, stored.pixel_size),
+            patches=total,
+        )
+
+    def _mosaic(self, job_id: int) -> None:
+        with self.sessions() as session:
+            job = session.get(MergeJob, job_id)
+            run = session.get(Run, job.run_id) if job is not None else None
+            if job is None or run is None or not job.result_group:
+                return
+            path, group = Path(run.data_file), job.result_group
+        heights, document = read_merge(path, group)
+        origin = (float(document["origin"][0]), float(document["origin"][1]))
+        pixel = (float(document["pixel_size"][0]), float(document["pixel_size"][1]))
+        self.viewer.show_mosaic(job_id, HeightMap(heights, origin, pixel))
 
 
 def _auto_merge(merges: MergeService, run_id: int) -> None:

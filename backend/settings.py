@@ -21,6 +21,7 @@ class Settings(BaseSettings):
     host: str = "127.0.0.1"
     port: int = Field(default=8000, ge=1, le=65535)
     viewer_port: int = Field(default=8080, ge=1, le=65535)
+    viewer: bool = Field(default=True, description="serve the viser 3D viewer")
     auto_merge: bool = True
     cors_origins: list[str] = Field(
         default_factory=list, description="origins allowed cross-site (none: CORS closed)"

@@ -51,11 +51,20 @@ def _fmt(v: float) -> str:
 
 def render_preview(before: Mosaic, after: Mosaic, *, size: int = 420) -> UInt8Array:
     """An RGB image: before | after | colour bar (nm), with titles and a scale bar."""
-    both = np.concatenate([before.heights.ravel(), after.heights.ravel()])
+    return render_panels([("NOMINAL", before), ("MERGED", after)], size=size)
+
+
+def render_panels(panels_in: list[tuple[str, Mosaic]], *, size: int = 420) -> UInt8Array:
+    """Height maps side by side in one colour map (1-99 % of their heights), each titled and
+    with a scale bar, then a colour bar in nm. ``size``: longer side of a panel, pixels."""
+    if not panels_in:
+        raise ValueError("need at least one height map")
+    mosaics = [m for _, m in panels_in]
+    both = np.concatenate([m.heights.ravel() for m in mosaics])
     both = both[np.isfinite(both)]
     lo, hi = np.percentile(both, [1, 99]) if both.size else (0.0, 1.0)
     hi = hi if hi > lo else lo + 1e-9
-    panels = [_fit(m.heights, size) for m in (before, after)]
+    panels = [_fit(m.heights, size) for m in mosaics]
     ph = max(p.shape[0] for p in panels)
     margin, title_h, bar_w, label_w = 16, 30, 18, 70
     width = margin + sum(p.shape[1] + margin for p in panels) + bar_w + label_w
@@ -63,7 +72,8 @@ def render_preview(before: Mosaic, after: Mosaic, *, size: int = 420) -> UInt8Ar
     img = np.empty((height, width, 3), dtype=np.uint8)
     img[:] = BACKGROUND
     col = margin
-    for title, panel, mosaic in zip(("NOMINAL", "MERGED"), panels, (before, after), strict=True):
+    titles = [t for t, _ in panels_in]
+    for title, panel, mosaic in zip(titles, panels, mosaics, strict=True):
         h, w = panel.shape
         img[title_h : title_h + h, col : col + w] = afm_colors((panel - lo) / (hi - lo))
         draw_text(img, title, 8, col, color=INK)

@@ -6,10 +6,12 @@ import asyncio
 import logging
 from collections.abc import AsyncIterator, Awaitable, Callable
 from contextlib import asynccontextmanager
+from pathlib import Path
 
 from fastapi import FastAPI, Request, Response
 from fastapi.middleware.cors import CORSMiddleware
 from fastapi.responses import JSONResponse
+from fastapi.staticfiles import StaticFiles
 
 from backend.acquisition.planner import PlanError
 from backend.acquisition.runner import Conflict, NotFound
@@ -22,6 +24,9 @@ from hardware.errors import ProcedureError
 from hardware.microscope import ConfigurationError
 
 log = logging.getLogger("mosaic_afm.server")
+
+#: The operator's pages (static files: HTML, CSS, ES modules).
+FRONTEND = Path(__file__).resolve().parents[2] / "frontend"
 
 
 def create_app(settings: Settings | None = None, *, services: Services | None = None) -> FastAPI:
@@ -99,6 +104,7 @@ def create_app(settings: Settings | None = None, *, services: Services | None = 
 
     for module in (runs, merges, instrument, sem, events):
         app.include_router(module.router)
+    app.mount("/", StaticFiles(directory=FRONTEND, html=True), name="pages")
     if services is not None:
         app.state.services = services  # usable before (or without) the lifespan, as in tests
     return app

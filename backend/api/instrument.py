@@ -126,3 +126,13 @@ def sim_fault(body: SimFaultIn, services: ServicesDep, operator: OperatorDep) ->
         data=body.model_dump(),
     )
     return Response(status_code=204)
+
+
+@router.get("/viewer")
+def viewer(services: ServicesDep) -> dict[str, object]:
+    """Where the 3D viewer listens (its port; the page builds the URL from its own host) and
+    what it shows."""
+    v = services.viewer
+    if v is None:
+        return {"enabled": False, "port": None, "nodes": {"raw": [], "merged": []}}
+    return {"enabled": True, "port": v.port, "nodes": v.node_names()}

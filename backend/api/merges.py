@@ -3,13 +3,13 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any
 
-from fastapi import APIRouter, HTTPException, Response
+from fastapi import APIRouter, HTTPException, Query, Response
 from fastapi.responses import JSONResponse
 
 from backend.api.deps import OperatorDep, ServicesDep, SessionDep
-from backend.api.runs import NPY, get_run, npy_response
+from backend.api.runs import NPY, PNG_RESPONSES, get_run, height_map, npy_response, png_response
 from backend.api.schemas import JobId, MergeIn, MergeOut, RunId
 from backend.db.models import MergeJob, Run
 from backend.db.patch_store import read_merge
@@ -128,3 +128,16 @@ def mosaic_json(job_id: JobId, session: SessionDep) -> JSONResponse:
     quality report."""
     _, document = _result(session, job_id)
     return JSONResponse(document)
+
+
+@router.get("/api/merges/{job_id}/preview.png", response_class=Response, responses=PNG_RESPONSES)
+def mosaic_preview(
+    job_id: JobId,
+    session: SessionDep,
+    size: Annotated[int, Query(ge=32, le=2048, description="longer side, pixels")] = 480,
+) -> Response:
+    """The merged mosaic as a picture, with a nm colour bar and a scale bar."""
+    heights, doc = _result(session, job_id)
+    origin = (float(doc["origin"][0]), float(doc["origin"][1]))
+    pixel = (float(doc["pixel_size"][0]), float(doc["pixel_size"][1]))
+    return png_response([("MERGED", height_map(heights, origin, pixel))], size=size)

@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import io
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
 import numpy as np
-from fastapi import APIRouter, Body, HTTPException, Response
+from fastapi import APIRouter, Body, HTTPException, Query, Response
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
@@ -27,13 +27,30 @@ from backend.api.schemas import (
     RunOut,
 )
 from backend.db.models import MergeJob, PatchRecord, Run, SemImageRecord
-from backend.db.patch_store import read_patch
+from backend.db.patch_store import StoredPatch, read_patch
 from backend.services import Services
 from hardware.protocols import SEMImage
+from merge.png import encode_png
+from merge.preview import render_panels
+from merge.render import Mosaic
 
 router = APIRouter(prefix="/api/runs", tags=["runs"])
 
 NPY = "application/x-npy"
+PNG_RESPONSES: dict[int | str, dict[str, Any]] = {
+    200: {"content": {"image/png": {}}, "description": "a PNG image"}
+}
+
+
+def png_response(panels: list[tuple[str, Mosaic]], *, size: int) -> Response:
+    """Height maps in the AFM colour map with a nm colour bar and a scale bar, as PNG."""
+    return Response(encode_png(render_panels(panels, size=size)), media_type="image/png")
+
+
+def height_map(
+    heights: np.ndarray, origin: tuple[float, float], pixel: tuple[float, float]
+) -> Mosaic:
+    return Mosaic(heights, origin, pixel, np.isfinite(heights).astype(np.int32))
 
 
 def npy_response(array: np.ndarray, filename: str) -> Response:
@@ -259,6 +276,30 @@ def list_patches(run_id: RunId, session: SessionDep) -> list[PatchOut]:
 )
 def patch_data(run_id: RunId, index: PatchIndex, session: SessionDep) -> Response:
     """The stored heights of one patch as an ``.npy`` file (rows along y, metres)."""
+    stored = _stored(session, run_id, index)
+    response = npy_response(stored.heights, f"run{run_id}-patch{index:03d}.npy")
+    response.headers["X-Origin"] = f"{stored.origin[0]!r},{stored.origin[1]!r}"
+    response.headers["X-Pixel-Size"] = f"{stored.pixel_size[0]!r},{stored.pixel_size[1]!r}"
+    return response
+
+
+@router.get(
+    "/{run_id}/patches/{index}/preview.png", response_class=Response, responses=PNG_RESPONSES
+)
+def patch_preview(
+    run_id: RunId,
+    index: PatchIndex,
+    session: SessionDep,
+    size: Annotated[int, Query(ge=16, le=1024, description="longer side, pixels")] = 96,
+) -> Response:
+    """One stored patch as a picture (AFM colour map, nm colour bar, scale bar)."""
+    stored = _stored(session, run_id, index)
+    return png_response(
+        [(f"P{index}", height_map(stored.heights, stored.origin, stored.pixel_size))], size=size
+    )
+
+
+def _stored(session: Session, run_id: int, index: int) -> StoredPatch:
     run = get_run(session, run_id)
     patch = next((p for p in run.patches if p.index == index), None)
     if patch is None:
@@ -267,11 +308,7 @@ def patch_data(run_id: RunId, index: PatchIndex, session: SessionDep) -> Respons
         )
     if patch.step != "stored":
         raise HTTPException(404, f"patch {index} of run {run_id} is {patch.step}, not stored")
-    stored = read_patch(Path(run.data_file), index)
-    response = npy_response(stored.heights, f"run{run_id}-patch{index:03d}.npy")
-    response.headers["X-Origin"] = f"{stored.origin[0]!r},{stored.origin[1]!r}"
-    response.headers["X-Pixel-Size"] = f"{stored.pixel_size[0]!r},{stored.pixel_size[1]!r}"
-    return response
+    return read_patch(Path(run.data_file), index)
 
 
 __all__ = ["PlanError", "get_run", "npy_response", "router", "run_out"]

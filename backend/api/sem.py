@@ -10,10 +10,11 @@ import numpy as np
 from fastapi import APIRouter, File, Form, HTTPException, Request, Response, UploadFile
 
 from backend.api.deps import OperatorDep, ServicesDep, SessionDep
-from backend.api.runs import NPY, npy_response
+from backend.api.runs import NPY, PNG_RESPONSES, npy_response
 from backend.api.schemas import SemAcquireIn, SemId, SemOut
 from backend.db.models import SemImageRecord
 from backend.sem_files import TiffError, read_sem_tiff, save_pixels, sem_path
+from merge.png import encode_png
 
 router = APIRouter(prefix="/api/sem", tags=["sem"])
 
@@ -151,15 +152,27 @@ def read_sem(sem_id: SemId, session: SessionDep) -> SemOut:
     return sem_out(_record(session, sem_id))
 
 
+def _pixels(record: SemImageRecord) -> np.ndarray:
+    try:
+        pixels: np.ndarray = np.load(Path(record.file), allow_pickle=False)
+    except OSError as exc:
+        raise HTTPException(404, f"SEM image {record.id}: file not readable ({exc})") from None
+    return pixels
+
+
+@router.get("/{sem_id}/image.png", response_class=Response, responses=PNG_RESPONSES)
+def sem_png(sem_id: SemId, session: SessionDep) -> Response:
+    """The SEM image in grey levels (1-99 % stretched), full resolution, for drawing ROIs."""
+    pixels = _pixels(_record(session, sem_id))
+    lo, hi = np.percentile(pixels, [1, 99])
+    grey = (np.clip((pixels - lo) / max(hi - lo, 1e-12), 0, 1) * 255 + 0.5).astype(np.uint8)
+    return Response(encode_png(np.repeat(grey[..., None], 3, axis=-1)), media_type="image/png")
+
+
 @router.get(
     "/{sem_id}/image.npy",
     response_class=Response,
     responses={200: {"content": {NPY: {}}, "description": "grey levels (ny, nx)"}},
 )
 def sem_image(sem_id: SemId, session: SessionDep) -> Response:
-    record = _record(session, sem_id)
-    try:
-        pixels = np.load(Path(record.file), allow_pickle=False)
-    except OSError as exc:
-        raise HTTPException(404, f"SEM image {sem_id}: file not readable ({exc})") from None
-    return npy_response(pixels, f"sem{sem_id}.npy")
+    return npy_response(_pixels(_record(session, sem_id)), f"sem{sem_id}.npy")

@@ -82,6 +82,7 @@ def open_server(tmp_path: Path, **settings: Any) -> Iterator[Server]:
         data_dir=tmp_path,
         api_token=TOKEN,
         auto_merge=settings.pop("auto_merge", False),
+        viewer=settings.pop("viewer", False),
         instrument=settings.pop("instrument", "sim://?speed=max"),
         **settings,
     )
