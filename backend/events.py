@@ -119,3 +119,9 @@ class EventBus:
                 query = query.where(Event.run_id == run_id)
             rows = session.scalars(query.order_by(Event.id).limit(limit)).all()
             return [event_dict(r) for r in rows]
+
+    def latest(self) -> int:
+        """The id of the newest stored event, 0 if there is none."""
+        with self._sessions() as session:
+            newest = session.scalars(select(Event.id).order_by(Event.id.desc()).limit(1)).first()
+            return int(newest or 0)

@@ -75,3 +75,9 @@ async def events(
     return StreamingResponse(
         stream(), media_type="text/event-stream", headers={"Cache-Control": "no-store"}
     )
+
+
+@router.get("/api/events/latest")
+def latest_event(services: ServicesDep) -> dict[str, int]:
+    """The id of the newest stored event (0 if none): follow the stream from there."""
+    return {"id": services.events.latest()}

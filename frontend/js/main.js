@@ -1,0 +1,395 @@
+// The operator's page: SEM and ROI, run control, patches, merge, instrument, 3D viewer.
+// Live updates come from the server's event stream (/api/events), never from polling.
+
+import { ApiError, get, post, setToken, token } from "./api.js";
+import { duration, nm, um } from "./format.js";
+import { SemView } from "./sem.js";
+
+const $ = (id) => document.getElementById(id);
+const state = { run: null, job: null, residuals: [], startedAt: null, lastEvent: 0 };
+
+// -- messages ---------------------------------------------------------------------------------
+
+function showError(err) {
+  const box = $("message");
+  box.textContent = err instanceof ApiError ? `${err.message} (HTTP ${err.status})` : String(err);
+  box.hidden = false;
+}
+
+function clearError() {
+  $("message").hidden = true;
+}
+
+async function act(fn) {
+  clearError();
+  try {
+    return await fn();
+  } catch (err) {
+    showError(err);
+    return null;
+  }
+}
+
+// -- SEM and planning -------------------------------------------------------------------------
+
+const sem = new SemView($("sem-canvas"), $("sem-coords"), () => planPreview());
+sem.draw();
+
+function planBody() {
+  const f = $("plan-form").elements;
+  const num = (name) => Number(f[name].value);
+  return {
+    sem_roi: sem.roi && sem.image ? { sem_id: sem.image.meta.id, ...sem.roi } : undefined,
+    patch: {
+      width: num("patch_width") * 1e-6,
+      height: num("patch_height") * 1e-6,
+      pixels: [num("nx"), num("ny")],
+    },
+    overlap: [num("ox") / 100, num("oy") / 100],
+    line_rate: num("line_rate"),
+  };
+}
+
+const FIELD_INPUTS = {
+  "patch.width": "patch_width",
+  "patch.height": "patch_height",
+  "patch.pixels": "nx",
+  overlap: "ox",
+  line_rate: "line_rate",
+};
+
+function markInvalid(field) {
+  for (const input of $("plan-form").querySelectorAll("input")) input.removeAttribute("aria-invalid");
+  const key = field && Object.keys(FIELD_INPUTS).find((k) => field.startsWith(k));
+  if (key) $("plan-form").elements[FIELD_INPUTS[key]].setAttribute("aria-invalid", "true");
+}
+
+async function planPreview() {
+  $("plan-error").textContent = "";
+  markInvalid(null);
+  if (!sem.roi) {
+    sem.setPlan(null);
+    $("plan-summary").textContent = "draw an ROI on the SEM image";
+    $("create-run").disabled = true;
+    return;
+  }
+  const body = planBody();
+  try {
+    const plan = await post("/api/runs/preview", body);
+    sem.setPlan({ ...plan, patchWidth: body.patch.width, patchHeight: body.patch.height });
+    $("plan-summary").textContent = `${plan.count} patches (${plan.rows} rows × ${plan.cols} columns), ROI ${um(plan.roi.width)} × ${um(plan.roi.height)}`;
+    $("plan-summary").dataset.count = plan.count;
+    $("create-run").disabled = false;
+  } catch (err) {
+    sem.setPlan(null);
+    $("plan-summary").textContent = "";
+    $("plan-error").textContent = err.message;
+    markInvalid(err.field);
+    $("create-run").disabled = true;
+  }
+}
+
+$("plan-form").addEventListener("input", () => planPreview());
+$("plan-form").addEventListener("submit", (e) => {
+  e.preventDefault();
+  act(async () => {
+    const run = await post("/api/runs", planBody());
+    await refreshRuns(run.id);
+  });
+});
+
+$("sem-acquire").addEventListener("click", () =>
+  act(async () => {
+    const field = Number($("sem-field").value) * 1e-6;
+    const meta = await post("/api/sem/acquire", { centre: [0, 0], field, pixels: 512 });
+    await sem.load(meta);
+  }),
+);
+
+$("sem-upload").addEventListener("change", (e) =>
+  act(async () => {
+    const file = e.target.files[0];
+    if (!file) return;
+    const form = new FormData();
+    form.append("file", file);
+    const pixel = Number($("sem-pixel").value);
+    if (pixel > 0) form.append("pixel_size", String(pixel * 1e-9));
+    const meta = await post("/api/sem/upload", form);
+    await sem.load(meta);
+  }),
+);
+
+// -- runs -------------------------------------------------------------------------------------
+
+const ACTIONS = {
+  "run-start": { url: "start", when: ["planned", "failed", "interrupted"] },
+  "run-pause": { url: "pause", when: ["running"] },
+  "run-resume": { url: "resume", when: ["paused", "failed", "interrupted"] },
+  "run-abort": { url: "abort", when: ["planned", "running", "paused", "failed", "interrupted"] },
+  "run-reset": { url: "reset", when: ["fault"] },
+};
+
+for (const [id, action] of Object.entries(ACTIONS)) {
+  $(id).addEventListener("click", () =>
+    act(async () => {
+      if (!state.run) return;
+      let body;
+      if (action.url === "abort") {
+        if (!window.confirm(`Abort run ${state.run.id}? The tip is retracted and the run cannot continue.`)) return;
+        body = { reason: "aborted from the operator's page" };
+      }
+      await post(`/api/runs/${state.run.id}/${action.url}`, body);
+      await loadRun(state.run.id);
+    }),
+  );
+}
+
+async function refreshRuns(select) {
+  const runs = await get("/api/runs");
+  const box = $("run-select");
+  box.replaceChildren(new Option("—", ""));
+  for (const r of runs) box.add(new Option(`run ${r.id} (${r.state}, ${r.rows}×${r.cols})`, r.id));
+  const id = select ?? (runs[0] && runs[0].id);
+  if (id) {
+    box.value = String(id);
+    await loadRun(id);
+  }
+}
+
+$("run-select").addEventListener("change", (e) => act(() => (e.target.value ? loadRun(Number(e.target.value)) : null)));
+
+async function loadRun(id) {
+  const run = await get(`/api/runs/${id}`);
+  const fresh = !state.run || state.run.id !== run.id;
+  state.run = run;
+  if (fresh) {
+    buildPatchGrid(run);
+    state.startedAt = null;
+  }
+  for (const p of run.patches) if (p.step === "stored") showPatch(run.id, p.index);
+  renderRun();
+  $("merge-start").disabled = run.progress.stored < 2;
+}
+
+function renderRun() {
+  const run = state.run;
+  const pill = $("run-state");
+  pill.textContent = `run ${run.id}: ${run.state}${run.pending_request ? ` (${run.pending_request} asked)` : ""}`;
+  pill.className = `pill ${{ running: "busy", paused: "busy", completed: "ok", fault: "bad", failed: "bad" }[run.state] || ""}`;
+  for (const [id, action] of Object.entries(ACTIONS)) $(id).disabled = !action.when.includes(run.state);
+  const { stored, total } = run.progress;
+  $("run-progress").max = total;
+  $("run-progress").value = stored;
+  $("run-stored").textContent = `${stored} / ${total}`;
+  $("run-patch").textContent = run.current_patch ?? "—";
+  $("run-step").textContent = run.current_step ?? (run.state === "running" ? "between steps" : "—");
+  $("run-message").textContent = run.message || "";
+  if (run.state === "running" && !state.startedAt) state.startedAt = { t: Date.now(), stored };
+  tick();
+}
+
+function tick() {
+  const run = state.run;
+  if (!run || !state.startedAt) {
+    $("run-elapsed").textContent = "—";
+    $("run-eta").textContent = "—";
+    return;
+  }
+  const elapsed = (Date.now() - state.startedAt.t) / 1000;
+  const done = run.progress.stored - state.startedAt.stored;
+  const left = run.progress.total - run.progress.stored;
+  $("run-elapsed").textContent = duration(elapsed);
+  $("run-eta").textContent = run.state === "running" && done > 0 ? duration((elapsed / done) * left) : left ? "—" : "done";
+}
+setInterval(tick, 1000); // a clock on the page, not a request
+
+// -- patches ----------------------------------------------------------------------------------
+
+function buildPatchGrid(run) {
+  const grid = $("patch-grid");
+  grid.replaceChildren();
+  grid.style.gridTemplateColumns = `repeat(${run.cols}, 1fr)`;
+  const cells = new Map();
+  for (let r = run.rows - 1; r >= 0; r--) {
+    for (let c = 0; c < run.cols; c++) {
+      const cell = document.createElement("div");
+      cell.className = "empty";
+      grid.append(cell);
+      cells.set(`${r},${c}`, cell);
+    }
+  }
+  for (const p of run.patches) {
+    const cell = cells.get(`${p.row},${p.col}`);
+    if (cell) cell.dataset.index = p.index;
+  }
+}
+
+function showPatch(runId, index) {
+  const cell = $("patch-grid").querySelector(`[data-index="${index}"]`);
+  if (!cell || cell.tagName === "IMG") return;
+  const img = document.createElement("img");
+  img.src = `/api/runs/${runId}/patches/${index}/preview.png?size=96`;
+  img.alt = `patch ${index}`;
+  img.dataset.index = index;
+  cell.replaceWith(img);
+}
+
+// -- merges -----------------------------------------------------------------------------------
+
+$("merge-form").addEventListener("submit", (e) => {
+  e.preventDefault();
+  $("merge-error").textContent = "";
+  act(async () => {
+    if (!state.run) return;
+    const f = $("merge-form").elements;
+    const parameters = f.max_iter.value ? { max_iter: Number(f.max_iter.value) } : {};
+    try {
+      const job = await post(`/api/runs/${state.run.id}/merges`, { method: f.method.value, parameters });
+      // its events may have come first: then the page already follows this job
+      if (!state.job || state.job.id !== job.id) startMerge(job);
+    } catch (err) {
+      $("merge-error").textContent = err.message;
+      throw err;
+    }
+  });
+});
+
+$("merge-cancel").addEventListener("click", () =>
+  act(async () => {
+    if (state.job) renderMerge(await post(`/api/merges/${state.job.id}/cancel`));
+  }),
+);
+
+function startMerge(job) {
+  state.job = job;
+  state.residuals = [];
+  $("merge-result").hidden = true;
+  renderMerge(job);
+}
+
+function renderMerge(job) {
+  state.job = { ...state.job, ...job };
+  const j = state.job;
+  $("merge-state").textContent = `merge ${j.id}: ${j.state}`;
+  $("merge-state").className = `pill ${{ running: "busy", queued: "busy", done: "ok", failed: "bad" }[j.state] || ""}`;
+  $("merge-progress").value = j.progress ?? 0;
+  $("merge-cancel").disabled = !["queued", "running"].includes(j.state);
+  if (j.state === "failed") $("merge-error").textContent = j.message || "the merge failed";
+  if (j.state === "done") {
+    $("merge-preview").src = `/api/merges/${j.id}/preview.png?size=480`;
+    $("dl-npy").href = `/api/merges/${j.id}/mosaic.npy`;
+    $("dl-json").href = `/api/merges/${j.id}/mosaic.json`;
+    $("merge-result").hidden = false;
+  }
+  plotResiduals();
+}
+
+function plotResiduals() {
+  const canvas = $("residual-plot");
+  const ctx = canvas.getContext("2d");
+  ctx.clearRect(0, 0, canvas.width, canvas.height);
+  ctx.fillStyle = "#666";
+  ctx.font = "11px system-ui";
+  ctx.fillText("residual per iteration (nm)", 6, 12);
+  const r = state.residuals;
+  if (r.length < 1) return;
+  const hi = Math.max(...r.map((p) => p[1]));
+  const lo = Math.min(...r.map((p) => p[1]));
+  const n = Math.max(...r.map((p) => p[0]));
+  const x = (i) => 30 + ((canvas.width - 40) * i) / Math.max(n, 1);
+  const y = (v) => canvas.height - 12 - ((canvas.height - 30) * (v - lo)) / Math.max(hi - lo, 1e-12);
+  ctx.strokeStyle = "#c45500";
+  ctx.beginPath();
+  r.forEach(([i, v], k) => (k ? ctx.lineTo(x(i), y(v)) : ctx.moveTo(x(i), y(v))));
+  ctx.stroke();
+  ctx.fillText(`${(hi * 1e9).toFixed(2)}`, 2, 24);
+  ctx.fillText(`${(lo * 1e9).toFixed(2)}`, 2, canvas.height - 4);
+}
+
+// -- instrument -------------------------------------------------------------------------------
+
+async function loadInstrument() {
+  const s = await get("/api/instrument");
+  $("instrument-state").textContent = `instrument: ${s.state}`;
+  $("instrument-state").className = `pill ${{ idle: "ok", running: "busy", fault: "bad", error: "bad" }[s.state]}`;
+  const safe = $("safe-state");
+  safe.textContent = s.safe_state ? "SAFE: tip retracted" : s.safe_state === false ? "TIP ENGAGED" : "safe state unknown";
+  safe.className = `pill ${s.safe_state ? "ok" : "bad"}`;
+  $("inst-state").textContent = s.message ? `${s.state}: ${s.message}` : s.state;
+  $("inst-x").textContent = um(s.positions && s.positions.stage_x);
+  $("inst-y").textContent = um(s.positions && s.positions.stage_y);
+  $("inst-z").textContent = nm(s.positions && s.positions.robot_z_fine_extension);
+  $("inst-df").textContent = s.frequency_shift === null ? "—" : `${s.frequency_shift.toFixed(2)} Hz`;
+}
+
+// -- the event stream -------------------------------------------------------------------------
+
+function logEvent(event) {
+  const li = document.createElement("li");
+  li.textContent = `${event.time.slice(11, 19)} ${event.message}`;
+  if (event.kind === "fault") li.className = "fault";
+  const log = $("event-log");
+  log.append(li);
+  while (log.children.length > 300) log.firstElementChild.remove();
+  log.scrollTop = log.scrollHeight;
+}
+
+function onEvent(event) {
+  state.lastEvent = Math.max(state.lastEvent, event.id);
+  if (event.kind !== "merge" || event.data.state !== "running") logEvent(event);
+  const mine = state.run && event.run_id === state.run.id;
+  if (event.kind === "run" && event.run_id) {
+    act(() => (mine ? loadRun(event.run_id) : refreshRuns(event.run_id)));
+    act(loadInstrument);
+  } else if (event.kind === "patch" && mine) {
+    state.run.current_patch = event.data.step === "stored" ? null : event.data.patch;
+    state.run.current_step = event.data.step === "stored" ? null : event.data.step;
+    renderRun();
+  } else if (event.kind === "progress" && mine) {
+    state.run.progress = { stored: event.data.stored, total: event.data.total };
+    showPatch(event.run_id, event.data.patch);
+    renderRun();
+    $("merge-start").disabled = event.data.stored < 2;
+  } else if (event.kind === "merge" && event.data.job) {
+    if (!state.job || state.job.id !== event.data.job) {
+      if (!mine) return;
+      startMerge({ id: event.data.job });
+    }
+    if (event.data.iteration !== undefined) state.residuals.push([event.data.iteration, event.data.residual]);
+    renderMerge({ state: event.data.state, progress: event.data.progress, message: event.data.message });
+  } else if (event.kind === "fault" || event.kind === "simulation") {
+    act(loadInstrument);
+  }
+}
+
+function listen() {
+  const source = new EventSource(`/api/events?after=${state.lastEvent}`);
+  for (const kind of ["run", "patch", "progress", "merge", "fault", "request", "recovery", "sem", "simulation", "reconcile"]) {
+    source.addEventListener(kind, (e) => onEvent(JSON.parse(e.data)));
+  }
+  source.onerror = () => {
+    if (source.readyState === EventSource.CLOSED) setTimeout(listen, 2000);
+  };
+}
+
+// -- start ------------------------------------------------------------------------------------
+
+async function start() {
+  $("token").value = token();
+  $("token").addEventListener("change", (e) => setToken(e.target.value));
+  await act(loadInstrument);
+  await act(() => refreshRuns());
+  const latest = await act(() => get("/api/events/latest"));
+  state.lastEvent = latest ? latest.id : 0; // the page already shows what happened before
+  listen();
+  const viewer = await act(() => get("/api/instrument/viewer"));
+  if (viewer && viewer.enabled) {
+    $("viewer").src = `${location.protocol}//${location.hostname}:${viewer.port}/`;
+  } else {
+    $("viewer").srcdoc = "<p style='font:14px system-ui'>The 3D viewer is off (MOSAIC_VIEWER=false).</p>";
+  }
+  const sems = await act(() => get("/api/sem"));
+  if (sems && sems.length) await act(() => sem.load(sems[sems.length - 1]));
+}
+
+start();

@@ -1,0 +1,191 @@
+"""The operator's pages in a real browser (Debian's chromium, headless, driven by Playwright):
+SEM image, ROI drawn with the mouse, plan, run to completion, merge, preview, 3D viewer."""
+
+from __future__ import annotations
+
+import shutil
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import httpx
+import pytest
+
+from backend.server_process import AUTH, TOKEN, ServerProcess, free_port
+
+playwright_api = pytest.importorskip("playwright.sync_api")
+
+CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
+SHOTS = Path(__file__).resolve().parents[1] / "screenshots"
+pytestmark = [
+    pytest.mark.slow,
+    pytest.mark.skipif(not Path(CHROMIUM).exists(), reason="needs Debian's chromium"),
+]
+
+
+@pytest.fixture(scope="module")
+def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ServerProcess]:
+    process = ServerProcess(
+        tmp_path_factory.mktemp("pages"),
+        MOSAIC_AUTO_MERGE="false",
+        MOSAIC_VIEWER="true",
+        MOSAIC_VIEWER_PORT=str(free_port()),
+    ).start()
+    yield process
+    process.stop()
+
+
+@pytest.fixture(scope="module")
+def browser() -> Iterator[Any]:
+    with playwright_api.sync_playwright() as p:
+        b = p.chromium.launch(
+            executable_path=CHROMIUM,
+            headless=True,
+            args=[
+                "--no-sandbox",
+                "--disable-gpu",
+                "--disable-quic",
+                "--no-first-run",
+                "--disable-background-networking",
+                "--disable-component-update",
+                "--disable-sync",
+            ],
+        )
+        yield b
+        b.close()
+
+
+@pytest.fixture
+def page(browser: Any, server: ServerProcess) -> Iterator[tuple[Any, list[str]]]:
+    context = browser.new_context(viewport={"width": 1280, "height": 800})
+    pg = context.new_page()
+    errors: list[str] = []
+    pg.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
+    pg.on("pageerror", lambda e: errors.append(str(e)))
+    pg.goto(server.url + "/")
+    pg.fill("#token", TOKEN)
+    pg.press("#token", "Tab")  # change event: the token is kept
+    yield pg, errors
+    context.close()
+
+
+def _state(pg: Any) -> str:
+    """What the page says, for a failure message."""
+    ids = ["message", "plan-error", "run-state", "run-message", "merge-state", "merge-error"]
+    return "; ".join(f"#{i}: {pg.inner_text('#' + i)!r}" for i in ids)
+
+
+def _wait(pg: Any, condition: str, timeout: float = 120_000) -> None:
+    try:
+        pg.wait_for_function(condition, timeout=timeout)
+    except playwright_api.TimeoutError:
+        _shot(pg, "failure")
+        raise AssertionError(f"never true: {condition} ({_state(pg)})") from None
+
+
+def _shot(pg: Any, name: str) -> None:
+    SHOTS.mkdir(exist_ok=True)
+    pg.screenshot(path=str(SHOTS / f"{name}.png"), full_page=True)
+
+
+def test_a_mosaic_from_roi_to_merged_preview(
+    page: tuple[Any, list[str]], server: ServerProcess
+) -> None:
+    pg, errors = page
+    pg.click("#sem-acquire")
+    pg.wait_for_selector("#sem-canvas[data-sem-id]")
+    sem = httpx.get(server.url + "/api/sem").json()[-1]
+    # the 512 px image fits the 640 x 480 canvas: scale 480 / 512, centred horizontally
+    box = pg.locator("#sem-canvas").bounding_box()
+    scale, left = 480 / sem["width"], (640 - sem["width"] * 480 / sem["width"]) / 2
+    pitch = sem["pixel_size"][0]
+    centre = (sem["width"] / 2 - 0.5, sem["height"] / 2 - 0.5)  # the stage origin, in pixels
+    half = (1.65e-6 / pitch, 2.2e-6 / pitch)  # the paper's 3.3 x 4.4 µm region
+    x0, y0 = round(left + (centre[0] - half[0]) * scale), round((centre[1] - half[1]) * scale)
+    x1, y1 = round(left + (centre[0] + half[0]) * scale), round((centre[1] + half[1]) * scale)
+    pg.mouse.move(box["x"] + x0, box["y"] + y0)
+    pg.mouse.down()
+    for k in range(1, 11):  # a drag, as a hand does it
+        pg.mouse.move(box["x"] + x0 + (x1 - x0) * k / 10, box["y"] + y0 + (y1 - y0) * k / 10)
+    pg.mouse.up()
+    pg.wait_for_selector("#plan-summary[data-count]")
+    roi = {
+        "sem_id": sem["id"],
+        "col": (x0 - left) / scale,
+        "row": y0 / scale,
+        "width": (x1 - x0) / scale,
+        "height": (y1 - y0) / scale,
+    }
+    expected = httpx.post(
+        server.url + "/api/runs/preview",
+        json={
+            "sem_roi": roi,
+            "patch": {"width": 0.6e-6, "height": 1.2e-6, "pixels": [30, 60]},
+            "overlap": [0.5, 0.333],
+        },
+    ).json()
+    assert int(pg.get_attribute("#plan-summary", "data-count")) == expected["count"]
+    assert expected["count"] >= 40
+    _shot(pg, "1-planned")
+
+    pg.click("#create-run")
+    pg.wait_for_function("document.querySelector('#run-state').textContent.includes('planned')")
+    assert pg.is_enabled("#run-start") and not pg.is_enabled("#run-pause")
+    pg.click("#run-start")
+    _wait(pg, "document.querySelector('#run-state').textContent.includes('completed')")
+    assert pg.locator("#patch-grid img").count() == expected["count"]
+    assert pg.inner_text("#run-stored") == f"{expected['count']} / {expected['count']}"
+    assert "SAFE" in pg.inner_text("#safe-state")
+    _shot(pg, "2-scanned")
+
+    pg.click("#merge-start")
+    _wait(pg, "!document.querySelector('#merge-result').hidden")
+    pg.wait_for_function(
+        "document.querySelector('#merge-preview').complete && "
+        "document.querySelector('#merge-preview').naturalWidth > 0"
+    )
+    assert "done" in pg.inner_text("#merge-state")
+    _shot(pg, "3-merged")
+
+    # the 3D viewer holds one node per stored patch and the merged mosaic
+    viewer: dict[str, Any] = {}
+    for _ in range(100):
+        viewer = httpx.get(server.url + "/api/instrument/viewer").json()
+        if viewer["nodes"]["merged"] and len(viewer["nodes"]["raw"]) == expected["count"]:
+            break
+        pg.wait_for_timeout(100)
+    assert len(viewer["nodes"]["raw"]) == expected["count"]
+    assert len(viewer["nodes"]["merged"]) == 1
+    assert errors == [], errors
+
+
+def test_a_refused_request_shows_the_servers_message(page: tuple[Any, list[str]]) -> None:
+    pg, errors = page
+    pg.fill("#token", "not-the-token-at-all")
+    pg.press("#token", "Tab")
+    pg.click("#sem-acquire")
+    pg.wait_for_selector("#message:not([hidden])")
+    assert "Bearer" in pg.inner_text("#message") and "401" in pg.inner_text("#message")
+    _shot(pg, "4-refused")
+    # an impossible overlap is refused inline, naming the field
+    pg.fill("#token", TOKEN)
+    pg.press("#token", "Tab")
+    if not pg.get_attribute("#sem-canvas", "data-sem-id"):
+        pg.click("#sem-acquire")
+        pg.wait_for_selector("#sem-canvas[data-sem-id]")
+    box = pg.locator("#sem-canvas").bounding_box()
+    pg.mouse.move(box["x"] + 300, box["y"] + 200)
+    pg.mouse.down()
+    pg.mouse.move(box["x"] + 360, box["y"] + 260)
+    pg.mouse.up()
+    pg.fill("input[name=ox]", "95")
+    pg.wait_for_function("document.querySelector('#plan-error').textContent.includes('overlap')")
+    assert pg.get_attribute("input[name=ox]", "aria-invalid") == "true"
+    assert pg.is_disabled("#create-run")
+    # errors the page showed on purpose are not console errors of the page itself
+    assert [e for e in errors if "401" not in e and "422" not in e] == []
+
+
+def test_the_api_token_header_works_for_scripts_too(server: ServerProcess) -> None:
+    r = httpx.post(server.url + "/api/runs/999/start", headers=AUTH)
+    assert r.status_code == 404
