@@ -32,6 +32,7 @@ FloatArray = NDArray[np.float64]
 RAW_BUDGET = 1_000_000
 MERGED_BUDGET = 1_000_000
 UM = 1e6  # scene units per metre
+BESIDE_GAP = 1e-6  # between the raw patches and the merged mosaic, metres
 
 
 @dataclass(frozen=True)
@@ -140,14 +141,19 @@ class Viewer:
             self._style(node, merged=False)
 
     def show_mosaic(self, job_id: int, hmap: HeightMap) -> None:
-        """A merged mosaic; it replaces the previous one."""
+        """A merged mosaic, beside the raw patches; it replaces the previous one."""
         with self._lock:
             for old in self.merged.values():
                 old.remove()
             self.merged.clear()
             if self.zero is None:
                 self.zero = float(np.nanmedian(hmap.heights))
-            node = self._add(f"/merged/job{job_id}", hmap, MERGED_BUDGET)
+            # beside the raw patches (to their right), so "both" compares them side by side
+            width = hmap.heights.shape[1] * hmap.pixel_size[0]
+            beside = HeightMap(
+                hmap.heights, (hmap.origin[0] + width + BESIDE_GAP, hmap.origin[1]), hmap.pixel_size
+            )
+            node = self._add(f"/merged/job{job_id}", beside, MERGED_BUDGET)
             self.merged[job_id] = node
             self._style(node, merged=True)
 

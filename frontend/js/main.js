@@ -20,8 +20,8 @@ function clearError() {
   $("message").hidden = true;
 }
 
+/** Run `fn`, showing its failure on the page (background work: an earlier message stays). */
 async function act(fn) {
-  clearError();
   try {
     return await fn();
   } catch (err) {
@@ -30,16 +30,52 @@ async function act(fn) {
   }
 }
 
+/** An operator's action: a new attempt clears the last message first. */
+function userAct(fn) {
+  clearError();
+  return act(fn);
+}
+
 // -- SEM and planning -------------------------------------------------------------------------
 
-const sem = new SemView($("sem-canvas"), $("sem-coords"), () => planPreview());
+const sem = new SemView($("sem-canvas"), $("sem-coords"), (rect) => roiDrawn(rect));
 sem.draw();
+let typedRoi = false; // the ROI fields were typed in: plan from them, not from the drawing
+
+function roiDrawn(rect) {
+  const f = $("plan-form").elements;
+  if (!rect && typedRoi) {
+    planPreview(); // a new image or Esc: a typed ROI stays
+    return;
+  }
+  typedRoi = false;
+  if (rect) {
+    const a = sem.toStage(rect.col, rect.row);
+    const b = sem.toStage(rect.col + rect.width, rect.row + rect.height);
+    f.roi_x.value = (Math.min(a.x, b.x) * 1e6).toFixed(3);
+    f.roi_y.value = (Math.min(a.y, b.y) * 1e6).toFixed(3);
+    f.roi_width.value = (Math.abs(b.x - a.x) * 1e6).toFixed(3);
+    f.roi_height.value = (Math.abs(b.y - a.y) * 1e6).toFixed(3);
+  } else {
+    for (const name of ["roi_x", "roi_y", "roi_width", "roi_height"]) f[name].value = "";
+  }
+  planPreview();
+}
+
+function hasRoi() {
+  const f = $("plan-form").elements;
+  return typedRoi ? f.roi_width.value !== "" && f.roi_height.value !== "" : Boolean(sem.roi);
+}
 
 function planBody() {
   const f = $("plan-form").elements;
   const num = (name) => Number(f[name].value);
+  const roi = typedRoi
+    ? { x: num("roi_x") * 1e-6, y: num("roi_y") * 1e-6, width: num("roi_width") * 1e-6, height: num("roi_height") * 1e-6 }
+    : undefined;
   return {
-    sem_roi: sem.roi && sem.image ? { sem_id: sem.image.meta.id, ...sem.roi } : undefined,
+    roi,
+    sem_roi: !typedRoi && sem.roi && sem.image ? { sem_id: sem.image.meta.id, ...sem.roi } : undefined,
     patch: {
       width: num("patch_width") * 1e-6,
       height: num("patch_height") * 1e-6,
@@ -51,6 +87,7 @@ function planBody() {
 }
 
 const FIELD_INPUTS = {
+  roi: "roi_width",
   "patch.width": "patch_width",
   "patch.height": "patch_height",
   "patch.pixels": "nx",
@@ -67,7 +104,7 @@ function markInvalid(field) {
 async function planPreview() {
   $("plan-error").textContent = "";
   markInvalid(null);
-  if (!sem.roi) {
+  if (!hasRoi()) {
     sem.setPlan(null);
     $("plan-summary").textContent = "draw an ROI on the SEM image";
     $("create-run").disabled = true;
@@ -89,17 +126,20 @@ async function planPreview() {
   }
 }
 
-$("plan-form").addEventListener("input", () => planPreview());
+$("plan-form").addEventListener("input", (e) => {
+  if (e.target.name && e.target.name.startsWith("roi_")) typedRoi = true;
+  planPreview();
+});
 $("plan-form").addEventListener("submit", (e) => {
   e.preventDefault();
-  act(async () => {
+  userAct(async () => {
     const run = await post("/api/runs", planBody());
     await refreshRuns(run.id);
   });
 });
 
 $("sem-acquire").addEventListener("click", () =>
-  act(async () => {
+  userAct(async () => {
     const field = Number($("sem-field").value) * 1e-6;
     const meta = await post("/api/sem/acquire", { centre: [0, 0], field, pixels: 512 });
     await sem.load(meta);
@@ -107,7 +147,7 @@ $("sem-acquire").addEventListener("click", () =>
 );
 
 $("sem-upload").addEventListener("change", (e) =>
-  act(async () => {
+  userAct(async () => {
     const file = e.target.files[0];
     if (!file) return;
     const form = new FormData();
@@ -131,7 +171,7 @@ const ACTIONS = {
 
 for (const [id, action] of Object.entries(ACTIONS)) {
   $(id).addEventListener("click", () =>
-    act(async () => {
+    userAct(async () => {
       if (!state.run) return;
       let body;
       if (action.url === "abort") {
@@ -156,7 +196,7 @@ async function refreshRuns(select) {
   }
 }
 
-$("run-select").addEventListener("change", (e) => act(() => (e.target.value ? loadRun(Number(e.target.value)) : null)));
+$("run-select").addEventListener("change", (e) => userAct(() => (e.target.value ? loadRun(Number(e.target.value)) : null)));
 
 async function loadRun(id) {
   const run = await get(`/api/runs/${id}`);
@@ -239,7 +279,7 @@ function showPatch(runId, index) {
 $("merge-form").addEventListener("submit", (e) => {
   e.preventDefault();
   $("merge-error").textContent = "";
-  act(async () => {
+  userAct(async () => {
     if (!state.run) return;
     const f = $("merge-form").elements;
     const parameters = f.max_iter.value ? { max_iter: Number(f.max_iter.value) } : {};
@@ -255,7 +295,7 @@ $("merge-form").addEventListener("submit", (e) => {
 });
 
 $("merge-cancel").addEventListener("click", () =>
-  act(async () => {
+  userAct(async () => {
     if (state.job) renderMerge(await post(`/api/merges/${state.job.id}/cancel`));
   }),
 );

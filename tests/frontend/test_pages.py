@@ -186,6 +186,23 @@ def test_a_refused_request_shows_the_servers_message(page: tuple[Any, list[str]]
     assert [e for e in errors if "401" not in e and "422" not in e] == []
 
 
+def test_a_plan_made_with_the_keyboard_alone(page: tuple[Any, list[str]]) -> None:
+    pg, errors = page
+    pg.focus("input[name=roi_x]")
+    for value in ("-1.65", "-2.2", "3.3", "4.4"):  # x, y, width, height; Tab between them
+        pg.keyboard.type(value)
+        pg.keyboard.press("Tab")
+    pg.wait_for_function(
+        "document.querySelector('#plan-summary').textContent.includes('50 patches')"
+    )
+    for _ in range(20):  # on through the patch fields to the button
+        if pg.evaluate("document.activeElement.id") == "create-run":
+            break
+        pg.keyboard.press("Tab")
+    assert pg.evaluate("document.activeElement.id") == "create-run"
+    assert errors == [], errors
+
+
 def test_the_api_token_header_works_for_scripts_too(server: ServerProcess) -> None:
     r = httpx.post(server.url + "/api/runs/999/start", headers=AUTH)
     assert r.status_code == 404
