@@ -35,7 +35,7 @@ def _nice_step(span: float, target: int) -> float:
     return float(10 * mag)
 
 
-def _fit(heights: FloatArray, size: int) -> FloatArray:
+def fit_size(heights: FloatArray, size: int) -> FloatArray:
     """Nearest-neighbour resample so the longer side is ``size`` pixels."""
     ny, nx = heights.shape
     f = size / max(ny, nx)
@@ -64,7 +64,7 @@ def render_panels(panels_in: list[tuple[str, Mosaic]], *, size: int = 420) -> UI
     both = both[np.isfinite(both)]
     lo, hi = np.percentile(both, [1, 99]) if both.size else (0.0, 1.0)
     hi = hi if hi > lo else lo + 1e-9
-    panels = [_fit(m.heights, size) for m in mosaics]
+    panels = [fit_size(m.heights, size) for m in mosaics]
     ph = max(p.shape[0] for p in panels)
     margin, title_h, bar_w, label_w = 16, 30, 18, 70
     width = margin + sum(p.shape[1] + margin for p in panels) + bar_w + label_w

@@ -31,7 +31,7 @@ from backend.db.patch_store import StoredPatch, read_patch
 from backend.services import Services
 from hardware.protocols import SEMImage
 from merge.png import encode_png
-from merge.preview import render_panels
+from merge.preview import afm_colors, fit_size, render_panels
 from merge.render import Mosaic
 
 router = APIRouter(prefix="/api/runs", tags=["runs"])
@@ -291,11 +291,21 @@ def patch_preview(
     index: PatchIndex,
     session: SessionDep,
     size: Annotated[int, Query(ge=16, le=1024, description="longer side, pixels")] = 96,
+    bare: Annotated[bool, Query(description="the map alone, no title or bars")] = False,
 ) -> Response:
-    """One stored patch as a picture (AFM colour map, nm colour bar, scale bar)."""
+    """One stored patch as a picture (AFM colour map, nm colour bar, scale bar). ``bare``
+    gives the map alone (a thumbnail); its height range, nm, is in ``X-Height-Range``."""
     stored = _stored(session, run_id, index)
-    return png_response(
-        [(f"P{index}", height_map(stored.heights, stored.origin, stored.pixel_size))], size=size
+    hmap = height_map(stored.heights, stored.origin, stored.pixel_size)
+    if not bare:
+        return png_response([(f"P{index}", hmap)], size=size)
+    finite = stored.heights[np.isfinite(stored.heights)]
+    lo, hi = np.percentile(finite, [1, 99]) if finite.size else (0.0, 1e-9)
+    rgb = afm_colors((fit_size(stored.heights, size) - lo) / max(hi - lo, 1e-12))
+    return Response(
+        encode_png(rgb),
+        media_type="image/png",
+        headers={"X-Height-Range": f"{lo * 1e9:.1f},{hi * 1e9:.1f}"},
     )
 
 

@@ -214,6 +214,8 @@ async function loadRun(id) {
 function renderRun() {
   const run = state.run;
   const pill = $("run-state");
+  const option = [...$("run-select").options].find((o) => o.value === String(run.id));
+  if (option) option.textContent = `run ${run.id} (${run.state}, ${run.rows}×${run.cols})`;
   pill.textContent = `run ${run.id}: ${run.state}${run.pending_request ? ` (${run.pending_request} asked)` : ""}`;
   pill.className = `pill ${{ running: "busy", paused: "busy", completed: "ok", fault: "bad", failed: "bad" }[run.state] || ""}`;
   for (const [id, action] of Object.entries(ACTIONS)) $(id).disabled = !action.when.includes(run.state);
@@ -268,10 +270,16 @@ function showPatch(runId, index) {
   const cell = $("patch-grid").querySelector(`[data-index="${index}"]`);
   if (!cell || cell.tagName === "IMG") return;
   const img = document.createElement("img");
-  img.src = `/api/runs/${runId}/patches/${index}/preview.png?size=96`;
   img.alt = `patch ${index}`;
   img.dataset.index = index;
   cell.replaceWith(img);
+  act(async () => {
+    const response = await fetch(`/api/runs/${runId}/patches/${index}/preview.png?size=96&bare=true`);
+    if (!response.ok) throw new Error(`patch ${index}: preview not available (HTTP ${response.status})`);
+    const [lo, hi] = (response.headers.get("X-Height-Range") || "0,0").split(",").map(Number);
+    img.src = URL.createObjectURL(await response.blob());
+    img.title = img.alt = `patch ${index}: ${lo.toFixed(0)} … ${hi.toFixed(0)} nm (dark … bright)`;
+  });
 }
 
 // -- merges -----------------------------------------------------------------------------------
