@@ -105,13 +105,14 @@ class Viewer:
         self._jobs: queue.Queue[Callable[[], None] | None] = queue.Queue()
         gui = self.server.gui
         self.exaggeration = gui.add_slider(
-            "Z exaggeration", min=1.0, max=200.0, step=1.0, initial_value=20.0
+            "Z exaggeration", min=1.0, max=200.0, step=1.0, initial_value=5.0
         )
         self.show = gui.add_dropdown("Show", ("both", "raw", "merged"), initial_value="both")
         self.reset = gui.add_button("Reset camera")
         self.exaggeration.on_update(lambda _: self._restyle())
         self.show.on_update(lambda _: self._restyle())
         self.reset.on_click(lambda _: self.reset_camera())
+        self.server.on_client_connect(self._aim)  # a new browser starts on the mosaic
         self._thread = threading.Thread(target=self._work, name="viewer", daemon=True)
         self._thread.start()
 
@@ -158,17 +159,20 @@ class Viewer:
             self._style(node, merged=True)
 
     def reset_camera(self) -> None:
+        """Every browser's camera back to a view of everything shown, from the -y side."""
+        for client in self.server.get_clients().values():
+            self._aim(client)
+
+    def _aim(self, client: Any) -> None:
         nodes = [*self.raw.values(), *self.merged.values()]
-        if not nodes:
-            return
-        xs = [float(n.position[0]) for n in nodes]
-        ys = [float(n.position[1]) for n in nodes]
+        xs = [float(n.position[0]) for n in nodes] or [0.0]
+        ys = [float(n.position[1]) for n in nodes] or [0.0]
         centre = np.array([np.mean(xs), np.mean(ys), 0.0])
         span = max(max(xs) - min(xs), max(ys) - min(ys), 2.0)
-        for client in self.server.get_clients().values():
-            client.camera.up_direction = (0.0, 0.0, 1.0)
-            client.camera.look_at = tuple(centre)
-            client.camera.position = tuple(centre + np.array([0.0, -1.2 * span, 1.2 * span]))
+        # position first: viser moves the look-at point along with a new position
+        client.camera.position = tuple(centre + np.array([0.0, -1.2 * span, 1.2 * span]))
+        client.camera.look_at = tuple(centre)
+        client.camera.up_direction = (0.0, 0.0, 1.0)
 
     def node_names(self) -> dict[str, list[str]]:
         """Names of the nodes shown: ``{"raw": [...], "merged": [...]}``."""
