@@ -42,12 +42,17 @@ types: install
 unit: install browser
 	$(BIN)/pytest -n 2 -q
 
-# The browser tests drive Debian's chromium (Playwright's own download does not work here).
+# System programs the tests use: Debian's chromium for the browser tests (Playwright's own
+# download does not work here) and gwyddion, the oracle of every format's orientation.
 browser:
-	@command -v chromium >/dev/null 2>&1 || { \
-	  echo "installing Debian's chromium for the browser tests"; \
+	@missing=""; \
+	command -v chromium >/dev/null 2>&1 || missing="$$missing chromium"; \
+	command -v gwyddion >/dev/null 2>&1 || missing="$$missing gwyddion"; \
+	if [ -n "$$missing" ]; then \
+	  echo "installing Debian's$$missing for the tests"; \
 	  SUDO=$$( [ "$$(id -u)" -eq 0 ] || echo sudo ); \
-	  $$SUDO apt-get update -q && $$SUDO apt-get install -y -q chromium; }
+	  $$SUDO apt-get update -q && $$SUDO apt-get install -y -q $$missing; \
+	fi
 
 test: lint types unit
 

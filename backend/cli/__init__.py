@@ -6,7 +6,7 @@ import argparse
 import sys
 from collections.abc import Sequence
 
-from backend.cli import merge_cmd, serve_cmd, sim_cmd, sim_scan_cmd, synth_cmd
+from backend.cli import formats_cmd, merge_cmd, serve_cmd, sim_cmd, sim_scan_cmd, synth_cmd
 from backend.cli.common import UsageError
 
 
@@ -22,6 +22,7 @@ def build_parser() -> argparse.ArgumentParser:
     sim_cmd.add_parser(sub)
     sim_scan_cmd.add_parser(sub)
     serve_cmd.add_parser(sub)
+    formats_cmd.add_parsers(sub)
     return parser
 
 

@@ -10,6 +10,7 @@ from typing import Any
 import numpy as np
 
 from backend.cli.common import ProgressBar, UsageError, float_pair
+from backend.cli.formats_cmd import height_readers
 
 
 def add_parser(sub: Any) -> None:
@@ -50,7 +51,7 @@ def run(args: argparse.Namespace) -> int:
             max_shift=args.max_shift,
             pixel_size=args.pixel,
         )
-        patch_set = merge.read_patch_set(args.manifest)
+        patch_set = merge.read_patch_set(args.manifest, readers=height_readers())
     except (merge.PatchSetError, ValueError) as exc:
         raise UsageError(str(exc)) from None
     bar = None if args.quiet else ProgressBar(config.max_iter or 40)

@@ -1,0 +1,172 @@
+"""``mosaic-afm convert | export | import``: AFM files in, Gwyddion and friends out."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+from pathlib import Path
+from typing import Any
+
+from backend.cli.common import UsageError, float_pair
+
+FORMATS_HELP = ".gwy, .tif/.tiff, .png, .ply, .stl, .npy (+ .json)"
+
+
+def _pixel(text: str) -> tuple[float, float]:
+    return float_pair(text)
+
+
+def add_parsers(sub: Any) -> None:
+    p = sub.add_parser(
+        "convert",
+        help="convert an AFM file (.nid, .gwy, .tif, .npy) to another format",
+        description=f"Read IN (topography by default) and write OUT in the format of its "
+        f"suffix: {FORMATS_HELP}. Like gwyddion --convert-to-gwy.",
+    )
+    p.add_argument("input", metavar="IN")
+    p.add_argument("output", metavar="OUT")
+    p.add_argument("--channel", help="channel to read (default: topography)")
+    p.add_argument("--pixel-size", type=_pixel, help="dx[,dy] metres, for files without one")
+    p.set_defaults(func=convert)
+
+    p = sub.add_parser(
+        "export",
+        help="export a merge result (mosaic.npy + mosaic.json) to another format",
+        description=f"Write a merged mosaic as {FORMATS_HELP}; .gwy carries a mask of "
+        "uncovered pixels and the merge's method, parameters and per-patch transforms.",
+    )
+    p.add_argument("result", metavar="RESULT", help="folder with mosaic.npy and mosaic.json")
+    p.add_argument("--format", required=True, choices=["gwy", "tiff", "png", "ply", "stl", "npy"])
+    p.add_argument("--out", help="output file (default: RESULT/mosaic.<format>)")
+    p.set_defaults(func=export)
+
+    p = sub.add_parser(
+        "import",
+        help="build a patch-set manifest from AFM files",
+        description="Write DIR/manifest.json naming FILES as patches. Positions come from the "
+        "files' scan offsets when they all have one, else from --grid, --overlap and --order.",
+    )
+    p.add_argument("files", nargs="+", metavar="FILES")
+    p.add_argument("--out", required=True, metavar="DIR")
+    p.add_argument("--grid", help="ROWSxCOLS of the grid the files were scanned in, in order")
+    p.add_argument("--overlap", type=float_pair, help="OX,OY fractions between neighbours")
+    p.add_argument("--order", choices=["snake", "raster"], default="snake")
+    p.add_argument("--channel", help="channel to read (default: topography)")
+    p.add_argument("--pixel-size", type=_pixel, help="dx[,dy] metres, for files without one")
+    p.set_defaults(func=import_files)
+
+
+def _read(path: str, channel: str | None, pixel: tuple[float, float] | None) -> Any:
+    from backend.formats import FormatError, read_image
+
+    try:
+        return read_image(path, channel=channel, pixel_size=pixel)
+    except FormatError as exc:
+        raise UsageError(str(exc)) from None
+
+
+def convert(args: argparse.Namespace) -> int:
+    from backend.formats import FormatError, export_heights
+
+    image = _read(args.input, args.channel, args.pixel_size)
+    try:
+        out = export_heights(
+            args.output,
+            image.heights,
+            pixel_size=image.pixel_size,
+            origin=image.offset or (0.0, 0.0),
+            title=image.channel,
+        )
+    except (FormatError, OSError) as exc:
+        raise UsageError(str(exc)) from None
+    ny, nx = image.heights.shape
+    print(f"{args.input} [{image.channel}] {nx} x {ny} px -> {out}")
+    return 0
+
+
+def export(args: argparse.Namespace) -> int:
+    import merge
+    from backend.formats import FormatError, export_heights
+
+    try:
+        stored = merge.read_result(args.result)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
+    suffix = {"tiff": ".tif"}.get(args.format, f".{args.format}")
+    out = Path(args.out) if args.out else Path(args.result) / f"mosaic{suffix}"
+    if out.suffix.lower() not in (suffix, ".tiff" if suffix == ".tif" else suffix):
+        raise UsageError(f"--out {out} does not end in {suffix} (the --format asked for)")
+    m = stored.mosaic
+    try:
+        export_heights(
+            out, m.heights, pixel_size=m.pixel_size, origin=m.origin, document=stored.document
+        )
+    except (FormatError, OSError) as exc:
+        raise UsageError(str(exc)) from None
+    print(f"{args.result} -> {out}")
+    return 0
+
+
+def import_files(args: argparse.Namespace) -> int:
+    from hardware.mosaic_plan import snake_grid
+
+    images = [_read(f, args.channel, args.pixel_size) for f in args.files]
+    out = Path(args.out)
+    if args.grid:
+        try:
+            rows, cols = (int(v) for v in args.grid.lower().split("x"))
+        except ValueError:
+            raise UsageError(f"--grid must be ROWSxCOLS, e.g. 5x10, got {args.grid!r}") from None
+        if rows * cols != len(images):
+            raise UsageError(f"--grid {rows}x{cols} needs {rows * cols} files, got {len(images)}")
+        if args.overlap is None:
+            raise UsageError("--grid needs --overlap OX,OY (fractions)")
+        ny, nx = images[0].heights.shape
+        size = (nx * images[0].pixel_size[0], ny * images[0].pixel_size[1])
+        try:
+            plan = snake_grid(rows, cols, patch_size=size, overlap=args.overlap)
+        except ValueError as exc:
+            raise UsageError(str(exc)) from None
+        if args.order == "raster":  # every row left to right
+            plan = sorted(plan, key=lambda p: (p.row, p.col))
+        places: list[tuple[tuple[float, float], int | None, int | None]] = [
+            (p.origin, p.row, p.col) for p in plan
+        ]
+    elif all(im.offset is not None for im in images):
+        places = [(im.offset, None, None) for im in images if im.offset is not None]
+    else:
+        raise UsageError(
+            "some files carry no scan offset: give --grid ROWSxCOLS and --overlap OX,OY"
+        )
+    out.mkdir(parents=True, exist_ok=True)
+    patches = []
+    for k, (path, image, (origin, row, col)) in enumerate(
+        zip(args.files, images, places, strict=True)
+    ):
+        entry: dict[str, Any] = {
+            "id": f"p{k:03d}",
+            "file": os.path.relpath(Path(path).resolve(), out.resolve()),
+            "order": k,
+            "origin": [float(origin[0]), float(origin[1])],
+            "pixel_size": [image.pixel_size[0], image.pixel_size[1]],
+            "channel": image.channel,
+        }
+        if row is not None:
+            entry["row"], entry["col"] = row, col
+        patches.append(entry)
+    manifest = {"format": "mosaic-afm/patchset@1", "units": "m", "patches": patches}
+    (out / "manifest.json").write_text(json.dumps(manifest, indent=1) + "\n", encoding="utf-8")
+    print(f"{len(patches)} patches -> {out / 'manifest.json'}")
+    return 0
+
+
+def height_readers() -> dict[str, Any]:
+    """The merge's extra height-file readers: every format :mod:`backend.formats` reads."""
+    from backend.formats import READERS, read_image
+
+    return {
+        suffix: (lambda path: read_image(path).heights)
+        for suffix in READERS
+        if suffix != ".npy"  # the merge reads plain arrays itself
+    }

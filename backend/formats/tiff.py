@@ -1,0 +1,70 @@
+"""TIFF height maps: 32-bit float with the pixel size in the resolution tags (written), and
+plain TIFF images read with a given pixel size (or the one in the tags, when in cm).
+
+A TIFF's first row is the top of the image (as Gwyddion shows it): rows are flipped to the
+project's rows-along-+y on the way in and out.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from backend.formats.image import AfmImage, FloatArray, FormatError
+
+
+def write_tiff(path: str | Path, heights: FloatArray, *, pixel_size: tuple[float, float]) -> None:
+    """Float32 heights in metres; X/YResolution in pixels per centimetre (so the size is
+    there for any reader), and the exact pitch in the description."""
+    import tifffile
+
+    h = np.asarray(heights, dtype=np.float32)[::-1]
+    tifffile.imwrite(
+        str(path),
+        h,
+        resolution=(1e-2 / pixel_size[0], 1e-2 / pixel_size[1]),
+        resolutionunit="CENTIMETER",
+        description=f"mosaic-afm heights m pixel_size {pixel_size[0]!r} {pixel_size[1]!r}",
+        metadata=None,
+    )
+
+
+def read_tiff(
+    path: str | Path, *, channel: str | None = None, pixel_size: tuple[float, float] | None = None
+) -> AfmImage:
+    """A single-channel TIFF as heights. Float data are taken as metres; integer data as
+    grey levels (unit "counts"). The pixel size: given, else ours, else the resolution tags."""
+    import tifffile
+
+    p = Path(path)
+    try:
+        with tifffile.TiffFile(str(p)) as tif:
+            page = tif.pages.first
+            data = np.asarray(page.asarray(), dtype=np.float64)
+            description = page.description or ""
+            tags = page.tags
+            xres, yres = tags.get("XResolution"), tags.get("YResolution")
+            unit = tags.get("ResolutionUnit")
+            floating = page.dtype is not None and page.dtype.kind == "f"
+    except Exception as exc:  # tifffile raises many kinds on foreign or cut files
+        raise FormatError(f"{p}: not a readable TIFF ({type(exc).__name__}: {exc})") from None
+    if data.ndim != 2:
+        raise FormatError(f"{p}: need one 2-D channel, got an image of shape {data.shape}")
+    size = pixel_size
+    if size is None and description.startswith("mosaic-afm heights"):
+        parts = description.split()
+        size = (float(parts[-2]), float(parts[-1]))
+    if size is None and xres is not None and yres is not None and unit is not None:
+        per = {2: 2.54e-2, 3: 1e-2}.get(int(unit.value))
+        if per is not None:
+            size = (per * xres.value[1] / xres.value[0], per * yres.value[1] / yres.value[0])
+    if size is None or not all(np.isfinite(size)) or min(size) <= 0:
+        raise FormatError(f"{p}: the TIFF says no pixel size: give it (metres)")
+    return AfmImage(
+        heights=data[::-1].copy(),
+        pixel_size=(float(size[0]), float(size[1])),
+        channel=channel or "image",
+        unit="m" if floating else "counts",
+        channels=("image",),
+    )
