@@ -50,7 +50,7 @@ def test_nid_equals_the_shipped_arrays(name: str) -> None:
 def test_channels_are_selectable_and_missing_ones_named() -> None:
     amplitude = read_image(DATA / "mos2.nid", channel="Amplitude forward")
     assert amplitude.unit == "V" and amplitude.heights.shape == (256, 512)
-    with pytest.raises(FormatError, match="no channel 'Bogus'.*Z-Axis forward"):
+    with pytest.raises(FormatError, match=r"no channel 'Bogus'.*Z-Axis forward"):
         read_image(DATA / "mos2.nid", channel="Bogus")
 
 
@@ -65,8 +65,8 @@ def test_wrong_or_cut_files_are_clear_errors(tmp_path: Path) -> None:
         read_image(fake)
     with pytest.raises(FormatError, match="unknown AFM format"):
         read_image(tmp_path / "x.xyz")
+    np.save(tmp_path / "h.npy", np.zeros((4, 4)))
     with pytest.raises(FormatError, match="pixel size"):
-        np.save(tmp_path / "h.npy", np.zeros((4, 4)))
         read_image(tmp_path / "h.npy")
 
 
