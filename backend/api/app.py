@@ -16,7 +16,7 @@ from fastapi.staticfiles import StaticFiles
 from backend.acquisition.planner import PlanError
 from backend.acquisition.runner import Conflict, NotFound
 from backend.acquisition.state import TransitionError
-from backend.api import events, instrument, merges, runs, sem
+from backend.api import events, instrument, merges, runs, sem, uploads
 from backend.merge_jobs import JobError
 from backend.services import Services
 from backend.settings import Settings
@@ -102,7 +102,7 @@ def create_app(settings: Settings | None = None, *, services: Services | None = 
     ):
         app.add_exception_handler(exc_type, handler(status))
 
-    for module in (runs, merges, instrument, sem, events):
+    for module in (uploads, runs, merges, instrument, sem, events):
         app.include_router(module.router)
     app.mount("/", StaticFiles(directory=FRONTEND, html=True), name="pages")
     if services is not None:

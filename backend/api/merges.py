@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import tempfile
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -13,6 +14,7 @@ from backend.api.runs import NPY, PNG_RESPONSES, get_run, height_map, npy_respon
 from backend.api.schemas import JobId, MergeIn, MergeOut, RunId
 from backend.db.models import MergeJob, Run
 from backend.db.patch_store import read_merge
+from backend.formats import export_heights
 from merge import MergeConfig
 
 router = APIRouter(tags=["merges"])
@@ -141,3 +143,41 @@ def mosaic_preview(
     origin = (float(doc["origin"][0]), float(doc["origin"][1]))
     pixel = (float(doc["pixel_size"][0]), float(doc["pixel_size"][1]))
     return png_response([("MERGED", height_map(heights, origin, pixel))], size=size)
+
+
+EXPORT_TYPES = {
+    "gwy": "application/x-gwyddion",
+    "tif": "image/tiff",
+    "png": "image/png",
+    "ply": "application/octet-stream",
+    "stl": "model/stl",
+}
+
+
+@router.get(
+    "/api/merges/{job_id}/mosaic.{fmt}",
+    response_class=Response,
+    responses={200: {"content": {t: {} for t in EXPORT_TYPES.values()}}},
+)
+def mosaic_export(job_id: JobId, fmt: str, session: SessionDep) -> Response:
+    """The merged mosaic as Gwyddion ``.gwy`` (with the uncovered-pixel mask and the merge's
+    metadata), 32-bit float ``.tif``, ``.png`` with colour and scale bars, or a ``.ply`` /
+    ``.stl`` surface (metres)."""
+    if fmt not in EXPORT_TYPES:
+        raise HTTPException(
+            404,
+            f"no export .{fmt}: use mosaic.npy, mosaic.json or mosaic.{{{','.join(EXPORT_TYPES)}}}",
+        )
+    heights, doc = _result(session, job_id)
+    origin = (float(doc["origin"][0]), float(doc["origin"][1]))
+    pixel = (float(doc["pixel_size"][0]), float(doc["pixel_size"][1]))
+    with tempfile.TemporaryDirectory() as tmp:
+        path = export_heights(
+            Path(tmp) / f"mosaic.{fmt}", heights, pixel_size=pixel, origin=origin, document=doc
+        )
+        body = path.read_bytes()
+    return Response(
+        body,
+        media_type=EXPORT_TYPES[fmt],
+        headers={"Content-Disposition": f'attachment; filename="merge{job_id}-mosaic.{fmt}"'},
+    )

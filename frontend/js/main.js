@@ -245,6 +245,22 @@ function tick() {
 }
 setInterval(tick, 1000); // a clock on the page, not a request
 
+$("offline-form").addEventListener("submit", (e) => {
+  e.preventDefault();
+  userAct(async () => {
+    const f = $("offline-form").elements;
+    const form = new FormData();
+    for (const file of f.files.files) form.append("files", file);
+    if (f.rows.value) form.append("rows", f.rows.value);
+    if (f.cols.value) form.append("cols", f.cols.value);
+    form.append("overlap_x", String(Number(f.overlap_x.value) / 100));
+    form.append("overlap_y", String(Number(f.overlap_y.value) / 100));
+    if (Number(f.pixel.value) > 0) form.append("pixel_size", String(Number(f.pixel.value) * 1e-9));
+    const run = await post("/api/runs/offline", form);
+    await refreshRuns(run.id);
+  });
+});
+
 // -- patches ----------------------------------------------------------------------------------
 
 function buildPatchGrid(run) {

@@ -1,0 +1,164 @@
+"""Offline runs: a folder of overlapping scans from any AFM, uploaded for a merge.
+
+The files are kept as uploaded (in the data dir), read with :mod:`backend.formats`, and
+stored as the patches of a run that had no acquisition: it is ``completed`` from the start,
+listed and merged like any other, and its patches go to the 3D viewer as they are stored.
+"""
+
+from __future__ import annotations
+
+import math
+import uuid
+from pathlib import Path
+from typing import Annotated, Literal
+
+import numpy as np
+from fastapi import APIRouter, File, Form, HTTPException, UploadFile
+
+from backend.acquisition.state import RunState
+from backend.api.deps import OperatorDep, ServicesDep, SessionDep
+from backend.api.runs import run_out
+from backend.api.schemas import RunOut
+from backend.db.models import PatchRecord, Run
+from backend.db.patch_store import dataset_name, mark_stored, write_patch
+from backend.formats import READERS, AfmImage, FormatError, read_image
+from hardware.mosaic_plan import snake_grid
+
+router = APIRouter(prefix="/api/runs", tags=["runs"])
+
+MAX_FILES = 2500
+
+
+def _places(
+    images: list[AfmImage],
+    rows: int | None,
+    cols: int | None,
+    overlap: tuple[float, float],
+    order: str,
+) -> list[tuple[tuple[float, float], int, int]]:
+    """Where each file goes: its scan offset when every file has one, else the grid."""
+    if rows is None and cols is None and all(im.offset is not None for im in images):
+        return [(im.offset or (0.0, 0.0), 0, k) for k, im in enumerate(images)]
+    if rows is None or cols is None:
+        raise HTTPException(
+            422, "rows, cols: some files carry no scan offset; give the grid they were scanned in"
+        )
+    if rows * cols != len(images):
+        raise HTTPException(
+            422, f"rows, cols: {rows} x {cols} needs {rows * cols} files, got {len(images)}"
+        )
+    ny, nx = images[0].heights.shape
+    size = (nx * images[0].pixel_size[0], ny * images[0].pixel_size[1])
+    try:
+        plan = snake_grid(rows, cols, patch_size=size, overlap=overlap)
+    except ValueError as exc:
+        raise HTTPException(422, f"overlap: {exc}") from None
+    if order == "raster":
+        plan = sorted(plan, key=lambda p: (p.row, p.col))
+    return [(p.origin, p.row, p.col) for p in plan]
+
+
+@router.post("/offline", status_code=201, response_model=RunOut)
+async def upload_patch_set(
+    services: ServicesDep,
+    session: SessionDep,
+    operator: OperatorDep,
+    files: Annotated[list[UploadFile], File(description="AFM files: .nid, .gwy, .tif, .npy")],
+    rows: Annotated[int | None, Form(ge=1, le=1000)] = None,
+    cols: Annotated[int | None, Form(ge=1, le=1000)] = None,
+    overlap_x: Annotated[float, Form(ge=0, lt=0.9)] = 0.0,
+    overlap_y: Annotated[float, Form(ge=0, lt=0.9)] = 0.0,
+    order: Annotated[Literal["snake", "raster"], Form()] = "snake",
+    pixel_size: Annotated[
+        float | None, Form(gt=0, description="metres, if files have none")
+    ] = None,
+    channel: Annotated[str | None, Form(max_length=100)] = None,
+) -> RunOut:
+    """Upload overlapping scans (in acquisition order) as a run with no acquisition, ready to
+    merge. Positions come from the files' scan offsets, else from ``rows`` x ``cols`` with the
+    overlaps, in snake or raster order."""
+    if not 2 <= len(files) <= MAX_FILES:
+        raise HTTPException(422, f"files: give 2 to {MAX_FILES} scans, got {len(files)}")
+    if pixel_size is not None and not math.isfinite(pixel_size):
+        raise HTTPException(422, "pixel_size must be a finite number of metres")
+    folder = services.settings.data_dir / "uploads" / uuid.uuid4().hex
+    folder.mkdir(parents=True)
+    limit, used = services.settings.max_upload_bytes, 0
+    images: list[AfmImage] = []
+    names: list[str] = []
+    for k, upload in enumerate(files):
+        name = Path(upload.filename or f"scan{k}").name
+        if Path(name).suffix.lower() not in READERS:
+            raise HTTPException(
+                422, f"files: {name}: unknown format; readable: {', '.join(READERS)}"
+            )
+        data = await upload.read(limit - used + 1)
+        used += len(data)
+        if used > limit:
+            raise HTTPException(413, f"the upload is larger than the {limit} byte limit")
+        path = folder / f"{k:04d}-{name}"
+        path.write_bytes(data)
+        size = None if pixel_size is None else (pixel_size, pixel_size)
+        try:
+            images.append(read_image(path, channel=channel, pixel_size=size))
+        except FormatError as exc:
+            raise HTTPException(422, f"files: {name}: {exc}") from None
+        names.append(name)
+    places = _places(images, rows, cols, (overlap_x, overlap_y), order)
+    ny, nx = images[0].heights.shape
+    width, height = nx * images[0].pixel_size[0], ny * images[0].pixel_size[1]
+    xs = [o[0] for o, _, _ in places]
+    ys = [o[1] for o, _, _ in places]
+    run = Run(
+        state=RunState.COMPLETED.value,
+        roi_x=min(xs),
+        roi_y=min(ys),
+        roi_width=max(xs) + width - min(xs),
+        roi_height=max(ys) + height - min(ys),
+        patch_width=width,
+        patch_height=height,
+        pixels_x=nx,
+        pixels_y=ny,
+        overlap_x=overlap_x,
+        overlap_y=overlap_y,
+        rows=rows or 1,
+        cols=cols or len(images),
+        line_rate=1.0,
+        instrument="offline upload",
+        message=f"offline: {len(images)} uploaded scans ({operator})",
+        data_file="",
+    )
+    run.patches = [
+        PatchRecord(index=k, row=r, col=c, origin_x=o[0], origin_y=o[1])
+        for k, (o, r, c) in enumerate(places)
+    ]
+    session.add(run)
+    session.flush()
+    run.data_file = str(Path(services.settings.runs_dir).resolve() / f"run-{run.id:05d}.h5")
+    session.commit()
+    services.events.emit(
+        "run",
+        f"run {run.id}: {len(images)} scans uploaded for an offline merge ({operator})",
+        run_id=run.id,
+        data={"state": run.state, "actor": operator},
+    )
+    for k, (image, name, patch) in enumerate(zip(images, names, run.patches, strict=True)):
+        write_patch(
+            Path(run.data_file),
+            k,
+            image.heights,
+            origin=(patch.origin_x, patch.origin_y),
+            pixel_size=image.pixel_size,
+            line_times=np.zeros(image.heights.shape[0]),
+            attrs={"source": name, "channel": image.channel, "upload": str(folder)},
+        )
+        mark_stored(session, patch, dataset_name(k))
+        services.events.emit(
+            "progress",
+            f"run {run.id}: patch {k} stored ({k + 1}/{len(images)})",
+            run_id=run.id,
+            data={"stored": k + 1, "total": len(images), "patch": k},
+        )
+    if services.settings.auto_merge:
+        services.merges.submit(run.id, method="default", parameters={}, patches=None)
+    return run_out(run, services, session, patches=True)
