@@ -20,8 +20,6 @@ import logging
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
-from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
@@ -29,20 +27,20 @@ import numpy as np
 from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
+from backend.acquisition.control import Abort, Conflict, Control, NotFound, describe
+from backend.acquisition.journal import journaled_patch, journaled_run
 from backend.acquisition.state import (
     ACTIVE,
     STARTABLE,
     PatchStep,
     RunState,
     StateMachine,
-    Transition,
-    patch_machine,
-    run_machine,
 )
+from backend.acquisition.status import read_instrument
 from backend.db.models import PatchRecord, Run
 from backend.db.patch_store import reconcile, write_patch
 from backend.events import EventBus
-from hardware.errors import Interrupted, ProcedureError, SafeStateError
+from hardware.errors import Interrupted, SafeStateError
 from hardware.microscope import Microscope
 from hardware.procedures import (
     land,
@@ -53,48 +51,8 @@ from hardware.procedures import (
     sample_origin,
     scan,
 )
-from hardware.smaract_errors import MCSError
 
 log = logging.getLogger("mosaic_afm.runner")
-
-
-class Conflict(RuntimeError):
-    """The request cannot be done in the present state (HTTP 409); says why."""
-
-
-class NotFound(LookupError):
-    """No such run (HTTP 404)."""
-
-
-class _Abort(Exception):
-    """Raised inside the worker at a checkpoint after an abort request."""
-
-
-@dataclass
-class _Control:
-    """Requests from the API to the worker of one run."""
-
-    run_id: int
-    pause: bool = False
-    abort: bool = False
-    actor: str = "system"
-    reason: str = ""
-    shutdown: bool = False  # the server is stopping: the run stays resumable
-    wake: threading.Condition = field(default_factory=threading.Condition)
-
-    def request(self) -> str | None:
-        return "abort" if self.abort else "pause" if self.pause else None
-
-
-def describe(exc: BaseException) -> str:
-    """A message an operator understands, for any failure of a step."""
-    if isinstance(exc, ProcedureError):
-        return str(exc)
-    if isinstance(exc, MCSError):
-        return f"positioner controller: {exc}"
-    if isinstance(exc, OSError):
-        return f"instrument link: {exc}"
-    return f"unexpected {type(exc).__name__}: {exc} (see the server log)"
 
 
 class Runner:
@@ -123,7 +81,7 @@ class Runner:
         self.on_completed = on_completed
         self._lock = threading.RLock()
         self._thread: threading.Thread | None = None
-        self._control: _Control | None = None
+        self._control: Control | None = None
         self._io = threading.Lock()  # one user of the instrument links at a time
         self._snapshot: dict[str, Any] = {}
 
@@ -191,7 +149,7 @@ class Runner:
                     )
                 # completed and aborted runs are final: the table refuses them (HTTP 409)
                 self._transition(session, run, RunState.RUNNING, "started", actor)
-            control = _Control(run_id)
+            control = Control(run_id)
             self._control = control
             self._thread = threading.Thread(
                 target=self._work, args=(control,), name=f"run-{run_id}", daemon=True
@@ -283,39 +241,23 @@ class Runner:
         active = self.active_run
         if active is None and self._io.acquire(timeout=0.2):
             try:
-                self._snapshot = self._read_instrument()
+                self._snapshot = read_instrument(self.microscope)
             except Exception as exc:  # a broken link is a status, not a server error
                 self._snapshot = {"error": describe(exc)}
             finally:
                 self._io.release()
         return {"active_run": active, **self._snapshot}
 
-    def _read_instrument(self) -> dict[str, Any]:
-        m = self.microscope
-        z = m.robot_z
-        out: dict[str, Any] = {
-            "positions": {
-                "stage_x": m.stage_x.position(),
-                "stage_y": m.stage_y.position(),
-                "robot_z_fine_extension": z.fine_extension(),
-            },
-            "frequency_shift": m.probe.frequency_shift() if m.probe is not None else None,
-            "loop_engaged": m.loop.engaged() if m.loop is not None else None,
-            "read_at": datetime.now(UTC).isoformat(),
-        }
-        out["safe_state"] = not out["loop_engaged"]
-        return out
-
     # -- the worker -------------------------------------------------------------------------
 
-    def _work(self, control: _Control) -> None:
+    def _work(self, control: Control) -> None:
         with self._io, self.sessions() as session:
             run = session.get(Run, control.run_id)
             if run is None:  # deleted under us: nothing to do
                 return
             try:
                 self._run_patches(session, run, control)
-            except (_Abort, Interrupted):
+            except (Abort, Interrupted):
                 target = RunState.INTERRUPTED if control.shutdown else RunState.ABORTED
                 reason = control.reason or "aborted"
                 self._finish(session, run, target, reason, control.actor, safe=True)
@@ -361,22 +303,20 @@ class Runner:
         safe_state(m.loop, m.robot_z, (m.stage_x, m.stage_y, m.robot_x, m.robot_y))
         self._snapshot = {**self._snapshot, "safe_state": True, "loop_engaged": False}
 
-    def _checkpoint(
-        self, session: Session, run: Run, control: _Control, *, may_pause: bool
-    ) -> None:
+    def _checkpoint(self, session: Session, run: Run, control: Control, *, may_pause: bool) -> None:
         """Between steps: honour an abort; a pause where ``may_pause`` (tip off the surface)."""
         with control.wake:
             if control.abort:
-                raise _Abort
+                raise Abort
             if not (control.pause and may_pause):
                 return
             self._transition(session, run, RunState.PAUSED, "paused", control.actor)
             control.wake.wait_for(lambda: not control.pause or control.abort)
             if control.request() == "abort":
-                raise _Abort
+                raise Abort
             self._transition(session, run, RunState.RUNNING, "resumed", control.actor)
 
-    def _run_patches(self, session: Session, run: Run, control: _Control) -> None:
+    def _run_patches(self, session: Session, run: Run, control: Control) -> None:
         m = self.microscope
         probe, loop, recorder = m.require_afm()
         size = (run.patch_width, run.patch_height)
@@ -435,7 +375,7 @@ class Runner:
             patch.dataset = name
             machine.go(PatchStep.STORED)
             self._snapshot = {
-                **self._read_instrument(),
+                **read_instrument(self.microscope),
                 "last_patch": patch.index,
             }
             stored = sum(p.step == PatchStep.STORED.value for p in run.patches)
@@ -446,54 +386,15 @@ class Runner:
                 data={"stored": stored, "total": total, "patch": patch.index},
             )
 
-    # -- persistence of transitions ---------------------------------------------------------
-
     def _patch_machine(
         self, session: Session, run: Run, patch: PatchRecord
     ) -> StateMachine[PatchStep]:
-        def persist(change: Transition[PatchStep]) -> None:
-            patch.step = change.target.value
-            if change.target == PatchStep.STORED:
-                patch.stored_at = datetime.now(UTC)
-            session.commit()
-            self.events.emit(
-                "patch",
-                f"run {run.id} patch {patch.index}: {change.target.value}",
-                run_id=run.id,
-                data={
-                    "patch": patch.index,
-                    "step": change.target.value,
-                    "from": change.source.value,
-                },
-            )
-
-        return patch_machine(
-            f"run {run.id} patch {patch.index}", PatchStep(patch.step), observer=persist
-        )
+        return journaled_patch(session, self.events, run, patch)
 
     def _transition(
         self, session: Session, run: Run, target: RunState, reason: str, actor: str
     ) -> None:
-        def persist(change: Transition[RunState]) -> None:
-            run.state = change.target.value
-            run.message = f"{change.reason} ({change.actor})" if change.reason else None
-            session.commit()
-            self.events.emit(
-                "run",
-                f"run {run.id}: {change.source.value} -> {change.target.value}"
-                + (f" ({change.actor}: {change.reason})" if change.reason else ""),
-                run_id=run.id,
-                data={
-                    "state": change.target.value,
-                    "from": change.source.value,
-                    "reason": change.reason,
-                    "actor": change.actor,
-                },
-            )
-
-        run_machine(f"run {run.id}", RunState(run.state), observer=persist).go(
-            target, reason=reason, actor=actor
-        )
+        journaled_run(session, self.events, run).go(target, reason=reason, actor=actor)
 
     # -- helpers ----------------------------------------------------------------------------
 
@@ -503,7 +404,7 @@ class Runner:
             raise NotFound(f"no run {run_id}")
         return run
 
-    def _active_control(self, run_id: int, what: str) -> _Control:
+    def _active_control(self, run_id: int, what: str) -> Control:
         with self._lock:
             control = self._control
             alive = self._thread is not None and self._thread.is_alive()

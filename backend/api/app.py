@@ -13,8 +13,8 @@ from fastapi.middleware.cors import CORSMiddleware
 from fastapi.responses import JSONResponse
 from fastapi.staticfiles import StaticFiles
 
+from backend.acquisition.control import Conflict, NotFound
 from backend.acquisition.planner import PlanError
-from backend.acquisition.runner import Conflict, NotFound
 from backend.acquisition.state import TransitionError
 from backend.api import events, instrument, merges, runs, sem, uploads
 from backend.merge_jobs import JobError
