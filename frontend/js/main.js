@@ -3,6 +3,8 @@
 
 import { ApiError, get, post, setToken, token } from "./api.js";
 import { duration, nm, um } from "./format.js";
+import { buildPatchGrid, showPatch } from "./patches.js";
+import { plotResiduals } from "./plot.js";
 import { SemView } from "./sem.js";
 
 const $ = (id) => document.getElementById(id);
@@ -203,10 +205,10 @@ async function loadRun(id) {
   const fresh = !state.run || state.run.id !== run.id;
   state.run = run;
   if (fresh) {
-    buildPatchGrid(run);
+    buildPatchGrid($("patch-grid"), run);
     state.startedAt = null;
   }
-  for (const p of run.patches) if (p.step === "stored") showPatch(run.id, p.index);
+  for (const p of run.patches) if (p.step === "stored") showPatch($("patch-grid"), run.id, p.index, act);
   renderRun();
   $("merge-start").disabled = run.progress.stored < 2;
 }
@@ -263,41 +265,6 @@ $("offline-form").addEventListener("submit", (e) => {
 
 // -- patches ----------------------------------------------------------------------------------
 
-function buildPatchGrid(run) {
-  const grid = $("patch-grid");
-  grid.replaceChildren();
-  grid.style.gridTemplateColumns = `repeat(${run.cols}, 1fr)`;
-  const cells = new Map();
-  for (let r = run.rows - 1; r >= 0; r--) {
-    for (let c = 0; c < run.cols; c++) {
-      const cell = document.createElement("div");
-      cell.className = "empty";
-      grid.append(cell);
-      cells.set(`${r},${c}`, cell);
-    }
-  }
-  for (const p of run.patches) {
-    const cell = cells.get(`${p.row},${p.col}`);
-    if (cell) cell.dataset.index = p.index;
-  }
-}
-
-function showPatch(runId, index) {
-  const cell = $("patch-grid").querySelector(`[data-index="${index}"]`);
-  if (!cell || cell.tagName === "IMG") return;
-  const img = document.createElement("img");
-  img.alt = `patch ${index}`;
-  img.dataset.index = index;
-  cell.replaceWith(img);
-  act(async () => {
-    const response = await fetch(`/api/runs/${runId}/patches/${index}/preview.png?size=96&bare=true`);
-    if (!response.ok) throw new Error(`patch ${index}: preview not available (HTTP ${response.status})`);
-    const [lo, hi] = (response.headers.get("X-Height-Range") || "0,0").split(",").map(Number);
-    img.src = URL.createObjectURL(await response.blob());
-    img.title = img.alt = `patch ${index}: ${lo.toFixed(0)} … ${hi.toFixed(0)} nm (dark … bright)`;
-  });
-}
-
 // -- merges -----------------------------------------------------------------------------------
 
 $("merge-form").addEventListener("submit", (e) => {
@@ -345,29 +312,7 @@ function renderMerge(job) {
     $("dl-json").href = `/api/merges/${j.id}/mosaic.json`;
     $("merge-result").hidden = false;
   }
-  plotResiduals();
-}
-
-function plotResiduals() {
-  const canvas = $("residual-plot");
-  const ctx = canvas.getContext("2d");
-  ctx.clearRect(0, 0, canvas.width, canvas.height);
-  ctx.fillStyle = "#666";
-  ctx.font = "11px system-ui";
-  ctx.fillText("residual per iteration (nm)", 6, 12);
-  const r = state.residuals;
-  if (r.length < 1) return;
-  const hi = Math.max(...r.map((p) => p[1]));
-  const lo = Math.min(...r.map((p) => p[1]));
-  const n = Math.max(...r.map((p) => p[0]));
-  const x = (i) => 30 + ((canvas.width - 40) * i) / Math.max(n, 1);
-  const y = (v) => canvas.height - 12 - ((canvas.height - 30) * (v - lo)) / Math.max(hi - lo, 1e-12);
-  ctx.strokeStyle = "#c45500";
-  ctx.beginPath();
-  r.forEach(([i, v], k) => (k ? ctx.lineTo(x(i), y(v)) : ctx.moveTo(x(i), y(v))));
-  ctx.stroke();
-  ctx.fillText(`${(hi * 1e9).toFixed(2)}`, 2, 24);
-  ctx.fillText(`${(lo * 1e9).toFixed(2)}`, 2, canvas.height - 4);
+  plotResiduals($("residual-plot"), state.residuals);
 }
 
 // -- instrument -------------------------------------------------------------------------------
@@ -411,7 +356,7 @@ function onEvent(event) {
     renderRun();
   } else if (event.kind === "progress" && mine) {
     state.run.progress = { stored: event.data.stored, total: event.data.total };
-    showPatch(event.run_id, event.data.patch);
+    showPatch($("patch-grid"), event.run_id, event.data.patch, act);
     renderRun();
     $("merge-start").disabled = event.data.stored < 2;
   } else if (event.kind === "merge" && event.data.job) {
