@@ -4,6 +4,7 @@ every export opened by the tool it is meant for, and a whole round trip through 
 from __future__ import annotations
 
 import json
+import os
 import shutil
 import subprocess
 from pathlib import Path
@@ -19,8 +20,17 @@ from hardware.sim.surfaces import ImageSurface
 from hardware.sim.synth import synthesize
 from merge import read_result
 
-DATA = Path(__file__).resolve().parents[4] / "shared" / "data"
+def _shared_data() -> Path:
+    """The real scans of ``../shared/data`` (MOSAIC_SHARED_DATA overrides where it is)."""
+    given = os.environ.get("MOSAIC_SHARED_DATA")
+    return Path(given) if given else Path(__file__).resolve().parents[4] / "shared" / "data"
+
+
+DATA = _shared_data()
 GWYDDION = shutil.which("gwyddion")
+pytestmark = pytest.mark.skipif(
+    not (DATA / "mos2.nid").is_file(), reason=f"the real scans are not at {DATA}"
+)
 needs_gwyddion = pytest.mark.skipif(GWYDDION is None, reason="gwyddion is not installed")
 
 
