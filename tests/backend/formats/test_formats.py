@@ -20,6 +20,7 @@ from hardware.sim.surfaces import ImageSurface
 from hardware.sim.synth import synthesize
 from merge import read_result
 
+
 def _shared_data() -> Path:
     """The real scans of ``../shared/data`` (MOSAIC_SHARED_DATA overrides where it is)."""
     given = os.environ.get("MOSAIC_SHARED_DATA")
