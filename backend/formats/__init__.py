@@ -1,6 +1,7 @@
 """AFM file formats at the edge: readers that return SI heights, writers of a merged mosaic.
 
-Readers by suffix (:data:`READERS`): Nanosurf ``.nid``, Gwyddion ``.gwy``, TIFF, ``.npy``.
+Readers by suffix (:data:`READERS`): Nanosurf ``.nid``, Gwyddion ``.gwy``, Nanonis ``.sxm``,
+TIFF, ``.npy``.
 Every reader returns an :class:`AfmImage` with rows along +y (see :mod:`.image`).
 """
 
@@ -15,6 +16,7 @@ from backend.formats.exports import EXPORTS, export_heights
 from backend.formats.gwy import read_gwy
 from backend.formats.image import AfmImage, FormatError
 from backend.formats.nid import read_nid
+from backend.formats.sxm import read_sxm
 from backend.formats.tiff import read_tiff
 
 
@@ -49,6 +51,7 @@ Reader = Callable[..., AfmImage]
 READERS: dict[str, Reader] = {
     ".nid": read_nid,
     ".gwy": read_gwy,
+    ".sxm": read_sxm,
     ".tif": read_tiff,
     ".tiff": read_tiff,
     ".npy": read_npy,

@@ -1,8 +1,8 @@
 """Gwyddion ``.gwy`` files through gwyfile (MIT): read any data field, write a mosaic.
 
 Gwyddion's data fields hold the top row first; the project's arrays hold the bottom row
-first (rows along +y), so both directions flip vertically. Offsets are those of the field's
-top-left corner in Gwyddion and of pixel (0, 0) here; both are converted.
+first (rows along +y), so both directions flip vertically. Gwyddion's offset is the field's
+corner, ours the centre of pixel (0, 0): half a pixel apart, converted both ways.
 """
 
 from __future__ import annotations
@@ -42,7 +42,9 @@ def read_gwy(path: str | Path, *, channel: str | None = None) -> AfmImage:
     data = np.asarray(field.data, dtype=np.float64)
     ny, nx = data.shape
     dx, dy = float(field.xreal) / nx, float(field.yreal) / ny
-    xoff, yoff = float(field.get("xoff", 0.0) or 0.0), float(field.get("yoff", 0.0) or 0.0)
+    # Gwyddion's offset is the field's corner; ours is pixel (0, 0)'s centre
+    xoff = float(field.get("xoff", 0.0) or 0.0) + dx / 2
+    yoff = float(field.get("yoff", 0.0) or 0.0) + dy / 2
     return AfmImage(
         heights=data[::-1].copy(),
         pixel_size=(dx, dy),
@@ -75,8 +77,8 @@ def write_gwy(
             np.ascontiguousarray(values[::-1]),
             xreal=nx * pixel_size[0],
             yreal=ny * pixel_size[1],
-            xoff=origin[0],
-            yoff=origin[1],
+            xoff=origin[0] - pixel_size[0] / 2,  # the corner, as Gwyddion has it
+            yoff=origin[1] - pixel_size[1] / 2,
             si_unit_xy=GwySIUnit(unitstr="m"),
             si_unit_z=GwySIUnit(unitstr=unit_z),
         )
