@@ -22,8 +22,8 @@ PORT ?= 8000
 DATA ?= data
 
 run: install
-	@echo "Mosaic AFM server: pages and API http://$(HOST):$(PORT)/, API docs http://$(HOST):$(PORT)/docs"
-	@echo "Change it with MOSAIC_* variables (see README); the API token is printed once at first start."
+	@echo "Starting the Mosaic AFM server on the simulated instrument (MOSAIC_* variables change it, see README);"
+	@echo "it prints the URLs of the pages, the API docs and the 3D viewer, and the API token at first start."
 	$(BIN)/mosaic-afm serve --host $(HOST) --port $(PORT) --data-dir $(DATA)
 
 demo: install

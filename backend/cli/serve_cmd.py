@@ -54,11 +54,14 @@ def run(args: argparse.Namespace) -> int:
     except (ConfigurationError, MCSError, OSError) as exc:
         raise UsageError(f"cannot open the instrument {settings.instrument!r}: {exc}") from None
     base = f"http://{settings.host}:{settings.port}"
+    viewer = services.viewer
     print(
         f"Mosaic AFM on {services.microscope.description}\n"
-        f"  API:      {base}/api/runs\n"
-        f"  API docs: {base}/docs\n"
-        f"  events:   {base}/api/events",
+        f"  pages:     {base}/\n"
+        f"  API:       {base}/api/runs\n"
+        f"  API docs:  {base}/docs\n"
+        f"  events:    {base}/api/events\n"
+        f"  3D viewer: {viewer.url if viewer is not None else 'off (MOSAIC_VIEWER=false)'}",
         flush=True,
     )
     try:
