@@ -105,7 +105,7 @@ class Viewer:
         self._jobs: queue.Queue[Callable[[], None] | None] = queue.Queue()
         gui = self.server.gui
         self.exaggeration = gui.add_slider(
-            "Z exaggeration", min=1.0, max=200.0, step=1.0, initial_value=5.0
+            "Z exaggeration", min=1.0, max=200.0, step=1.0, initial_value=1.0
         )
         self.show = gui.add_dropdown("Show", ("both", "raw", "merged"), initial_value="both")
         self.reset = gui.add_button("Reset camera")
