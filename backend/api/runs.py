@@ -125,6 +125,20 @@ def run_out(run: Run, services: Services, session: Session, *, patches: bool) ->
     )
 
 
+def add_run(session: Session, services: Services, run: Run, what: str, operator: str) -> None:
+    """Commit a new run (its HDF5 file named by its id) and announce it on the event stream."""
+    session.add(run)
+    session.flush()
+    run.data_file = str(Path(services.settings.runs_dir).resolve() / f"run-{run.id:05d}.h5")
+    session.commit()
+    services.events.emit(
+        "run",
+        f"run {run.id}: {what} ({operator})",
+        run_id=run.id,
+        data={"state": run.state, "actor": operator},
+    )
+
+
 def get_run(session: Session, run_id: int) -> Run:
     run = session.get(Run, run_id)
     if run is None:
@@ -184,16 +198,7 @@ def create_run(
         PatchRecord(index=p.index, row=p.row, col=p.col, origin_x=p.origin[0], origin_y=p.origin[1])
         for p in plan.patches
     ]
-    session.add(run)
-    session.flush()
-    run.data_file = str(Path(services.settings.runs_dir).resolve() / f"run-{run.id:05d}.h5")
-    session.commit()
-    services.events.emit(
-        "run",
-        f"run {run.id}: planned, {plan.rows} x {plan.cols} patches ({operator})",
-        run_id=run.id,
-        data={"state": "planned", "actor": operator},
-    )
+    add_run(session, services, run, f"planned, {plan.rows} x {plan.cols} patches", operator)
     return run_out(run, services, session, patches=True)
 
 
@@ -321,4 +326,4 @@ def _stored(session: Session, run_id: int, index: int) -> StoredPatch:
     return read_patch(Path(run.data_file), index)
 
 
-__all__ = ["PlanError", "get_run", "npy_response", "router", "run_out"]
+__all__ = ["PlanError", "add_run", "get_run", "npy_response", "router", "run_out"]

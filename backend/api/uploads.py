@@ -17,7 +17,7 @@ from fastapi import APIRouter, File, Form, HTTPException, UploadFile
 
 from backend.acquisition.state import RunState
 from backend.api.deps import OperatorDep, ServicesDep, SessionDep
-from backend.api.runs import run_out
+from backend.api.runs import add_run, run_out
 from backend.api.schemas import RunOut
 from backend.db.models import PatchRecord, Run
 from backend.db.patch_store import dataset_name, mark_stored, write_patch
@@ -132,16 +132,7 @@ async def upload_patch_set(
         PatchRecord(index=k, row=r, col=c, origin_x=o[0], origin_y=o[1])
         for k, (o, r, c) in enumerate(places)
     ]
-    session.add(run)
-    session.flush()
-    run.data_file = str(Path(services.settings.runs_dir).resolve() / f"run-{run.id:05d}.h5")
-    session.commit()
-    services.events.emit(
-        "run",
-        f"run {run.id}: {len(images)} scans uploaded for an offline merge ({operator})",
-        run_id=run.id,
-        data={"state": run.state, "actor": operator},
-    )
+    add_run(session, services, run, f"{len(images)} scans uploaded for an offline merge", operator)
     for k, (image, name, patch) in enumerate(zip(images, names, run.patches, strict=True)):
         write_patch(
             Path(run.data_file),
