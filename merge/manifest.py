@@ -72,8 +72,8 @@ def read_patch_set(
     entries = doc.get("patches")
     if not isinstance(entries, list):
         raise PatchSetError(f"manifest {path}: 'patches' must be a list")
-    table = {**READERS, **(readers or {})}
-    patches = [_read_entry(entry, k, path.parent, table) for k, entry in enumerate(entries)]
+    extra = readers or {}
+    patches = [_read_entry(entry, k, path.parent, extra) for k, entry in enumerate(entries)]
     return PatchSet(patches)
 
 
@@ -93,9 +93,13 @@ def _read_entry(entry: Any, k: int, folder: Path, readers: Mapping[str, HeightRe
     fpath = (folder / file).resolve()
     if not fpath.is_file():
         raise PatchSetError(f"{name}: height file not found: {fpath}")
-    reader = readers.get(fpath.suffix.lower())
+    reader: HeightReader | None
+    try:  # indexing, not .get: a mapping given may resolve suffixes it does not list
+        reader = readers[fpath.suffix.lower()]
+    except KeyError:
+        reader = READERS.get(fpath.suffix.lower())
     if reader is None:
-        known = ", ".join(sorted(readers))
+        known = ", ".join(sorted({*READERS, *readers}))
         raise PatchSetError(f"{name}: no reader for {fpath.suffix!r} files (known: {known})")
     try:
         heights = reader(fpath)

@@ -21,7 +21,7 @@ from backend.api.runs import add_run, run_out
 from backend.api.schemas import RunOut
 from backend.db.models import PatchRecord, Run
 from backend.db.patch_store import dataset_name, mark_stored, write_patch
-from backend.formats import READERS, AfmImage, FormatError, read_image
+from backend.formats import READABLE, AfmImage, FormatError, read_image, reader_for
 from hardware.mosaic_plan import snake_grid
 
 router = APIRouter(prefix="/api/runs", tags=["runs"])
@@ -88,10 +88,8 @@ async def upload_patch_set(
     names: list[str] = []
     for k, upload in enumerate(files):
         name = Path(upload.filename or f"scan{k}").name
-        if Path(name).suffix.lower() not in READERS:
-            raise HTTPException(
-                422, f"files: {name}: unknown format; readable: {', '.join(READERS)}"
-            )
+        if reader_for(name) is None:
+            raise HTTPException(422, f"files: {name}: unknown format; readable: {READABLE}")
         data = await upload.read(limit - used + 1)
         used += len(data)
         if used > limit:

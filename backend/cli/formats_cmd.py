@@ -161,12 +161,25 @@ def import_files(args: argparse.Namespace) -> int:
     return 0
 
 
+class _HeightReaders(dict[str, Any]):
+    """Suffix -> height reader; numbered NanoScope suffixes (``.000`` ...) resolve on demand."""
+
+    def __missing__(self, suffix: str) -> Any:
+        from backend.formats import read_image, reader_for
+
+        if reader_for(f"x{suffix}") is None:
+            raise KeyError(suffix)
+        return lambda path: read_image(path).heights
+
+
 def height_readers() -> dict[str, Any]:
     """The merge's extra height-file readers: every format :mod:`backend.formats` reads."""
     from backend.formats import READERS, read_image
 
-    return {
-        suffix: (lambda path: read_image(path).heights)
-        for suffix in READERS
-        if suffix != ".npy"  # the merge reads plain arrays itself
-    }
+    return _HeightReaders(
+        {
+            suffix: (lambda path: read_image(path).heights)
+            for suffix in READERS
+            if suffix != ".npy"  # the merge reads plain arrays itself
+        }
+    )

@@ -1,7 +1,8 @@
 """AFM file formats at the edge: readers that return SI heights, writers of a merged mosaic.
 
-Readers by suffix (:data:`READERS`): Nanosurf ``.nid``, Gwyddion ``.gwy``, Nanonis ``.sxm``,
-TIFF, ``.npy``.
+Readers by suffix (:data:`READERS`, :func:`reader_for`): Nanosurf ``.nid``, Gwyddion ``.gwy``,
+Bruker NanoScope ``.spm`` and its numbered captures (``.000`` ...), Nanonis ``.sxm``, TIFF,
+``.npy``.
 Every reader returns an :class:`AfmImage` with rows along +y (see :mod:`.image`).
 """
 
@@ -15,6 +16,7 @@ import numpy as np
 from backend.formats.exports import EXPORTS, export_heights
 from backend.formats.gwy import read_gwy
 from backend.formats.image import AfmImage, FormatError
+from backend.formats.nanoscope import read_nanoscope
 from backend.formats.nid import read_nid
 from backend.formats.sxm import read_sxm
 from backend.formats.tiff import read_tiff
@@ -51,6 +53,7 @@ Reader = Callable[..., AfmImage]
 READERS: dict[str, Reader] = {
     ".nid": read_nid,
     ".gwy": read_gwy,
+    ".spm": read_nanoscope,
     ".sxm": read_sxm,
     ".tif": read_tiff,
     ".tiff": read_tiff,
@@ -58,14 +61,26 @@ READERS: dict[str, Reader] = {
 }
 
 
+#: What :func:`reader_for` accepts, for messages.
+READABLE = ", ".join([*READERS, ".000-.999"])
+
+
+def reader_for(path: str | Path) -> Reader | None:
+    """The reader of ``path`` by its suffix (NanoScope numbers its files ``.000``, ``.001`` ...)."""
+    suffix = Path(path).suffix.lower()
+    if len(suffix) == 4 and suffix[1:].isdigit():
+        return read_nanoscope
+    return READERS.get(suffix)
+
+
 def read_image(
     path: str | Path, *, channel: str | None = None, pixel_size: tuple[float, float] | None = None
 ) -> AfmImage:
     """Read ``path`` by its suffix; ``pixel_size`` for formats that do not carry one."""
     p = Path(path)
-    reader = READERS.get(p.suffix.lower())
+    reader = reader_for(p)
     if reader is None:
-        raise FormatError(f"{p}: unknown AFM format {p.suffix!r}; readable: {', '.join(READERS)}")
+        raise FormatError(f"{p}: unknown AFM format {p.suffix!r}; readable: {READABLE}")
     if not p.is_file():
         raise FormatError(f"{p}: no such file")
     if reader in (read_tiff, read_npy):
@@ -73,4 +88,13 @@ def read_image(
     return reader(p, channel=channel)
 
 
-__all__ = ["EXPORTS", "READERS", "AfmImage", "FormatError", "export_heights", "read_image"]
+__all__ = [
+    "EXPORTS",
+    "READABLE",
+    "READERS",
+    "AfmImage",
+    "FormatError",
+    "export_heights",
+    "read_image",
+    "reader_for",
+]

@@ -5,8 +5,6 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
-import subprocess
 from pathlib import Path
 
 import numpy as np
@@ -19,6 +17,7 @@ from hardware.sim.drift import DriftModel
 from hardware.sim.surfaces import ImageSurface
 from hardware.sim.synth import synthesize
 from merge import read_result
+from tests.backend.formats.oracle import gwyddion_convert, needs_gwyddion
 
 
 def _shared_data() -> Path:
@@ -28,21 +27,9 @@ def _shared_data() -> Path:
 
 
 DATA = _shared_data()
-GWYDDION = shutil.which("gwyddion")
 pytestmark = pytest.mark.skipif(
     not (DATA / "mos2.nid").is_file(), reason=f"the real scans are not at {DATA}"
 )
-needs_gwyddion = pytest.mark.skipif(GWYDDION is None, reason="gwyddion is not installed")
-
-
-def _gwyddion_convert(src: Path, dst: Path) -> Path:
-    subprocess.run(
-        [str(GWYDDION), f"--convert-to-gwy={dst}", str(src)],
-        check=True,
-        capture_output=True,
-        timeout=120,
-    )
-    return dst
 
 
 @pytest.mark.parametrize("name", ["mos2", "grid"])
@@ -83,7 +70,7 @@ def test_wrong_or_cut_files_are_clear_errors(tmp_path: Path) -> None:
 
 @needs_gwyddion
 def test_nid_orientation_matches_gwyddion(tmp_path: Path) -> None:
-    oracle = read_image(_gwyddion_convert(DATA / "mos2.nid", tmp_path / "oracle.gwy"))
+    oracle = read_image(gwyddion_convert(DATA / "mos2.nid", tmp_path / "oracle.gwy"))
     ours = read_image(DATA / "mos2.nid")
     np.testing.assert_allclose(oracle.heights, ours.heights, rtol=0, atol=1e-15)
     assert oracle.pixel_size == pytest.approx(ours.pixel_size)
@@ -94,7 +81,7 @@ def test_nid_orientation_matches_gwyddion(tmp_path: Path) -> None:
 def test_our_files_open_in_gwyddion_the_right_way_up(tmp_path: Path, suffix: str) -> None:
     heights = np.load(DATA / "mos2.npy")[:40, :64]
     path = export_heights(tmp_path / f"m{suffix}", heights, pixel_size=(8e-9, 16e-9))
-    back = _gwyddion_convert(path, tmp_path / "back.gwy")
+    back = gwyddion_convert(path, tmp_path / "back.gwy")
     channel = None if suffix == ".gwy" else "Gray"  # Gwyddion names a plain TIFF's channel
     seen = read_image(back, channel=channel)
     np.testing.assert_allclose(seen.heights, heights, rtol=1e-6, atol=1e-15)

@@ -2,16 +2,13 @@
 
 from __future__ import annotations
 
-import shutil
-import subprocess
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from backend.formats import FormatError, read_image
-
-GWYDDION = shutil.which("gwyddion")
+from tests.backend.formats.oracle import gwyddion_convert, needs_gwyddion
 
 
 def write_sxm(
@@ -68,18 +65,12 @@ def test_scan_direction_and_backward_lines_are_undone(tmp_path: Path, up: bool) 
     assert image.channels == ("Z forward", "Z backward", "Current forward")
 
 
-@pytest.mark.skipif(GWYDDION is None, reason="gwyddion is not installed")
+@needs_gwyddion
 @pytest.mark.parametrize("up", [True, False])
 def test_sxm_reads_as_gwyddion_reads_it(tmp_path: Path, up: bool) -> None:
     path = tmp_path / "scan.sxm"
     write_sxm(path, _frames(), scan_range=(64e-9, 48e-9), centre=(1e-7, 2e-7), up=up)
-    oracle = tmp_path / "oracle.gwy"
-    subprocess.run(
-        [str(GWYDDION), f"--convert-to-gwy={oracle}", str(path)],
-        check=True,
-        capture_output=True,
-        timeout=120,
-    )
+    oracle = gwyddion_convert(path, tmp_path / "oracle.gwy")
     for ours, theirs in (("Z forward", "Z (Forward)"), ("Z backward", "Z (Backward)")):
         a, b = read_image(path, channel=ours), read_image(oracle, channel=theirs)
         np.testing.assert_array_equal(a.heights, b.heights)
