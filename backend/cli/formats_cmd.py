@@ -135,6 +135,11 @@ def import_files(args: argparse.Namespace) -> int:
         ]
     elif all(im.offset is not None for im in images):
         places = [(im.offset, None, None) for im in images if im.offset is not None]
+        if len({origin for origin, _, _ in places}) < len(places):
+            raise UsageError(
+                "some files share a scan offset, so the offsets do not lay out a mosaic: "
+                "give --grid ROWSxCOLS and --overlap OX,OY"
+            )
     else:
         raise UsageError(
             "some files carry no scan offset: give --grid ROWSxCOLS and --overlap OX,OY"

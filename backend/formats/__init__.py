@@ -1,8 +1,8 @@
 """AFM file formats at the edge: readers that return SI heights, writers of a merged mosaic.
 
 Readers by suffix (:data:`READERS`, :func:`reader_for`): Nanosurf ``.nid``, Gwyddion ``.gwy``,
-Bruker NanoScope ``.spm`` and its numbered captures (``.000`` ...), Nanonis ``.sxm``, TIFF,
-``.npy``.
+Bruker NanoScope ``.spm`` and its numbered captures (``.000`` ...), Asylum ``.ibw``, Nanonis
+``.sxm``, TIFF, ``.npy``.
 Every reader returns an :class:`AfmImage` with rows along +y (see :mod:`.image`).
 """
 
@@ -15,6 +15,7 @@ import numpy as np
 
 from backend.formats.exports import EXPORTS, export_heights
 from backend.formats.gwy import read_gwy
+from backend.formats.ibw import read_ibw
 from backend.formats.image import AfmImage, FormatError
 from backend.formats.nanoscope import read_nanoscope
 from backend.formats.nid import read_nid
@@ -54,6 +55,7 @@ READERS: dict[str, Reader] = {
     ".nid": read_nid,
     ".gwy": read_gwy,
     ".spm": read_nanoscope,
+    ".ibw": read_ibw,
     ".sxm": read_sxm,
     ".tif": read_tiff,
     ".tiff": read_tiff,
