@@ -2,7 +2,7 @@
 
 Readers by suffix (:data:`READERS`, :func:`reader_for`): Nanosurf ``.nid``, Gwyddion ``.gwy``,
 Bruker NanoScope ``.spm`` and its numbered captures (``.000`` ...), Asylum ``.ibw``, Nanonis
-``.sxm``, TIFF, ``.npy``.
+``.sxm``, Park Systems and plain TIFF, ``.npy``.
 Every reader returns an :class:`AfmImage` with rows along +y (see :mod:`.image`).
 """
 

@@ -1,5 +1,6 @@
 """TIFF height maps: 32-bit float with the pixel size in the resolution tags (written), and
-plain TIFF images read with a given pixel size (or the one in the tags, when in cm).
+plain TIFF images read with a given pixel size (or the one in the tags, when in cm). Park
+Systems TIFFs, recognised by their private tags, go to :mod:`.park`.
 
 A TIFF's first row is the top of the image (as Gwyddion shows it): rows are flipped to the
 project's rows-along-+y on the way in and out.
@@ -12,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from backend.formats.image import AfmImage, FloatArray, FormatError
+from backend.formats.park import is_park, read_park
 
 
 def write_tiff(path: str | Path, heights: FloatArray, *, pixel_size: tuple[float, float]) -> None:
@@ -34,19 +36,24 @@ def read_tiff(
     path: str | Path, *, channel: str | None = None, pixel_size: tuple[float, float] | None = None
 ) -> AfmImage:
     """A single-channel TIFF as heights. Float data are taken as metres; integer data as
-    grey levels (unit "counts"). The pixel size: given, else ours, else the resolution tags."""
+    grey levels (unit "counts"). The pixel size: given, else ours, else the resolution tags.
+    A Park Systems TIFF is read from its own tags, with its own scaling."""
     import tifffile
 
     p = Path(path)
     try:
         with tifffile.TiffFile(str(p)) as tif:
             page = tif.pages.first
+            if is_park(page.tags):
+                return read_park(page.tags, p, channel=channel)
             data = np.asarray(page.asarray(), dtype=np.float64)
             description = page.description or ""
             tags = page.tags
             xres, yres = tags.get("XResolution"), tags.get("YResolution")
             unit = tags.get("ResolutionUnit")
             floating = page.dtype is not None and page.dtype.kind == "f"
+    except FormatError:
+        raise
     except Exception as exc:  # tifffile raises many kinds on foreign or cut files
         raise FormatError(f"{p}: not a readable TIFF ({type(exc).__name__}: {exc})") from None
     if data.ndim != 2:
