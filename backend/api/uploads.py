@@ -22,7 +22,7 @@ from backend.api.schemas import RunOut
 from backend.db.models import PatchRecord, Run
 from backend.db.patch_store import dataset_name, mark_stored, write_patch
 from backend.formats import READABLE, AfmImage, FormatError, read_image, reader_for
-from hardware.mosaic_plan import snake_grid
+from backend.formats.layout import LayoutError, scan_places
 
 router = APIRouter(prefix="/api/runs", tags=["runs"])
 
@@ -36,26 +36,18 @@ def _places(
     overlap: tuple[float, float],
     order: str,
 ) -> list[tuple[tuple[float, float], int, int]]:
-    """Where each file goes: its scan offset when every file has one, else the grid."""
-    if rows is None and cols is None and all(im.offset is not None for im in images):
-        return [(im.offset or (0.0, 0.0), 0, k) for k, im in enumerate(images)]
-    if rows is None or cols is None:
-        raise HTTPException(
-            422, "rows, cols: some files carry no scan offset; give the grid they were scanned in"
-        )
-    if rows * cols != len(images):
-        raise HTTPException(
-            422, f"rows, cols: {rows} x {cols} needs {rows * cols} files, got {len(images)}"
-        )
-    ny, nx = images[0].heights.shape
-    size = (nx * images[0].pixel_size[0], ny * images[0].pixel_size[1])
+    """Where each file goes: its scan offset when no grid is given, else the grid."""
+    grid = None
+    if rows is not None or cols is not None:
+        if rows is None or cols is None:
+            raise HTTPException(422, "rows, cols: give both, or neither to use the scan offsets")
+        grid = (rows, cols)
     try:
-        plan = snake_grid(rows, cols, patch_size=size, overlap=overlap)
-    except ValueError as exc:
-        raise HTTPException(422, f"overlap: {exc}") from None
-    if order == "raster":
-        plan = sorted(plan, key=lambda p: (p.row, p.col))
-    return [(p.origin, p.row, p.col) for p in plan]
+        places = scan_places(images, grid, overlap=overlap, order=order)
+    except LayoutError as exc:
+        raise HTTPException(422, f"rows, cols: {exc}") from None
+    return [(o, r if r is not None else 0, c if c is not None else k)
+            for k, (o, r, c) in enumerate(places)]  # fmt: skip
 
 
 @router.post("/offline", status_code=201, response_model=RunOut)
@@ -63,7 +55,7 @@ async def upload_patch_set(
     services: ServicesDep,
     session: SessionDep,
     operator: OperatorDep,
-    files: Annotated[list[UploadFile], File(description="AFM files: .nid, .gwy, .tif, .npy")],
+    files: Annotated[list[UploadFile], File(description=f"AFM files: {READABLE}")],
     rows: Annotated[int | None, Form(ge=1, le=1000)] = None,
     cols: Annotated[int | None, Form(ge=1, le=1000)] = None,
     overlap_x: Annotated[float, Form(ge=0, lt=0.9)] = 0.0,

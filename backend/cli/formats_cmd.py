@@ -109,41 +109,21 @@ def export(args: argparse.Namespace) -> int:
 
 
 def import_files(args: argparse.Namespace) -> int:
-    from hardware.mosaic_plan import snake_grid
+    from backend.formats.layout import LayoutError, scan_places
 
     images = [_read(f, args.channel, args.pixel_size) for f in args.files]
     out = Path(args.out)
+    grid = None
     if args.grid:
         try:
             rows, cols = (int(v) for v in args.grid.lower().split("x"))
         except ValueError:
             raise UsageError(f"--grid must be ROWSxCOLS, e.g. 5x10, got {args.grid!r}") from None
-        if rows * cols != len(images):
-            raise UsageError(f"--grid {rows}x{cols} needs {rows * cols} files, got {len(images)}")
-        if args.overlap is None:
-            raise UsageError("--grid needs --overlap OX,OY (fractions)")
-        ny, nx = images[0].heights.shape
-        size = (nx * images[0].pixel_size[0], ny * images[0].pixel_size[1])
-        try:
-            plan = snake_grid(rows, cols, patch_size=size, overlap=args.overlap)
-        except ValueError as exc:
-            raise UsageError(str(exc)) from None
-        if args.order == "raster":  # every row left to right
-            plan = sorted(plan, key=lambda p: (p.row, p.col))
-        places: list[tuple[tuple[float, float], int | None, int | None]] = [
-            (p.origin, p.row, p.col) for p in plan
-        ]
-    elif all(im.offset is not None for im in images):
-        places = [(im.offset, None, None) for im in images if im.offset is not None]
-        if len({origin for origin, _, _ in places}) < len(places):
-            raise UsageError(
-                "some files share a scan offset, so the offsets do not lay out a mosaic: "
-                "give --grid ROWSxCOLS and --overlap OX,OY"
-            )
-    else:
-        raise UsageError(
-            "some files carry no scan offset: give --grid ROWSxCOLS and --overlap OX,OY"
-        )
+        grid = (rows, cols)
+    try:
+        places = scan_places(images, grid, overlap=args.overlap, order=args.order)
+    except LayoutError as exc:
+        raise UsageError(f"{exc} (--grid ROWSxCOLS, --overlap OX,OY)") from None
     out.mkdir(parents=True, exist_ok=True)
     patches = []
     for k, (path, image, (origin, row, col)) in enumerate(

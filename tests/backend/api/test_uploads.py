@@ -7,6 +7,7 @@ from pathlib import Path
 
 import httpx
 import numpy as np
+import pytest
 
 from backend.formats.gwy import write_gwy
 from hardware.sim.drift import DriftModel
@@ -86,3 +87,22 @@ def test_unreadable_uploads_are_refused(server: Server, tmp_path: Path) -> None:
     r = _upload(server, [other, other])
     assert r.status_code == 422 and "unknown format" in r.json()["detail"]
     assert server.client.get("/api/runs").json() == []
+
+
+def test_numbered_nanoscope_captures_place_by_offset(server: Server, tmp_path: Path) -> None:
+    from tests.backend.formats.test_nanoscope import write_nanoscope
+
+    rng = np.random.default_rng(2)
+    raw = rng.integers(-3000, 3000, (24, 32))
+    paths = []
+    for k, x in enumerate(("0 nm", "1000 nm")):
+        paths.append(tmp_path / f"sample.{k + 1:03d}")
+        height = ("Height", raw, 2, 439.9, "Sens. Zsens", "Retrace")
+        write_nanoscope(paths[-1], [height], scan_size="2 2 ~m", offset=(x, "0 nm"))
+    r = _upload(server, paths)
+    assert r.status_code == 201, r.text
+    origins = [p["origin"] for p in r.json()["patches"]]
+    assert origins[1][0] - origins[0][0] == pytest.approx(1e-6)
+    write_nanoscope(paths[1], [height], scan_size="2 2 ~m", offset=("0 nm", "0 nm"))
+    r = _upload(server, paths)
+    assert r.status_code == 422 and "share a scan offset" in r.json()["detail"]

@@ -1,0 +1,57 @@
+"""Where scans from another AFM go in a mosaic: their own scan offsets, or a grid.
+
+Shared by ``mosaic-afm import`` and the offline upload of the API; both turn a
+:class:`LayoutError` into their own kind of refusal (exit 2, HTTP 422).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+from backend.formats.image import AfmImage
+from hardware.mosaic_plan import snake_grid
+
+Place = tuple[tuple[float, float], int | None, int | None]  # origin (m), row, col
+
+
+class LayoutError(ValueError):
+    """The scans cannot be placed as asked; the message says what to give."""
+
+
+def scan_places(
+    images: Sequence[AfmImage],
+    grid: tuple[int, int] | None = None,
+    *,
+    overlap: tuple[float, float] | None = None,
+    order: str = "snake",
+) -> list[Place]:
+    """Origin (pixel (0, 0), metres) and grid cell of every scan, in the order given.
+
+    Without ``grid`` the files' scan offsets place them, and must all exist and differ; with
+    ``grid = (rows, cols)`` the scans fill it in acquisition ``order`` ("snake" or "raster")
+    with the nominal pitch of the first scan's size and ``overlap`` (fractions).
+    """
+    if grid is None:
+        offsets = [im.offset for im in images]
+        if any(o is None for o in offsets):
+            raise LayoutError("some files carry no scan offset: give the grid and the overlap")
+        if len(set(offsets)) < len(offsets):
+            raise LayoutError(
+                "some files share a scan offset, so the offsets do not lay out a mosaic: "
+                "give the grid and the overlap"
+            )
+        return [(o, None, None) for o in offsets if o is not None]
+    rows, cols = grid
+    if rows * cols != len(images):
+        raise LayoutError(f"a {rows} x {cols} grid needs {rows * cols} files, got {len(images)}")
+    if overlap is None:
+        raise LayoutError("a grid needs the overlap (fractions along x and y)")
+    ny, nx = images[0].heights.shape
+    size = (nx * images[0].pixel_size[0], ny * images[0].pixel_size[1])
+    try:
+        plan = snake_grid(rows, cols, patch_size=size, overlap=overlap)
+    except ValueError as exc:
+        raise LayoutError(str(exc)) from None
+    if order == "raster":  # every row left to right
+        plan = sorted(plan, key=lambda p: (p.row, p.col))
+    return [(p.origin, p.row, p.col) for p in plan]
