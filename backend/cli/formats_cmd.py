@@ -151,9 +151,10 @@ class _HeightReaders(dict[str, Any]):
 
     def __missing__(self, suffix: str) -> Any:
         from backend.formats import read_image, reader_for
+        from backend.formats.nanoscope import read_nanoscope
 
-        if reader_for(f"x{suffix}") is None:
-            raise KeyError(suffix)
+        if suffix == ".npy" or reader_for(f"x{suffix}") is not read_nanoscope:
+            raise KeyError(suffix)  # the merge reads plain arrays itself
         return lambda path: read_image(path).heights
 
 

@@ -137,3 +137,21 @@ def test_wrong_cut_or_incomplete_files_are_clear_errors(tmp_path: Path) -> None:
             read_image(bad)
     with pytest.raises(FormatError, match="no channel 'Phase'"):
         read_image(path, channel="Phase")
+
+
+def test_numbered_captures_import_and_merge(tmp_path: Path) -> None:
+    from scipy.ndimage import gaussian_filter
+
+    from backend.cli import main
+
+    rng = np.random.default_rng(3)
+    surface = np.round(gaussian_filter(rng.normal(size=(40, 70)), 2.0) * 20000)
+    files = []
+    for k, col in enumerate((0, 30)):  # 40 px of 50 nm each: a 2 µm scan, the second 1.5 µm on
+        files.append(tmp_path / f"sample.{k:03d}")
+        height = ("Height", surface[:, col : col + 40], 2, 439.9, "Sens. Zsens", "Retrace")
+        centre = f"{1000 + col * 50} nm"
+        write_nanoscope(files[-1], [height], scan_size="2 2 ~m", offset=(centre, "0 nm"))
+    assert main(["import", *map(str, files), "--out", str(tmp_path / "set")]) == 0
+    manifest = str(tmp_path / "set" / "manifest.json")
+    assert main(["merge", manifest, "--out", str(tmp_path / "m"), "--quiet"]) == 0
