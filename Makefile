@@ -58,6 +58,7 @@ test: lint types unit
 
 bench: install
 	$(BIN)/python benchmarks/merge_bench.py
+	$(BIN)/python benchmarks/crb.py
 	$(BIN)/python benchmarks/sim_bench.py
 	$(BIN)/python benchmarks/server_bench.py
 	$(BIN)/python benchmarks/viewer_bench.py

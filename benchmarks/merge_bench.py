@@ -34,7 +34,7 @@ from numpy.typing import NDArray
 from backend.synthetic import patch_set_from_synth, registration_error
 from hardware.sim.drift import DriftModel
 from hardware.sim.surfaces import Chessboard, FoldedSurface, ImageSurface, Surface
-from hardware.sim.synth import scan_fraction, synthesize
+from hardware.sim.synth import SynthPatch, scan_fraction, synthesize
 from merge import Patch, PatchTransform, read_result, render_mosaic, write_patch_set
 
 FloatArray = NDArray[np.float64]
@@ -144,6 +144,25 @@ def map_error(
     return float(np.sqrt(np.mean(d**2)))
 
 
+def floor_of(synth: list[SynthPatch], surface: Surface) -> float:
+    """Map error (m) of the true transforms through the same renderer: drift-free heights."""
+    true_tr = [PatchTransform(s.rotation, s.translation) for s in synth]
+    # the true rotations have no tilt, so the drift-free heights go through (R, t) exactly
+    fixed = [
+        Patch(
+            id=s.id,
+            heights=s.heights - s.z_drift * (scan_fraction(s.heights.shape) - 0.5),
+            origin=s.origin,
+            pixel_size=s.pixel_size,
+        )
+        for s in synth
+    ]
+    mosaic = render_mosaic(fixed, true_tr)
+    return map_error(
+        mosaic.heights, mosaic.origin, mosaic.pixel_size, surface, np.eye(3), np.zeros(3)
+    )
+
+
 def run_cli(args: list[str]) -> tuple[float, float, str]:
     """Run the CLI; return wall seconds, peak RSS (MiB) of that process and its stdout."""
     start = time.perf_counter()
@@ -173,27 +192,7 @@ def run_case(case: Case, work: Path) -> dict[str, Any]:
     ps = patch_set_from_synth(synth)
     folder = work / case.name
     write_patch_set(ps, folder / "patches")
-    # the floor: true transforms, drift-free heights, same renderer
-    true_tr = [PatchTransform(s.rotation, s.translation) for s in synth]
-    # the true rotations have no tilt, so the drift-free heights go through (R, t) exactly
-    fixed = [
-        Patch(
-            id=p.id,
-            heights=s.heights - s.z_drift * (scan_fraction(p.shape) - 0.5),
-            origin=p.origin,
-            pixel_size=p.pixel_size,
-        )
-        for p, s in zip(ps, synth, strict=True)
-    ]
-    floor_mosaic = render_mosaic(fixed, true_tr)
-    floor = map_error(
-        floor_mosaic.heights,
-        floor_mosaic.origin,
-        floor_mosaic.pixel_size,
-        surface,
-        np.eye(3),
-        np.zeros(3),
-    )
+    floor = floor_of(synth, surface)
     rows = {}
     for method in case.methods:
         out = folder / method

@@ -1,0 +1,211 @@
+"""What an efficient merge could reach: the Cramér-Rao bound of a synthetic patch set.
+
+The Fisher information of all patch corrections (per patch: translation, rotation about z,
+drift plane) is built from the true surface slopes at every overlap point, with the noise of
+the heights (white plus per-line, taken as independent: an optimistic bound) and each noise
+sample counted once (residuals of one patch of every pair against the other). Correction
+errors drawn from its inverse, applied to the true transforms and rendered like any merge,
+give the registration and map errors of an unbiased estimator that uses all the information
+in the data -- the reference for what a target on the map error can ask.
+
+Run: ``python benchmarks/crb.py [--cases tgx1,folded] [--samples 8]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from backend.synthetic import patch_set_from_synth, registration_error
+from hardware.sim.drift import DriftModel
+from hardware.sim.surfaces import Surface
+from hardware.sim.synth import SynthPatch, synthesize, true_points
+from merge import PatchTransform, render_mosaic
+from merge.overlap import overlapping_pairs
+from merge.transforms import rotation_about_z
+
+FloatArray = NDArray[np.float64]
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+
+def true_transforms(synth: Sequence[SynthPatch]) -> list[PatchTransform]:
+    """``T_mosaic_patch`` of every synthetic patch, its in-patch drift plane included."""
+    out = []
+    for s in synth:
+        ny, nx = s.heights.shape
+        dx, dy = s.pixel_size
+        slope = np.array([-s.z_drift / (dx * nx * ny), -s.z_drift / (dy * ny)])
+        centre = np.array([s.origin[0], s.origin[1] + 0.5 * dy * ny])
+        out.append(PatchTransform(s.rotation, s.translation, slope, centre))
+    return out
+
+
+def _sampled_slopes(s: SynthPatch, surface: Surface, u: FloatArray, v: FloatArray) -> FloatArray:
+    """Mosaic-frame slopes that the sampled, noise-free patch ``s`` shows at fractional pixel
+    ``(u, v)``: central differences of its true heights, interpolated bilinearly."""
+    q = true_points(s)
+    h = surface.height(q[..., 0], q[..., 1])
+    gy, gx = (np.asarray(g, dtype=np.float64) for g in np.gradient(h, *s.pixel_size[::-1]))
+    ny, nx = h.shape
+    i0 = np.clip(np.floor(v).astype(int), 0, ny - 2)
+    j0 = np.clip(np.floor(u).astype(int), 0, nx - 2)
+    fv, fu = v - i0, u - j0
+    out = []
+    for g in (gx, gy):
+        out.append(
+            (1 - fv) * ((1 - fu) * g[i0, j0] + fu * g[i0, j0 + 1])
+            + fv * ((1 - fu) * g[i0 + 1, j0] + fu * g[i0 + 1, j0 + 1])
+        )
+    local = np.column_stack(out)
+    mosaic: FloatArray = local @ s.rotation[:2, :2].T  # a gradient turns with its patch
+    return mosaic
+
+
+def fisher_information(
+    synth: Sequence[SynthPatch],
+    surface: Surface,
+    drift: DriftModel,
+    *,
+    sampled: bool = True,
+    eps: float = 1e-10,
+) -> tuple[FloatArray, FloatArray]:
+    """Fisher information ``(6n, 6n)`` of the corrections (t [m], θ [rad], plane slopes) and
+    the mosaic-frame rotation centre of every patch ``(n, 2)``.
+
+    ``sampled``: the slopes a pixel grid shows (central differences of the true heights at the
+    pixels), which is what any estimator working on the scans can use; else the continuous
+    surface's slopes, which also count detail finer than the pixels (a looser bound)."""
+    n = len(synth)
+    info = np.zeros((6 * n, 6 * n))
+    q_all = [true_points(s).reshape(-1, 3) for s in synth]
+    centres = np.array([q[:, :2].mean(axis=0) for q in q_all])
+    tr = true_transforms(synth)
+    boxes = np.array([[*q[:, :2].min(axis=0), *q[:, :2].max(axis=0)] for q in q_all])
+    var = (drift.noise**2 + drift.line_noise**2) * (1.0 + 4.0 / 9.0)
+    for a, b in overlapping_pairs(boxes, margin=0.0).tolist():
+        sb = synth[b]
+        q = q_all[a]
+        # nominal coordinates of a's points in patch b (its rigid truth inverted)
+        pb = (q - tr[b].t) @ tr[b].R  # rows: R_b' (q - t_b)
+        ny, nx = sb.heights.shape
+        u = (pb[:, 0] - sb.origin[0]) / sb.pixel_size[0]
+        v = (pb[:, 1] - sb.origin[1]) / sb.pixel_size[1]
+        inside = (u >= 0) & (u <= nx - 1) & (v >= 0) & (v <= ny - 1)
+        if not inside.any():
+            continue
+        q, pb = q[inside], pb[inside]
+        if sampled:
+            hx, hy = _sampled_slopes(sb, surface, u[inside], v[inside]).T
+        else:
+            hx = surface.height(q[:, 0] + eps, q[:, 1]) - surface.height(q[:, 0] - eps, q[:, 1])
+            hy = surface.height(q[:, 0], q[:, 1] + eps) - surface.height(q[:, 0], q[:, 1] - eps)
+            hx, hy = hx / (2 * eps), hy / (2 * eps)
+        m = np.column_stack([-hx, -hy, np.ones_like(hx)])
+        pa = (q - tr[a].t) @ tr[a].R
+        J = np.zeros((len(q), 12))
+        J[:, 0:3], J[:, 6:9] = m, -m
+        for k, (c, sign) in enumerate(((centres[a], 1.0), (centres[b], -1.0))):
+            arm = q[:, :2] - c
+            J[:, 6 * k + 3] = sign * (m[:, 1] * arm[:, 0] - m[:, 0] * arm[:, 1])
+        J[:, 4:6] = pa[:, :2] - tr[a].centre
+        J[:, 10:12] = -(pb[:, :2] - tr[b].centre)
+        idx = np.r_[6 * a : 6 * a + 6, 6 * b : 6 * b + 6]
+        info[np.ix_(idx, idx)] += J.T @ J / var
+    return info, centres
+
+
+def perturbed(
+    synth: Sequence[SynthPatch], centres: FloatArray, delta: FloatArray
+) -> list[PatchTransform]:
+    """The true transforms moved by ``delta`` ``(n, 6)`` (t, θ about the centre, plane)."""
+    out = []
+    for c, tr in enumerate(true_transforms(synth)):
+        G = rotation_about_z(float(delta[c, 3]))
+        pivot = np.array([*centres[c], 0.0])
+        t = G @ (tr.t - pivot) + pivot + delta[c, :3]
+        out.append(PatchTransform(G @ tr.R, t, tr.slope + delta[c, 4:], tr.centre))
+    return out
+
+
+def efficient_errors(
+    synth: Sequence[SynthPatch],
+    surface: Surface,
+    drift: DriftModel,
+    *,
+    samples: int = 8,
+    seed: int = 0,
+    sampled: bool = True,
+) -> dict[str, float]:
+    """Registration and map errors (nm, RMS over ``samples`` draws) at the Cramér-Rao bound."""
+    from merge_bench import map_error
+
+    info, centres = fisher_information(synth, surface, drift, sampled=sampled)
+    w, V = np.linalg.eigh(info)
+    keep = w > 1e-9 * w.max()  # the gauge (common motions) has no information, and no error
+    scale = V[:, keep] / np.sqrt(w[keep])
+    rng = np.random.default_rng(seed)
+    patches = patch_set_from_synth(synth).patches
+    xy, z, mp = [], [], []
+    for _ in range(samples):
+        delta = (scale @ rng.standard_normal(int(keep.sum()))).reshape(-1, 6)
+        trs = perturbed(synth, centres, delta)
+        exy, ez, (G, g) = registration_error(synth, trs)
+        mosaic = render_mosaic(patches, trs)
+        xy.append(exy)
+        z.append(ez)
+        mp.append(map_error(mosaic.heights, mosaic.origin, mosaic.pixel_size, surface, G, g))
+    return {"reg_xy_nm": _rms_nm(xy), "reg_z_nm": _rms_nm(z), "map_nm": _rms_nm(mp)}
+
+
+def _rms_nm(values: Sequence[float]) -> float:
+    return float(np.sqrt(np.mean(np.square(values))) * 1e9)
+
+
+def main(argv: list[str] | None = None) -> int:
+    from merge_bench import CASES, floor_of
+
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--cases", default="tgx1,folded,tgx1-harsh,folded-harsh,mos2-real")
+    parser.add_argument("--samples", type=int, default=8)
+    parser.add_argument("--json", default=str(ROOT / "benchmarks" / "results" / "crb.json"))
+    args = parser.parse_args(argv)
+    rows: list[dict[str, Any]] = []
+    head = f"{'case':<14}{'CRB XY nm':>10}{'CRB Z nm':>10}{'CRB map':>9}{'floor':>8}"
+    print(head + f"{'CRB/floor':>11}")
+    for case in [c for c in CASES if c.name in args.cases.split(",")]:
+        surface = case.surface()
+        synth = synthesize(
+            surface,
+            rows=case.rows,
+            cols=case.cols,
+            patch_size=case.patch_size,
+            pixels=case.pixels,
+            overlap=case.overlap,
+            start=case.start,
+            drift=case.drift,
+            seed=case.seed,
+        )
+        r = efficient_errors(synth, surface, case.drift, samples=args.samples)
+        floor = floor_of(synth, surface) * 1e9
+        rows.append({"case": case.name, **r, "floor_nm": floor})
+        print(
+            f"{case.name:<14}{r['reg_xy_nm']:>10.2f}{r['reg_z_nm']:>10.2f}{r['map_nm']:>9.2f}"
+            f"{floor:>8.2f}{r['map_nm'] / floor:>11.2f}",
+            flush=True,
+        )
+    Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+    Path(args.json).write_text(json.dumps(rows, indent=1) + "\n")
+    print(f"\nwrote {args.json}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
