@@ -52,16 +52,20 @@ def read_ibw(path: str | Path, *, channel: str | None = None) -> AfmImage:
     header = wave["wave_header"]
     labels = wave.get("labels") or []
     layer_labels = [_text(s) for s in labels[2][1:]] if len(labels) > 2 and labels[2] else []
+    wave_name = _text(header["bname"]) or "wave"
     names = [
-        layer_labels[k] if k < len(layer_labels) and layer_labels[k] else f"layer {k}"
+        layer_labels[k] if k < len(layer_labels) and layer_labels[k] else f"{wave_name} {k}"
         for k in range(data.shape[2])
     ]
-    index = choose_channel(str(p), names, channel)
+    unit = _text(header["dataUnits"]) or "m"
+    if len(names) == 1 and channel is None and unit == "m":
+        index = 0  # one unnamed layer of lengths: a height image (a processed wave)
+    else:
+        index = choose_channel(str(p), names, channel)
     dx, dy = (float(v) for v in header["sfA"][:2])
     x0, y0 = (float(v) for v in header["sfB"][:2])
     if not (np.isfinite(dx) and np.isfinite(dy) and dx > 0 and dy > 0):
         raise FormatError(f"{p}: the wave's x/y scaling ({dx}, {dy}) is not a pixel size")
-    unit = _text(header["dataUnits"]) or "m"
     if names[index].lower().startswith("phase"):
         unit = "deg"  # Asylum keeps phase in degrees under the wave's length unit
     return AfmImage(

@@ -129,3 +129,12 @@ def test_import_lays_out_by_wave_offsets_and_merges(
     write_ibw(files[1], surface[None, :, 30:70], ["HeightRetrace"], pixel=pixel, first=(0, 0))
     assert main(["import", *map(str, files), "--out", str(tmp_path / "again")]) == 2
     assert "share a scan offset" in capsys.readouterr().err
+
+
+def test_a_single_unlabelled_length_wave_is_the_height(tmp_path: Path) -> None:
+    layers = _layers()[1:2]
+    path = tmp_path / "flattened.ibw"
+    write_ibw(path, layers, [], pixel=(2e-9, 2e-9), first=(0.0, 0.0))
+    image = read_image(path)
+    assert image.channels == ("scan0001 0",) and image.unit == "m"
+    np.testing.assert_array_equal(image.heights, layers[0].astype(np.float64))
