@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from backend.formats.exports import grid_triangles
 from merge.preview import afm_colors
 
 log = logging.getLogger("mosaic_afm.viewer")
@@ -65,15 +66,7 @@ def mesh_of(
     finite = np.isfinite(heights)
     fill = np.where(finite, heights, np.nanmin(heights) if finite.any() else 0.0)
     verts = np.stack([jj * dx, ii * dy, (fill - zero) * UM], axis=-1).reshape(-1, 3)
-    idx = np.arange(ny * nx).reshape(ny, nx)
-    a, b, c, d = idx[:-1, :-1], idx[:-1, 1:], idx[1:, :-1], idx[1:, 1:]
-    ok = (finite[:-1, :-1] & finite[:-1, 1:] & finite[1:, :-1] & finite[1:, 1:]).ravel()
-    faces = np.concatenate(
-        [
-            np.stack([a.ravel(), b.ravel(), d.ravel()], axis=1)[ok],
-            np.stack([a.ravel(), d.ravel(), c.ravel()], axis=1)[ok],
-        ]
-    )
+    faces = grid_triangles(finite)
     lo, hi = np.nanpercentile(heights, [1, 99]) if finite.any() else (0.0, 1.0)
     colours = afm_colors((heights - lo) / max(hi - lo, 1e-12)).reshape(-1, 3)
     origin = (hmap.origin[0] * UM, hmap.origin[1] * UM)

@@ -26,7 +26,7 @@ from numpy.typing import NDArray
 from backend.synthetic import patch_set_from_synth, registration_error
 from hardware.sim.drift import DriftModel
 from hardware.sim.surfaces import Surface
-from hardware.sim.synth import SynthPatch, synthesize, true_points
+from hardware.sim.synth import SynthPatch, true_points
 from merge import PatchTransform, render_mosaic
 from merge.overlap import overlapping_pairs
 from merge.transforms import rotation_about_z
@@ -181,18 +181,7 @@ def main(argv: list[str] | None = None) -> int:
     head = f"{'case':<14}{'CRB XY nm':>10}{'CRB Z nm':>10}{'CRB map':>9}{'floor':>8}"
     print(head + f"{'CRB/floor':>11}")
     for case in [c for c in CASES if c.name in args.cases.split(",")]:
-        surface = case.surface()
-        synth = synthesize(
-            surface,
-            rows=case.rows,
-            cols=case.cols,
-            patch_size=case.patch_size,
-            pixels=case.pixels,
-            overlap=case.overlap,
-            start=case.start,
-            drift=case.drift,
-            seed=case.seed,
-        )
+        surface, synth = case.synthesize()
         r = efficient_errors(synth, surface, case.drift, samples=args.samples)
         floor = floor_of(synth, surface) * 1e9
         rows.append({"case": case.name, **r, "floor_nm": floor})

@@ -59,6 +59,22 @@ class Case:
     paper_iter: int = 200
     seed: int = 1
 
+    def synthesize(self) -> tuple[Surface, list[SynthPatch]]:
+        """The case's surface and its patch set with the truth."""
+        surface = self.surface()
+        synth = synthesize(
+            surface,
+            rows=self.rows,
+            cols=self.cols,
+            patch_size=self.patch_size,
+            pixels=self.pixels,
+            overlap=self.overlap,
+            start=self.start,
+            drift=self.drift,
+            seed=self.seed,
+        )
+        return surface, synth
+
 
 def _real(name: str, pixel: tuple[float, float]) -> Callable[[], Surface]:
     def make() -> Surface:
@@ -177,18 +193,7 @@ def run_cli(args: list[str]) -> tuple[float, float, str]:
 
 
 def run_case(case: Case, work: Path) -> dict[str, Any]:
-    surface = case.surface()
-    synth = synthesize(
-        surface,
-        rows=case.rows,
-        cols=case.cols,
-        patch_size=case.patch_size,
-        pixels=case.pixels,
-        overlap=case.overlap,
-        start=case.start,
-        drift=case.drift,
-        seed=case.seed,
-    )
+    surface, synth = case.synthesize()
     ps = patch_set_from_synth(synth)
     folder = work / case.name
     write_patch_set(ps, folder / "patches")

@@ -32,16 +32,23 @@ def _surface(
     verts = np.stack(
         [origin[0] + jj * pixel_size[0], origin[1] + ii * pixel_size[1], z], axis=-1
     ).reshape(-1, 3)
+    return verts, grid_triangles(finite)
+
+
+def grid_triangles(finite: NDArray[np.bool_]) -> IntArray:
+    """Two triangles per grid cell whose four corners are finite, as ``(m, 3)`` indices into
+    the row-major flattened grid (the vertex order of a height map's points)."""
+    ny, nx = finite.shape
     idx = np.arange(ny * nx).reshape(ny, nx)
     a, b, c, d = idx[:-1, :-1], idx[:-1, 1:], idx[1:, :-1], idx[1:, 1:]
     ok = (finite[:-1, :-1] & finite[:-1, 1:] & finite[1:, :-1] & finite[1:, 1:]).ravel()
-    faces = np.concatenate(
+    faces: IntArray = np.concatenate(
         [
             np.stack([a.ravel(), b.ravel(), d.ravel()], axis=1)[ok],
             np.stack([a.ravel(), d.ravel(), c.ravel()], axis=1)[ok],
         ]
     )
-    return verts, faces
+    return faces
 
 
 def write_ply(path: Path, verts: FloatArray, faces: IntArray) -> None:
