@@ -8,6 +8,7 @@ Every reader returns an :class:`AfmImage` with rows along +y (see :mod:`.image`)
 
 from __future__ import annotations
 
+import struct
 from collections.abc import Callable
 from pathlib import Path
 
@@ -85,9 +86,18 @@ def read_image(
         raise FormatError(f"{p}: unknown AFM format {p.suffix!r}; readable: {READABLE}")
     if not p.is_file():
         raise FormatError(f"{p}: no such file")
-    if reader in (read_tiff, read_npy):
-        return reader(p, channel=channel, pixel_size=pixel_size)
-    return reader(p, channel=channel)
+    try:
+        if reader in (read_tiff, read_npy):
+            return reader(p, channel=channel, pixel_size=pixel_size)
+        return reader(p, channel=channel)
+    except FormatError:
+        raise
+    except (ValueError, KeyError, IndexError, AttributeError, TypeError, ArithmeticError,
+            struct.error, EOFError) as exc:  # fmt: skip
+        # a header field the reader did not expect to be broken: the file's fault, said so
+        raise FormatError(
+            f"{p}: corrupt or unsupported {p.suffix} file ({type(exc).__name__}: {exc})"[:500]
+        ) from None
 
 
 __all__ = [

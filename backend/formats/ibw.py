@@ -10,12 +10,24 @@ Gwyddion shows ``rot90`` of the layer, the same image top row first.
 
 from __future__ import annotations
 
+import contextlib
+import io
+import struct
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from backend.formats.image import AfmImage, FormatError, choose_channel
+
+#: Bytes per value of Igor's numeric wave types (TN003: NT_FP32 2, NT_FP64 4, NT_I8 8,
+#: NT_I16 0x10, NT_I32 0x20, unsigned with 0x40, complex with 0x01).
+_REAL = {2: 4, 4: 8, 8: 1, 0x10: 2, 0x20: 4}
+_ITEM_SIZE = {
+    **_REAL,
+    **{t | 0x40: n for t, n in _REAL.items() if t >= 8},
+    **{t | 0x01: 2 * n for t, n in _REAL.items()},
+}
 
 
 def _text(value: Any) -> str:
@@ -26,13 +38,41 @@ def _text(value: Any) -> str:
     return str(value)
 
 
+def _check_sizes(path: Path, head: bytes, size: int) -> None:
+    """Refuse a version 5 header whose sections cannot fit the file, before igor2 reads it
+    (it would try to read, and then walk, whatever sizes a corrupt header claims)."""
+    if len(head) < 64 + 320:
+        raise FormatError(f"{path}: truncated: the Igor headers need 384 bytes")
+    order = "<" if head[:2] == b"\x05\x00" else ">"
+    sections = struct.unpack_from(order + "14l", head, 4)  # wfmSize ... sIndicesSize
+    npnts, wave_type = struct.unpack_from(order + "lh", head, 64 + 12)
+    n_dim = struct.unpack_from(order + "4l", head, 64 + 68)
+    if min(sections) < 0 or 64 + sum(sections) > size:
+        raise FormatError(
+            f"{path}: truncated or corrupt: its header claims more than the file holds"
+        )
+    dims = [d for d in n_dim if d != 0]
+    if npnts < 0 or min(n_dim) < 0 or (dims and int(np.prod(dims)) != npnts):
+        raise FormatError(f"{path}: corrupt: {npnts} points do not fill dimensions {n_dim}")
+    if wave_type not in _ITEM_SIZE or sections[0] < 320 + npnts * _ITEM_SIZE[wave_type]:
+        raise FormatError(f"{path}: corrupt or not numeric: wave type {wave_type}")
+
+
 def _load(path: Path) -> dict[str, Any]:
     from igor2 import binarywave
 
+    with path.open("rb") as f:
+        head = f.read(384)
+    _check_sizes(path, head, path.stat().st_size)
+    # A parser of its own for every file: igor2.load reuses one per thread, and a corrupt
+    # file leaves it in a state that makes every later load slower (minutes after a few
+    # dozen bad uploads). igor2 also prints its parse errors, raw bytes and all, to stdout.
+    parser = binarywave.setup_wave(byte_order="=")
     try:
-        wave: dict[str, Any] = binarywave.load(str(path))["wave"]
+        with path.open("rb") as f, contextlib.redirect_stdout(io.StringIO()):
+            wave: dict[str, Any] = parser.unpack_stream(f)["wave"]
     except Exception as exc:  # igor2 raises anything from struct.error to AssertionError
-        raise FormatError(f"{path}: not a readable Igor binary wave ({exc!r})") from None
+        raise FormatError(f"{path}: not a readable Igor binary wave ({exc!r:.200})") from None
     return wave
 
 

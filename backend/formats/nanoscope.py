@@ -164,8 +164,10 @@ def read_nanoscope(path: str | Path, *, channel: str | None = None) -> AfmImage:
         z_text = image["@2:z scale"]
     except KeyError as exc:
         raise FormatError(f"{p}: image {names[index]!r} lacks {exc.args[0]!r}") from None
-    if bpp not in _DTYPES or nx < 1 or ny < 1:
-        raise FormatError(f"{p}: unsupported image layout ({nx} x {ny}, {bpp} bytes/pixel)")
+    if bpp not in _DTYPES or nx < 1 or ny < 1 or offset < 0:
+        raise FormatError(
+            f"{p}: unsupported image layout ({nx} x {ny}, {bpp} bytes/pixel at {offset})"
+        )
     if length < nx * ny * bpp:
         raise FormatError(
             f"{p}: image {names[index]!r} holds {length} bytes, needs {nx * ny * bpp}"

@@ -92,7 +92,8 @@ def test_wrong_or_cut_files_are_clear_errors(tmp_path: Path) -> None:
     bad = tmp_path / "bad.ibw"
     for content, message in (
         (b"hello", "not an Igor binary wave"),
-        (path.read_bytes()[:1000], "not a readable Igor binary wave"),
+        (path.read_bytes()[:1000], "truncated or corrupt"),
+        (path.read_bytes()[:200], "truncated: the Igor headers"),
     ):
         bad.write_bytes(content)
         with pytest.raises(FormatError, match=message):
