@@ -33,7 +33,6 @@ from merge.transforms import rotation_about_z
 
 FloatArray = NDArray[np.float64]
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "benchmarks"))
 
 
 def true_transforms(synth: Sequence[SynthPatch]) -> list[PatchTransform]:

@@ -146,26 +146,26 @@ def import_files(args: argparse.Namespace) -> int:
     return 0
 
 
+def _heights(path: Path) -> Any:
+    from backend.formats import read_image
+
+    return read_image(path).heights
+
+
 class _HeightReaders(dict[str, Any]):
-    """Suffix -> height reader; numbered NanoScope suffixes (``.000`` ...) resolve on demand."""
+    """Suffix -> height reader; suffixes it does not list but the formats read (the numbered
+    NanoScope captures ``.000`` ...) resolve on demand. ``.npy`` stays the merge's own."""
 
     def __missing__(self, suffix: str) -> Any:
-        from backend.formats import read_image, reader_for
-        from backend.formats.nanoscope import read_nanoscope
+        from backend.formats import reader_for
 
-        if suffix == ".npy" or reader_for(f"x{suffix}") is not read_nanoscope:
-            raise KeyError(suffix)  # the merge reads plain arrays itself
-        return lambda path: read_image(path).heights
+        if suffix == ".npy" or reader_for(f"x{suffix}") is None:
+            raise KeyError(suffix)
+        return _heights
 
 
 def height_readers() -> dict[str, Any]:
     """The merge's extra height-file readers: every format :mod:`backend.formats` reads."""
-    from backend.formats import READERS, read_image
+    from backend.formats import READERS
 
-    return _HeightReaders(
-        {
-            suffix: (lambda path: read_image(path).heights)
-            for suffix in READERS
-            if suffix != ".npy"  # the merge reads plain arrays itself
-        }
-    )
+    return _HeightReaders({suffix: _heights for suffix in READERS if suffix != ".npy"})

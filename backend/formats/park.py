@@ -52,23 +52,27 @@ def is_park(tags: Any) -> bool:
     return magic is not None and magic.value == MAGIC
 
 
+def _field_size(code: str) -> int:
+    """Bytes of one header field: ``U<n>`` is n UTF-16 characters, else a struct code."""
+    return 2 * int(code[1:]) if code.startswith("U") else struct.calcsize("<" + code)
+
+
 def _unpack(fields: list[tuple[str, str]], raw: bytes, at: int) -> tuple[dict[str, Any], int]:
     out: dict[str, Any] = {}
     for name, code in fields:
+        size = _field_size(code)
         if code.startswith("U"):
-            size = 2 * int(code[1:])
             text = raw[at : at + size].decode("utf-16-le", errors="replace")
             out[name] = text.split("\0", 1)[0].strip()
         else:
-            size = struct.calcsize("<" + code)
             out[name] = struct.unpack_from("<" + code, raw, at)[0]
         at += size
     return out, at
 
 
 def _header(raw: bytes, version: int, path: Path) -> dict[str, Any]:
-    need = sum(struct.calcsize("<" + c) if not c.startswith("U") else 2 * int(c[1:])
-               for _, c in _HEADER_V1 + (_HEADER_V2 if version == VERSIONS[1] else []))  # fmt: skip
+    fields = _HEADER_V1 + (_HEADER_V2 if version == VERSIONS[1] else [])
+    need = sum(_field_size(code) for _, code in fields)
     if len(raw) < need:
         raise FormatError(f"{path}: the Park header holds {len(raw)} bytes, needs {need}")
     header, at = _unpack(_HEADER_V1, raw, 0)
