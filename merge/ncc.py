@@ -14,6 +14,8 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import fft
 
+from merge.parallel import WORKERS
+
 FloatArray = NDArray[np.float64]
 
 
@@ -79,12 +81,12 @@ def masked_ncc(
     cols = np.r_[shape[1] - (wa - 1) : shape[1], 0:wb]
 
     def F(x: FloatArray) -> NDArray[np.complex128]:
-        out: NDArray[np.complex128] = fft.rfft2(x, shape, axes=(-2, -1))
+        out: NDArray[np.complex128] = fft.rfft2(x, shape, axes=(-2, -1), workers=WORKERS)
         return out
 
     def corr(x: NDArray[np.complex128], y: NDArray[np.complex128]) -> FloatArray:
         # reorder so index (ha - 1, wa - 1) is the zero shift, shifts from -(ha-1) to hb-1
-        full: FloatArray = fft.irfft2(np.conj(x) * y, shape, axes=(-2, -1))
+        full: FloatArray = fft.irfft2(np.conj(x) * y, shape, axes=(-2, -1), workers=WORKERS)
         out: FloatArray = full[..., rows[:, None], cols[None, :]]
         return out
 

@@ -1,0 +1,148 @@
+"""All patches of one refinement level as continuous surfaces, flattened for vectorized look-ups.
+
+Lengths are in units of ``scale`` (the median pixel size), so the unknowns of the solver are of
+order one. Every patch keeps its own frame: centred on its footprint, heights relative to its
+median. Its points (every ``stride``-th pixel) and its heights and slopes (one row per pixel,
+all patches end to end) feed the residuals of :mod:`merge.normal_system`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+from numpy.typing import NDArray
+
+from merge.heightfield import slopes, smooth_nan
+from merge.patchset import Patch
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.intp]
+
+
+class SurfaceBank:
+    """Heights, slopes and points of every patch of one level (lengths in pixel units).
+
+    Parameters
+    ----------
+    patches : sequence of Patch
+    scale : float
+        Unit of length, metres.
+    smooth : float
+        Gaussian smoothing of the heights, pixels (0: raw).
+    stride : int
+        Every ``stride``-th pixel of a patch along both axes is one of its points.
+    """
+
+    def __init__(self, patches: Sequence[Patch], scale: float, smooth: float, stride: int) -> None:
+        n = len(patches)
+        self.dx = np.array([p.pixel_size[0] / scale for p in patches])
+        self.dy = np.array([p.pixel_size[1] / scale for p in patches])
+        self.x0 = np.array([p.origin[0] / scale for p in patches])
+        self.y0 = np.array([p.origin[1] / scale for p in patches])
+        self.ny = np.array([p.shape[0] for p in patches], dtype=np.intp)
+        self.nx = np.array([p.shape[1] for p in patches], dtype=np.intp)
+        self.centre = np.zeros((n, 3))
+        self.radius = np.zeros(n)
+        self.half = np.zeros((n, 2))
+        surface, pts = [], []
+        self.offset = np.zeros(n, dtype=np.intp)
+        self.point_start = np.zeros(n + 1, dtype=np.intp)
+        total = 0
+        for c, p in enumerate(patches):
+            h = p.heights / scale
+            if smooth > 0:
+                h = smooth_nan(h, smooth)
+            ny, nx = h.shape
+            w, hh = (nx - 1) * self.dx[c], (ny - 1) * self.dy[c]
+            cx, cy = self.x0[c] + 0.5 * w, self.y0[c] + 0.5 * hh
+            self.centre[c] = (cx, cy, float(np.nanmedian(h)))
+            self.half[c] = (0.5 * w, 0.5 * hh)
+            self.radius[c] = float(np.hypot(0.5 * w, 0.5 * hh))
+            hl = h - self.centre[c, 2]
+            gx, gy = slopes(h, (self.dx[c], self.dy[c]))
+            self.offset[c] = total
+            total += h.size
+            surface.append(np.column_stack([hl.ravel(), gx.ravel(), gy.ravel()]))
+            ii, jj = np.meshgrid(np.arange(0, ny, stride), np.arange(0, nx, stride), indexing="ij")
+            keep = np.isfinite(h[ii, jj])
+            ii, jj = ii[keep], jj[keep]
+            pts.append(
+                np.column_stack(
+                    [
+                        self.x0[c] + jj * self.dx[c] - cx,
+                        self.y0[c] + ii * self.dy[c] - cy,
+                        hl[ii, jj],
+                    ]
+                )
+            )
+            self.point_start[c + 1] = self.point_start[c] + len(ii)
+        # (pixels, 3): height, dh/dx, dh/dy of every pixel, so one gather fetches all three
+        self.surface = np.concatenate(surface)
+        self.points = np.concatenate(pts)
+
+    def lookup(
+        self, dst: IntArray, p_local: FloatArray
+    ) -> tuple[FloatArray, FloatArray, FloatArray, NDArray[np.bool_]]:
+        """Height (local), slopes and validity of patch ``dst[i]`` under local point ``i``.
+
+        Bilinear in the pixel grid; points outside the patch or next to a hole are not valid
+        (their values are meaningless).
+        """
+        nx, ny = self.nx[dst], self.ny[dst]
+        u = (p_local[:, 0] + self.half[dst, 0]) / self.dx[dst]
+        v = (p_local[:, 1] + self.half[dst, 1]) / self.dy[dst]
+        inside = (u >= 0) & (u <= nx - 1) & (v >= 0) & (v <= ny - 1)
+        i0 = np.clip(np.floor(v).astype(np.intp), 0, ny - 2)
+        j0 = np.clip(np.floor(u).astype(np.intp), 0, nx - 2)
+        fv, fu = np.clip(v - i0, 0.0, 1.0)[:, None], np.clip(u - j0, 0.0, 1.0)[:, None]
+        k = self.offset[dst] + i0 * nx + j0
+        a = self.surface
+        top = a[k] + fu * (a[k + 1] - a[k])
+        val = top + fv * (a[k + nx] + fu * (a[k + nx + 1] - a[k + nx]) - top)
+        ok = inside & np.isfinite(val).all(axis=1)
+        return val[:, 0], val[:, 1], val[:, 2], ok
+
+    def candidates(
+        self, pairs: IntArray, R: FloatArray, s: FloatArray, margin: float
+    ) -> tuple[IntArray, IntArray, IntArray, IntArray]:
+        """Points of every source patch that may fall on every destination patch.
+
+        ``R`` (n, 3, 3) and ``s`` (n, 3) place every patch frame in the mosaic; ``margin``
+        (pixel units) widens every outline. Returns per row the source patch, destination patch
+        and global point index, plus the start of every directed pair's run of rows (runs are
+        contiguous).
+        """
+        src_l, dst_l, idx_l, starts = [], [], [], [0]
+        # Both ways: the points of each patch against the other's surface, which averages the
+        # interpolation of either surface (Jacobians act on both patches of a pair).
+        for a, b in pairs.tolist():
+            for src, dst in ((a, b), (b, a)):
+                # the destination's outline in the source's local frame
+                hx, hy = self.half[dst]
+                corners = np.array([[-hx, -hy, 0], [hx, -hy, 0], [hx, hy, 0], [-hx, hy, 0]])
+                loc = (corners @ (R[src].T @ R[dst]).T) + R[src].T @ (s[dst] - s[src])
+                lo = loc[:, :2].min(axis=0) - margin
+                hi = loc[:, :2].max(axis=0) + margin
+                p = self.points[self.point_start[src] : self.point_start[src + 1]]
+                sel = np.flatnonzero(
+                    (p[:, 0] >= lo[0])
+                    & (p[:, 0] <= hi[0])
+                    & (p[:, 1] >= lo[1])
+                    & (p[:, 1] <= hi[1])
+                )
+                if len(sel) == 0:
+                    continue
+                src_l.append(np.full(len(sel), src, dtype=np.intp))
+                dst_l.append(np.full(len(sel), dst, dtype=np.intp))
+                idx_l.append(sel + self.point_start[src])
+                starts.append(starts[-1] + len(sel))
+        if not idx_l:
+            e = np.empty(0, dtype=np.intp)
+            return e, e, e, np.zeros(1, dtype=np.intp)
+        return (
+            np.concatenate(src_l),
+            np.concatenate(dst_l),
+            np.concatenate(idx_l),
+            np.array(starts, dtype=np.intp),
+        )

@@ -1,0 +1,346 @@
+"""The Gauss-Newton normal system of the default method, and its damped solution.
+
+Every row is one point of a source patch over a destination patch: its residual is the height
+of the point above the destination's surface (drift plane included), weighted to a distance
+along the surface normal, and re-weighted with a Cauchy function of the robust residual scale.
+Each patch has six unknowns, in pixel units: translation (3), spin about z times the patch
+radius, and the drift plane times the radius. The system is sparse: one 6 x 6 block per patch and
+per overlapping pair.
+
+Rows come in runs, one per directed pair (source, destination). They are processed in blocks of
+whole runs, so the temporaries stay a few megabytes however large the mosaic (large temporaries
+cost page faults on every allocation, which dominated the time of 400-patch mosaics), and the
+blocks are shared among the cores (:mod:`merge.parallel`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.sparse import coo_matrix
+from scipy.sparse.linalg import spsolve
+
+from merge.bank import SurfaceBank
+from merge.parallel import each
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.intp]
+Candidates = tuple[IntArray, IntArray, IntArray, IntArray]
+
+#: Rows per block of the system build (whole runs are kept together).
+BLOCK_ROWS = 1 << 16
+
+
+@dataclass(frozen=True)
+class PatchState:
+    """Where every patch is, in pixel units: ``q = R p_local + s + e_z (slope · p_local_xy)``.
+
+    ``R`` (n, 3, 3) rotations, ``s`` (n, 3) the mosaic position of each patch frame's origin,
+    ``slope`` (n, 2) the drift plane (dz/dx, dz/dy) of each patch.
+    """
+
+    R: FloatArray
+    s: FloatArray
+    slope: FloatArray
+
+
+@dataclass(frozen=True)
+class NormalSystem:
+    """The sparse system ``A x = g`` (6 unknowns per patch) and fit statistics.
+
+    ``rows``, ``cols``, ``vals`` are the triplets of ``A``; ``g`` (n, 6); per patch ``count``
+    (n,) residuals that involve it, ``sq`` (n,) the sum of their squared normal distances and
+    ``diag`` (n, 6, 6) its own information block; ``rms`` and ``rscale`` (robust scale) of the
+    normal distances, pixel units.
+    """
+
+    rows: IntArray
+    cols: IntArray
+    vals: FloatArray
+    g: FloatArray
+    count: FloatArray
+    sq: FloatArray
+    diag: FloatArray
+    rms: float
+    rscale: float = 0.0
+
+
+def _blocks(starts: IntArray, rows: int) -> list[tuple[int, int]]:
+    """Ranges ``[first, last)`` of runs holding about ``rows`` rows each (at least one run)."""
+    out = []
+    k = len(starts) - 1
+    first = 0
+    while first < k:
+        last = int(np.searchsorted(starts, starts[first] + rows, side="right")) - 1
+        last = min(max(last, first + 1), k)
+        out.append((first, last))
+        first = last
+    return out
+
+
+def build_normal_system(
+    bank: SurfaceBank,
+    cand: Candidates,
+    state: PatchState,
+    noise: float,
+    *,
+    block_rows: int = BLOCK_ROWS,
+) -> NormalSystem:
+    """The Gauss-Newton system over all correspondences, and per-patch statistics.
+
+    Parameters
+    ----------
+    bank : SurfaceBank
+        The patches of this level.
+    cand : tuple of int arrays
+        ``(src, dst, idx, starts)`` from :meth:`SurfaceBank.candidates`.
+    state : PatchState
+        Current placement of every patch.
+    noise : float
+        Height noise, pixel units: the least robust scale.
+    block_rows : int, keyword-only
+        Rows per block; changes memory and speed, never the result.
+    """
+    n = len(bank.centre)
+    src, dst, idx, starts = cand
+    empty_i = np.empty(0, dtype=np.intp)
+    empty = NormalSystem(
+        empty_i,
+        empty_i,
+        np.empty(0),
+        np.zeros((n, 6)),
+        np.zeros(n),
+        np.zeros(n),
+        np.zeros((n, 6, 6)),
+        0.0,
+    )
+    if len(idx) == 0:
+        return empty
+    blocks = _blocks(starts, block_rows)
+    # pass 1: residual, slopes and lever arm of every row; the robust scale needs all of them
+    m = len(idx)
+    r, w_plane, arm = np.empty(m), np.empty(m), np.empty((m, 2))
+    grad = np.empty((m, 2))
+
+    def residuals(block: tuple[int, int]) -> None:
+        lo, hi = starts[block[0]], starts[block[1]]
+        r[lo:hi], w_plane[lo:hi], grad[lo:hi], arm[lo:hi] = _residuals(
+            bank, src[lo:hi], dst[lo:hi], idx[lo:hi], state
+        )
+
+    each(residuals, blocks)
+    d = r * np.sqrt(w_plane)
+    ok = w_plane > 0
+    used = np.abs(d[ok])
+    if used.size == 0:
+        return empty
+    rscale = max(1.4826 * float(np.median(used)), noise)
+    w = w_plane / (1.0 + (d / (3.0 * rscale)) ** 2)
+    # pass 2: per run, the source's information block and gradient
+    k = len(starts) - 1
+    Baa, ga = np.empty((k, 6, 6)), np.empty((k, 6))
+
+    def information(block: tuple[int, int]) -> None:
+        first, last = block
+        lo, hi = starts[first], starts[last]
+        J = _jacobians(
+            bank, src[lo:hi], dst[lo:hi], idx[lo:hi], state, grad[lo:hi], ok[lo:hi], arm[lo:hi]
+        )
+        Baa[first:last], ga[first:last] = segment_sums(
+            J, w[lo:hi], r[lo:hi], starts[first : last + 1] - lo
+        )
+
+    each(information, blocks)
+    count = np.bincount(src[ok], minlength=n) + np.bincount(dst[ok], minlength=n)
+    d2 = d**2
+    sq = np.asarray(
+        np.bincount(src, weights=d2, minlength=n) + np.bincount(dst, weights=d2, minlength=n),
+        dtype=np.float64,
+    )
+    rows, cols, vals, g, diag = _assemble(bank, state, src[starts[:-1]], dst[starts[:-1]], Baa, ga)
+    return NormalSystem(
+        rows=rows,
+        cols=cols,
+        vals=vals,
+        g=g,
+        diag=diag,
+        count=count.astype(np.float64),
+        sq=sq,
+        rms=float(np.sqrt(np.mean(used**2))),
+        rscale=rscale,
+    )
+
+
+def _residuals(
+    bank: SurfaceBank, src: IntArray, dst: IntArray, idx: IntArray, state: PatchState
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+    """Per row: residual, plane weight (0 where invalid), normal slopes (m, 2), lever arm (m, 2).
+
+    The residual is the height of the source point above the destination's surface and drift
+    plane; its gradient with respect to the mosaic position is the destination's normal
+    ``(-slope_x, -slope_y, 1)``, whose squared length divides the plane weight.
+    """
+    R, s, slope = state.R, state.s, state.slope
+    p_src = bank.points[idx]
+    rot = np.einsum("mij,mj->mi", R[src], p_src)
+    q = rot + s[src]
+    q[:, 2] += np.einsum("mi,mi->m", slope[src], p_src[:, :2])
+    p_dst = np.einsum("mji,mj->mi", R[dst], q - s[dst])
+    h, gx, gy, ok = bank.lookup(dst, p_dst)
+    r = np.where(ok, p_dst[:, 2] - np.einsum("mi,mi->m", slope[dst], p_dst[:, :2]) - h, 0.0)
+    grad = np.column_stack([gx, gy]) + slope[dst]
+    grad[~ok] = 0.0
+    w_plane = np.where(ok, 1.0 / np.maximum(1.0 + np.einsum("ij,ij->i", grad, grad), 1.0), 0.0)
+    return r, w_plane, grad, rot[:, :2]
+
+
+def _jacobians(
+    bank: SurfaceBank,
+    src: IntArray,
+    dst: IntArray,
+    idx: IntArray,
+    state: PatchState,
+    grad: FloatArray,
+    ok: NDArray[np.bool_],
+    arm: FloatArray,
+) -> FloatArray:
+    """(m, 6) derivative of every residual with respect to its source patch's unknowns."""
+    nrm = np.column_stack([-grad, ok.astype(np.float64)])
+    m = np.einsum("mij,mj->mi", state.R[dst], nrm)
+    rho = bank.radius[src, None]
+    spin = (m[:, 1] * arm[:, 0] - m[:, 0] * arm[:, 1])[:, None]
+    return np.concatenate([m, spin / rho, bank.points[idx, :2] / rho], axis=1)
+
+
+_IU = np.triu_indices(6)
+
+
+def segment_sums(
+    J: FloatArray, w: FloatArray, r: FloatArray, starts: IntArray
+) -> tuple[FloatArray, FloatArray]:
+    """Per run of rows ``starts[k]:starts[k + 1]``: ``Σ w J J'`` (k, 6, 6) and ``Σ w r J`` (k, 6).
+
+    ``J`` (m, 6), ``w`` and ``r`` (m,); runs are non-empty and cover the rows from
+    ``starts[0]`` on. Only the 21 distinct products of the symmetric outer product are formed.
+    """
+    wJ = J * w[:, None]
+    grad = np.add.reduceat(wJ * r[:, None], starts[:-1], axis=0)
+    upper = np.add.reduceat(wJ[:, _IU[0]] * J[:, _IU[1]], starts[:-1], axis=0)
+    B = np.empty((len(starts) - 1, 6, 6))
+    B[:, _IU[0], _IU[1]] = upper
+    B[:, _IU[1], _IU[0]] = upper
+    return B, grad
+
+
+def _assemble(
+    bank: SurfaceBank,
+    state: PatchState,
+    a_seg: IntArray,
+    b_seg: IntArray,
+    Baa: FloatArray,
+    ga: FloatArray,
+) -> tuple[IntArray, IntArray, FloatArray, FloatArray, FloatArray]:
+    """Triplets of ``A``, ``g`` and the diagonal blocks from every run's source block.
+
+    Within one directed pair the destination's Jacobian is a fixed linear map of the source's,
+    ``Jb = -T Ja`` (rotations about z): its spin arm is the source's plus ``Δ = s_a - s_b``,
+    and its plane arm ``(x', y') = M (x_a, y_a) + c`` with ``M = [R_b' R_a]_xy`` and
+    ``c = [R_b' Δ]_xy``.
+    """
+    n = len(bank.centre)
+    R, s = state.R, state.s
+    rho_a, rho_b = bank.radius[a_seg], bank.radius[b_seg]
+    delta = s[a_seg] - s[b_seg]
+    RbRa = np.einsum("kji,kjl->kil", R[b_seg], R[a_seg])
+    c = np.einsum("kji,kj->ki", R[b_seg], delta)
+    T = np.zeros((len(a_seg), 6, 6))
+    T[:, [0, 1, 2], [0, 1, 2]] = 1.0
+    T[:, 3, 0], T[:, 3, 1], T[:, 3, 3] = -delta[:, 1] / rho_b, delta[:, 0] / rho_b, rho_a / rho_b
+    for row, k in ((4, 0), (5, 1)):
+        T[:, row, 2] = c[:, k] / rho_b
+        T[:, row, 4] = RbRa[:, k, 0] * rho_a / rho_b
+        T[:, row, 5] = RbRa[:, k, 1] * rho_a / rho_b
+    Tt = np.swapaxes(T, 1, 2)
+    Bbb = T @ Baa @ Tt
+    Bab = -(Baa @ Tt)
+    g = np.zeros((n, 6))
+    diag = np.zeros((n, 6, 6))
+    np.add.at(g, a_seg, -ga)
+    np.add.at(g, b_seg, np.einsum("kij,kj->ki", T, ga))
+    np.add.at(diag, a_seg, Baa)
+    np.add.at(diag, b_seg, Bbb)
+    ii, jj = np.meshgrid(np.arange(6), np.arange(6), indexing="ij")
+
+    def triplets(
+        ra: IntArray, cb: IntArray, blk: FloatArray
+    ) -> tuple[IntArray, IntArray, FloatArray]:
+        return (
+            (ra[:, None, None] * 6 + ii).ravel(),
+            (cb[:, None, None] * 6 + jj).ravel(),
+            blk.ravel(),
+        )
+
+    parts = [
+        triplets(a_seg, a_seg, Baa),
+        triplets(b_seg, b_seg, Bbb),
+        triplets(a_seg, b_seg, Bab),
+        triplets(b_seg, a_seg, np.swapaxes(Bab, 1, 2)),
+    ]
+    return (
+        np.concatenate([x[0] for x in parts]),
+        np.concatenate([x[1] for x in parts]),
+        np.concatenate([x[2] for x in parts]),
+        g,
+        diag,
+    )
+
+
+@dataclass(frozen=True)
+class Priors:
+    """Gaussian priors on the absolute state, in the scaled units of the unknowns (pixels)."""
+
+    plane: FloatArray  # (n, 2) drift plane times radius
+    plane_sigma: float
+    shift: FloatArray  # (n, 2) XY offset from the start
+    shift_sigma: float
+    spin: FloatArray  # (n,) rotation about z times radius
+    spin_sigma: FloatArray  # (n,)
+
+
+def solve_system(system: NormalSystem, priors: Priors) -> FloatArray:
+    """Damped solution of the system: ``(n, 6)`` updates (translation, scaled spin and plane).
+
+    A prior ``|value / sigma|²`` enters with the weight the data have per unit residual
+    (``1 / residual scale²``), so it is a proper posterior, not a tuning knob.
+    """
+    n = len(system.g)
+    rows, cols, vals = system.rows, system.cols, system.vals
+    # Levenberg damping relative to each patch's own curvature: directions a patch's data do not
+    # constrain (XY on a flat overlap) stay put instead of following noise
+    on_diag = rows == cols
+    dvals = np.bincount(rows[on_diag], weights=vals[on_diag], minlength=6 * n).reshape(n, 6)
+    lam = np.broadcast_to(1e-4 * dvals.max(axis=1, keepdims=True) + 1e-12, (n, 6)).copy()
+    g = system.g.copy()
+    if system.rscale > 0:
+        r2 = system.rscale**2
+        for cols_, value, sigma in (
+            ([4, 5], priors.plane, np.full((n, 1), priors.plane_sigma)),
+            ([0, 1], priors.shift, np.full((n, 1), priors.shift_sigma)),
+            ([3], priors.spin[:, None], priors.spin_sigma[:, None]),
+        ):
+            k = r2 / np.asarray(sigma, dtype=np.float64) ** 2
+            lam[:, cols_] += k
+            g[:, cols_] -= k * value
+    idx = np.arange(6 * n)
+    M = coo_matrix(
+        (
+            np.concatenate([vals, lam.ravel()]),
+            (np.concatenate([rows, idx]), np.concatenate([cols, idx])),
+        ),
+        shape=(6 * n, 6 * n),
+    ).tocsc()
+    x = spsolve(M, g.ravel())
+    out: FloatArray = np.asarray(x, dtype=np.float64).reshape(n, 6)
+    return out
