@@ -1,14 +1,14 @@
 """What an efficient merge could reach: the Cramér-Rao bound of a synthetic patch set.
 
 The Fisher information of all patch corrections (per patch: translation, rotation about z,
-drift plane) is built from the true surface slopes at every overlap point, with the noise of
-the heights (white plus per-line, taken as independent: an optimistic bound) and each noise
-sample counted once (residuals of one patch of every pair against the other). Correction
+drift plane) is built from the true surface slopes at every overlap point, with the white
+noise of the heights and the per-line offsets as unknowns of their own (marginalised out), each
+noise sample counted once (residuals of one patch of every pair against the other). Correction
 errors drawn from its inverse, applied to the true transforms and rendered like any merge,
 give the registration and map errors of an unbiased estimator that uses all the information
 in the data -- the reference for what a target on the map error can ask.
 
-Run: ``python benchmarks/crb.py [--cases tgx1,folded] [--samples 8]``.
+Run: ``python benchmarks/crb.py [--cases tgx1,folded] [--samples 32]``.
 """
 
 from __future__ import annotations
@@ -74,6 +74,7 @@ def fisher_information(
     drift: DriftModel,
     *,
     sampled: bool = True,
+    line_offsets: bool = True,
     eps: float = 1e-10,
 ) -> tuple[FloatArray, FloatArray]:
     """Fisher information ``(6n, 6n)`` of the corrections (t [m], θ [rad], plane slopes) and
@@ -81,14 +82,23 @@ def fisher_information(
 
     ``sampled``: the slopes a pixel grid shows (central differences of the true heights at the
     pixels), which is what any estimator working on the scans can use; else the continuous
-    surface's slopes, which also count detail finer than the pixels (a looser bound)."""
+    surface's slopes, which also count detail finer than the pixels (a looser bound).
+    ``line_offsets``: the per-line noise as what it is, one unknown offset per scan line with
+    a Gaussian prior, marginalised out (its information taken off by a Schur complement); else
+    counted as white noise (optimistic: a line's offset then averages out along the line)."""
     n = len(synth)
+    line_offsets = line_offsets and drift.line_noise > 0
     info = np.zeros((6 * n, 6 * n))
+    line_start = np.cumsum([0] + [s.heights.shape[0] for s in synth])
+    nl = int(line_start[-1]) if line_offsets else 0
+    cross = np.zeros((6 * n, nl))  # unknowns x line offsets
+    lines = np.zeros((nl, nl))
     q_all = [true_points(s).reshape(-1, 3) for s in synth]
     centres = np.array([q[:, :2].mean(axis=0) for q in q_all])
     tr = true_transforms(synth)
     boxes = np.array([[*q[:, :2].min(axis=0), *q[:, :2].max(axis=0)] for q in q_all])
-    var = (drift.noise**2 + drift.line_noise**2) * (1.0 + 4.0 / 9.0)
+    white = drift.noise**2 + (0.0 if line_offsets else drift.line_noise**2)
+    var = white * (1.0 + 4.0 / 9.0)
     for a, b in overlapping_pairs(boxes, margin=0.0).tolist():
         sb = synth[b]
         q = q_all[a]
@@ -101,6 +111,8 @@ def fisher_information(
         if not inside.any():
             continue
         q, pb = q[inside], pb[inside]
+        row_a = np.repeat(np.arange(synth[a].heights.shape[0]), synth[a].heights.shape[1])[inside]
+        v_in = v[inside]
         if sampled:
             hx, hy = _sampled_slopes(sb, surface, u[inside], v[inside]).T
         else:
@@ -118,6 +130,22 @@ def fisher_information(
         J[:, 10:12] = -(pb[:, :2] - tr[b].centre)
         idx = np.r_[6 * a : 6 * a + 6, 6 * b : 6 * b + 6]
         info[np.ix_(idx, idx)] += J.T @ J / var
+        if line_offsets:
+            # the residual holds a's line offset, minus b's interpolated between two lines
+            j0 = np.clip(np.floor(v_in).astype(int), 0, ny - 2)
+            fv = v_in - j0
+            L = np.zeros((len(q), nl))
+            rows = np.arange(len(q))
+            L[rows, line_start[a] + row_a] = 1.0
+            np.add.at(L, (rows, line_start[b] + j0), -(1 - fv))
+            np.add.at(L, (rows, line_start[b] + j0 + 1), -fv)
+            used = np.flatnonzero(L.any(axis=0))
+            L = L[:, used]
+            cross[np.ix_(idx, used)] += J.T @ L / var
+            lines[np.ix_(used, used)] += L.T @ L / var
+    if line_offsets and nl:
+        lines[np.diag_indices(nl)] += 1.0 / drift.line_noise**2
+        info -= cross @ np.linalg.solve(lines, cross.T)
     return info, centres
 
 
@@ -147,9 +175,18 @@ def efficient_errors(
     from merge_bench import map_error
 
     info, centres = fisher_information(synth, surface, drift, sampled=sampled)
-    w, V = np.linalg.eigh(info)
-    keep = w > 1e-9 * w.max()  # the gauge (common motions) has no information, and no error
-    scale = V[:, keep] / np.sqrt(w[keep])
+    # in like units (spin and drift plane times the patch radius, metres) the gauge — the common
+    # motions, which no data see — is the only null space; unscaled, the plane and spin modes
+    # (information ~radius² smaller) would fall under the threshold and count as error-free
+    radius = np.array(
+        [0.5 * np.hypot(*np.ptp(true_points(s)[..., :2].reshape(-1, 2), axis=0)) for s in synth]
+    )
+    D = np.ones((len(synth), 6))
+    D[:, 3:] = radius[:, None]
+    d = D.ravel()
+    w, V = np.linalg.eigh(info / np.outer(d, d))
+    keep = w > 1e-9 * w.max()
+    scale = V[:, keep] / np.sqrt(w[keep]) / d[:, None]
     rng = np.random.default_rng(seed)
     patches = patch_set_from_synth(synth).patches
     xy, z, mp = [], [], []
@@ -173,7 +210,7 @@ def main(argv: list[str] | None = None) -> int:
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--cases", default="tgx1,folded,tgx1-harsh,folded-harsh,mos2-real")
-    parser.add_argument("--samples", type=int, default=8)
+    parser.add_argument("--samples", type=int, default=32)
     parser.add_argument("--json", default=str(ROOT / "benchmarks" / "results" / "crb.json"))
     args = parser.parse_args(argv)
     rows: list[dict[str, Any]] = []
