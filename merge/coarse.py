@@ -34,6 +34,9 @@ IntArray = NDArray[np.intp]
 MIN_SCORE = 0.3
 #: NCC given up at the search radius to break ties toward the expected shift (see find_peak).
 SHIFT_PRIOR = 0.05
+#: Correlation peaks within this NCC of the best are equally likely (a grating's period apart):
+#: the one nearest the expected shift wins.
+AMBIGUITY = 0.1
 #: Best precision of a correlation peak, cells.
 PRECISION = 0.1
 #: Information along an edge below this fraction of that across it counts as none.
@@ -268,6 +271,7 @@ def coarse_start(
                 radius=(rad, rad),
                 min_overlap=min_overlap(i),
                 prior=SHIFT_PRIOR,
+                ambiguity=AMBIGUITY,
             )
         accept(i, peak)
 
@@ -301,6 +305,7 @@ def coarse_start(
                             radius=(radius, radius),
                             min_overlap=min_overlap(i),
                             prior=SHIFT_PRIOR,
+                            ambiguity=AMBIGUITY,
                         ),
                     )
         sol = solve_pair_differences(n, pairs, xy_m, xy_w, prior=xy_prior)

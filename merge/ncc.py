@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy import fft
+from scipy import fft, ndimage
 
 from merge.parallel import WORKERS
 
@@ -137,6 +137,7 @@ def best_shift(
     radius: tuple[float, float] | None = None,
     min_overlap: int = 16,
     prior: float = 0.0,
+    ambiguity: float = 0.0,
 ) -> CorrelationPeak | None:
     """The NCC peak within ``radius`` (pixels per axis) of the ``expected`` shift ``(dy, dx)``.
 
@@ -148,7 +149,14 @@ def best_shift(
     """
     ncc, count, zero = masked_ncc(a, b, weights=weights)
     return find_peak(
-        ncc, count, zero, expected=expected, radius=radius, min_overlap=min_overlap, prior=prior
+        ncc,
+        count,
+        zero,
+        expected=expected,
+        radius=radius,
+        min_overlap=min_overlap,
+        prior=prior,
+        ambiguity=ambiguity,
     )
 
 
@@ -161,12 +169,18 @@ def find_peak(
     radius: tuple[float, float] | None = None,
     min_overlap: int = 16,
     prior: float = 0.0,
+    ambiguity: float = 0.0,
 ) -> CorrelationPeak | None:
     """The peak of one NCC map from :func:`masked_ncc` (see :func:`best_shift`).
 
     ``prior`` is subtracted from the score at the edge of the search radius, quadratically
     less closer in: among near-equal peaks (the ridge a straight edge or a grating draws along
     its own direction) the one nearest the expected shift wins.
+
+    ``ambiguity``: separate peaks scoring within this much of the best are taken as equally
+    likely — a periodic structure repeats its peak one period apart, and which of them scores
+    highest then depends on noise and on what the overlap happens to hold — and the one nearest
+    the expected shift wins.
     """
     ky = np.arange(ncc.shape[0]) - zero[0]
     kx = np.arange(ncc.shape[1]) - zero[1]
@@ -182,7 +196,18 @@ def find_peak(
             (kx - expected[1]) / max(radius[1], 1e-9)
         )[None, :] ** 2
         score = score - prior * d2
-    iy, ix = np.unravel_index(int(np.argmax(score)), score.shape)
+    flat_best = np.unravel_index(int(np.argmax(score)), score.shape)
+    iy, ix = int(flat_best[0]), int(flat_best[1])
+    if ambiguity > 0:
+        best = score[iy, ix]
+        local = (score == ndimage.maximum_filter(score, size=3, mode="constant", cval=-np.inf)) & (
+            score >= best - ambiguity
+        )
+        cy, cx = np.nonzero(local)
+        if len(cy) > 1:
+            dist2 = (ky[cy] - expected[0]) ** 2 + (kx[cx] - expected[1]) ** 2
+            k = int(np.argmin(dist2))
+            iy, ix = int(cy[k]), int(cx[k])
     sub = [0.0, 0.0]
     border = False
     for axis, (i, n_axis) in enumerate(((iy, ncc.shape[0]), (ix, ncc.shape[1]))):

@@ -24,6 +24,10 @@ Gauge: after every step the common motion of all patches (rotation about z, a Z 
 translation — none changes any residual) is removed: the mean rotation and mean drift plane are
 zero, and the patch points move on average by zero from their nominal places (:mod:`merge.gauge`),
 so the mosaic cannot drift away from the stage frame.
+
+Pieces: :mod:`merge.bank` holds the patches as surfaces, :mod:`merge.normal_system` builds and
+solves the Gauss-Newton system; this module holds the schedule, the state of every patch and the
+per-patch quality report.
 """
 
 from __future__ import annotations

@@ -45,3 +45,33 @@ def test_channels_are_averaged() -> None:
     assert count[zero] == 900
     with pytest.raises(ValueError, match="channel"):
         masked_ncc(np.stack([a, a]), a[None])
+
+
+def _grating(shift: int, noise_seed: int) -> np.ndarray:
+    # stripes with a period of 10 px along x on a texture that varies along y only: the NCC
+    # peak is unique along y and repeats every 10 px along x, nearly equal
+    x = np.arange(60)[None, :] + shift
+    rows = gaussian_filter(np.random.default_rng(0).normal(size=40), 2)[:, None]
+    noise = np.random.default_rng(noise_seed).normal(0, 0.05, (40, 60))
+    out: np.ndarray = np.sin(2 * np.pi * x / 10.0) + 3.0 * rows + noise
+    return out
+
+
+@pytest.mark.parametrize(("expected_dx", "chosen_dx"), [(1.0, 3), (11.0, 13), (-9.0, -7)])
+def test_among_peaks_a_period_apart_the_one_nearest_the_expected_shift_wins(
+    expected_dx: float, chosen_dx: int
+) -> None:
+    # b[y, x] = a[y, x + 3]: the true shift is 3 px, and 3 +- 10 k look the same
+    a, b = _grating(3, 1), _grating(0, 2)
+    peak = best_shift(a, b, expected=(0.0, expected_dx), min_overlap=200, ambiguity=0.1)
+    assert peak is not None
+    assert peak.integer_shift == (0, chosen_dx)
+
+
+def test_a_unique_peak_wins_however_far_from_the_expected_shift() -> None:
+    big = texture(4, (90, 90))
+    a = big[10:50, 10:50]
+    b = big[4:44, 19:59]  # shift (6, -9)
+    peak = best_shift(a, b, expected=(0.0, 0.0), min_overlap=200, ambiguity=0.1)
+    assert peak is not None
+    assert peak.integer_shift == (6, -9)
