@@ -5,7 +5,7 @@ offsets can differ by hundreds of nanometres, far more than the grid spacing: a 
 nearest-neighbour search would pair the wrong points. So first, for every overlapping pair, a
 masked normalized cross-correlation of the down-sampled heights and slopes (``_channels``)
 measures the XY shift — it is blind to Z offsets by construction; of peaks a period apart (a
-grating) that score alike, the one nearest the nominal shift wins — and the median height
+grating) that score alike, the one nearest the expected shift wins — and the median height
 difference at that shift measures the Z offset. All patches are then solved at once from these
 pairwise differences (:mod:`merge.network`), with robust weights and with each pair's XY
 information as a 2 x 2 matrix (a straight edge fixes only its normal), and a second pass
