@@ -29,6 +29,8 @@ FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
 Candidates = tuple[IntArray, IntArray, IntArray, IntArray]
 
+#: Levenberg damping, relative to the largest curvature of each patch's own unknowns.
+DAMPING = 1e-4
 #: Rows per block of the system build (whole runs are kept together).
 BLOCK_ROWS = 1 << 16
 
@@ -321,7 +323,7 @@ def solve_system(system: NormalSystem, priors: Priors) -> FloatArray:
     # constrain (XY on a flat overlap) stay put instead of following noise
     on_diag = rows == cols
     dvals = np.bincount(rows[on_diag], weights=vals[on_diag], minlength=6 * n).reshape(n, 6)
-    lam = np.broadcast_to(1e-4 * dvals.max(axis=1, keepdims=True) + 1e-12, (n, 6)).copy()
+    lam = np.broadcast_to(DAMPING * dvals.max(axis=1, keepdims=True) + 1e-12, (n, 6)).copy()
     g = system.g.copy()
     if system.rscale > 0:
         r2 = system.rscale**2
