@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import logging
 import multiprocessing as mp
+import os
 import queue
 import threading
 from dataclasses import dataclass
@@ -34,6 +35,9 @@ STATES = ("queued", "running", "done", "failed", "cancelled")
 FINAL = frozenset({"done", "failed", "cancelled"})
 #: Seconds a cancelled worker gets to stop on its own before it is terminated.
 CANCEL_GRACE = 5.0
+#: Niceness of the worker process: the merge uses every core the server and the instrument
+#: leave idle, and yields them whenever those need them.
+WORKER_NICENESS = 10
 
 
 class JobError(RuntimeError):
@@ -55,6 +59,8 @@ def _merge_child(
     patches: list[PatchInput], options: dict[str, Any], out: Any, cancel: MpEvent
 ) -> None:
     """Worker process: merge, report progress, send the result (or the error) back."""
+    if hasattr(os, "nice"):
+        os.nice(WORKER_NICENESS)
     import merge
     from merge.result import result_document
 
