@@ -10,8 +10,12 @@ method and scores the result:
   the floor — the true transforms through the same renderer — for comparison;
 * wall time and peak memory of the CLI process.
 
+Then the default method again on further draws of texture, drift and noise of every case but the
+large grid (``--draws``, 8 in all): one draw is a noisy measurement of an accuracy, so the table
+gives the median, mean and worst of them.
+
 Prints a table and writes JSON (``--json``, default ``benchmarks/results/merge_bench.json``).
-Run: ``make bench`` or ``python benchmarks/merge_bench.py [--quick] [--cases a,b]``.
+Run: ``make bench`` or ``python benchmarks/merge_bench.py [--quick] [--cases a,b] [--draws N]``.
 """
 
 from __future__ import annotations
