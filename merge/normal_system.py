@@ -35,7 +35,7 @@ DAMPING = 1e-4
 BLOCK_ROWS = 1 << 16
 
 
-@dataclass(frozen=True)
+@dataclass
 class PatchState:
     """Where every patch is, in pixel units: ``q = R p_local + s + e_z (slope · p_local_xy)``.
 

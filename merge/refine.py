@@ -154,7 +154,7 @@ def refine(
                 raise MergeCancelled("merge cancelled")
             if moved > 0.5 * margin:
                 cand, moved = bank.candidates(pairs, state.R, state.s, margin), 0.0
-            stats = build_normal_system(bank, cand, state.as_state(), noise)
+            stats = build_normal_system(bank, cand, state, noise)
             priors = Priors(
                 plane=state.slope * bank.radius[:, None],
                 plane_sigma=drift_prior / scale,
@@ -198,11 +198,8 @@ def _noise(patches: Sequence[Patch], scale: float) -> float:
     return noise if np.isfinite(noise) and noise > 0 else 1e-3
 
 
-class _State:
-    """Per patch, in pixel units: ``q = R p_local + s + e_z (slope · p_local_xy)``."""
-
-    def __init__(self, R: FloatArray, s: FloatArray, slope: FloatArray) -> None:
-        self.R, self.s, self.slope = R, s, slope
+class _State(PatchState):
+    """The placement of every patch (:class:`PatchState`), and how a step and the gauge move it."""
 
     @classmethod
     def from_transforms(
@@ -226,9 +223,6 @@ class _State:
             t = self.s[c] * scale - self.R[c] @ centre
             out.append(PatchTransform(self.R[c], t, self.slope[c], centre[:2]))
         return out
-
-    def as_state(self) -> PatchState:
-        return PatchState(self.R, self.s, self.slope)
 
     def spin(self) -> FloatArray:
         """Rotation angle about z of every patch, radians."""
@@ -272,7 +266,7 @@ def assess(
     cand = bank.candidates(
         np.asarray(pairs, dtype=np.intp).reshape(-1, 2), state.R, state.s, margin
     )
-    system = build_normal_system(bank, cand, state.as_state(), _noise(patches, scale))
+    system = build_normal_system(bank, cand, state, _noise(patches, scale))
     pitch = np.column_stack([bank.dx, bank.dy])
     return _fits(system, len(patches), scale, _noise(patches, scale), pitch)
 
