@@ -103,7 +103,12 @@ function markInvalid(field) {
   if (key) $("plan-form").elements[FIELD_INPUTS[key]].setAttribute("aria-invalid", "true");
 }
 
+// Previews overlap while the operator types or draws; only the newest request's answer counts,
+// so a slow answer to an older form never re-enables "create run" over a newer refusal.
+let planRequest = 0;
+
 async function planPreview() {
+  const request = ++planRequest;
   $("plan-error").textContent = "";
   markInvalid(null);
   if (!hasRoi()) {
@@ -115,11 +120,13 @@ async function planPreview() {
   const body = planBody();
   try {
     const plan = await post("/api/runs/preview", body);
+    if (request !== planRequest) return;
     sem.setPlan({ ...plan, patchWidth: body.patch.width, patchHeight: body.patch.height });
     $("plan-summary").textContent = `${plan.count} patches (${plan.rows} rows × ${plan.cols} columns), ROI ${um(plan.roi.width)} × ${um(plan.roi.height)}`;
     $("plan-summary").dataset.count = plan.count;
     $("create-run").disabled = false;
   } catch (err) {
+    if (request !== planRequest) return;
     sem.setPlan(null);
     $("plan-summary").textContent = "";
     $("plan-error").textContent = err.message;

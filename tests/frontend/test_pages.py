@@ -186,6 +186,41 @@ def test_a_refused_request_shows_the_servers_message(page: tuple[Any, list[str]]
     assert [e for e in errors if "401" not in e and "422" not in e] == []
 
 
+def test_a_late_answer_to_an_older_plan_does_not_undo_a_refusal(
+    page: tuple[Any, list[str]],
+) -> None:
+    pg, _ = page
+    held: list[Any] = []
+
+    def hold_valid(route: Any) -> None:
+        # hold back the answers for the still-valid form; let the refused one through at once
+        if route.request.post_data_json.get("overlap", [0])[0] < 0.9:
+            held.append(route)
+        else:
+            route.continue_()
+
+    pg.route("**/api/runs/preview", hold_valid)
+    if not pg.get_attribute("#sem-canvas", "data-sem-id"):
+        pg.click("#sem-acquire")
+        pg.wait_for_selector("#sem-canvas[data-sem-id]")
+    box = pg.locator("#sem-canvas").bounding_box()
+    pg.mouse.move(box["x"] + 300, box["y"] + 200)
+    pg.mouse.down()
+    pg.mouse.move(box["x"] + 360, box["y"] + 260)
+    pg.mouse.up()
+    pg.fill("input[name=ox]", "95")
+    pg.wait_for_function("document.querySelector('#plan-error').textContent.includes('overlap')")
+    assert held, "the older previews were not held back"
+    with pg.expect_response("**/api/runs/preview"):
+        for route in held:
+            route.continue_()
+    pg.unroute("**/api/runs/preview")  # what the page asks from now on goes straight through
+    pg.wait_for_timeout(300)  # let the late answers reach the page's handlers
+    # a refusal on show always goes with a disabled "create run"
+    refused = "overlap" in pg.inner_text("#plan-error")
+    assert not refused or pg.is_disabled("#create-run"), _state(pg)
+
+
 def test_a_plan_made_with_the_keyboard_alone(page: tuple[Any, list[str]]) -> None:
     pg, errors = page
     pg.focus("input[name=roi_x]")
