@@ -159,6 +159,20 @@ def test_a_mosaic_from_roi_to_merged_preview(
     assert errors == [], errors
 
 
+def _plan_an_impossible_overlap(pg: Any) -> None:
+    """Draw an ROI on an SEM image (acquired if none is shown) and ask for a 95 % overlap."""
+    if not pg.get_attribute("#sem-canvas", "data-sem-id"):
+        pg.click("#sem-acquire")
+        pg.wait_for_selector("#sem-canvas[data-sem-id]")
+    box = pg.locator("#sem-canvas").bounding_box()
+    pg.mouse.move(box["x"] + 300, box["y"] + 200)
+    pg.mouse.down()
+    pg.mouse.move(box["x"] + 360, box["y"] + 260)
+    pg.mouse.up()
+    pg.fill("input[name=ox]", "95")
+    pg.wait_for_function("document.querySelector('#plan-error').textContent.includes('overlap')")
+
+
 def test_a_refused_request_shows_the_servers_message(page: tuple[Any, list[str]]) -> None:
     pg, errors = page
     pg.fill("#token", "not-the-token-at-all")
@@ -170,16 +184,7 @@ def test_a_refused_request_shows_the_servers_message(page: tuple[Any, list[str]]
     # an impossible overlap is refused inline, naming the field
     pg.fill("#token", TOKEN)
     pg.press("#token", "Tab")
-    if not pg.get_attribute("#sem-canvas", "data-sem-id"):
-        pg.click("#sem-acquire")
-        pg.wait_for_selector("#sem-canvas[data-sem-id]")
-    box = pg.locator("#sem-canvas").bounding_box()
-    pg.mouse.move(box["x"] + 300, box["y"] + 200)
-    pg.mouse.down()
-    pg.mouse.move(box["x"] + 360, box["y"] + 260)
-    pg.mouse.up()
-    pg.fill("input[name=ox]", "95")
-    pg.wait_for_function("document.querySelector('#plan-error').textContent.includes('overlap')")
+    _plan_an_impossible_overlap(pg)
     assert pg.get_attribute("input[name=ox]", "aria-invalid") == "true"
     assert pg.is_disabled("#create-run")
     # errors the page showed on purpose are not console errors of the page itself
@@ -200,16 +205,7 @@ def test_a_late_answer_to_an_older_plan_does_not_undo_a_refusal(
             route.continue_()
 
     pg.route("**/api/runs/preview", hold_valid)
-    if not pg.get_attribute("#sem-canvas", "data-sem-id"):
-        pg.click("#sem-acquire")
-        pg.wait_for_selector("#sem-canvas[data-sem-id]")
-    box = pg.locator("#sem-canvas").bounding_box()
-    pg.mouse.move(box["x"] + 300, box["y"] + 200)
-    pg.mouse.down()
-    pg.mouse.move(box["x"] + 360, box["y"] + 260)
-    pg.mouse.up()
-    pg.fill("input[name=ox]", "95")
-    pg.wait_for_function("document.querySelector('#plan-error').textContent.includes('overlap')")
+    _plan_an_impossible_overlap(pg)
     assert held, "the older previews were not held back"
     with pg.expect_response("**/api/runs/preview"):
         for route in held:
