@@ -112,6 +112,8 @@ def paper_grid(
 CASES = [
     paper_grid("tgx1", lambda seed: Chessboard(seed=seed), DriftModel.typical()),
     paper_grid("folded", lambda seed: FoldedSurface(seed=seed), DriftModel.typical()),
+    # a grating's flat face: 1.5 nm of roughness at about a pixel's scale is the only texture
+    paper_grid("flat-rough", lambda seed: Chessboard(step=0.0, seed=seed), DriftModel.typical()),
     paper_grid("tgx1-harsh", lambda seed: Chessboard(seed=seed), DriftModel.harsh(), seed=2),
     paper_grid("folded-harsh", lambda seed: FoldedSurface(seed=seed), DriftModel.harsh(), seed=2),
     # real Nanosurf images cut into 3 x 4 overlapping patches at their own pixel pitch

@@ -52,8 +52,10 @@ MIN_OVERLAP_CELLS = 3
 #: with large stage errors on small overlaps the true peak keeps little of it, and excluding
 #: it hands the pair to a wrong one; the robust network outvotes small-overlap mistakes.
 MIN_OVERLAP_FRACTION = 0.1
-#: A patch whose levelled heights vary less than this many noise sigmas carries no XY texture.
-MIN_TEXTURE = 2.0
+#: A patch whose heights, less their own plane, vary less than this many noise sigmas carries
+#: no XY texture. Just above 1 (pure noise): a fine roughness at about a pixel's scale raises
+#: the noise estimate too, so texture that correlates well can score as low as 1.4.
+MIN_TEXTURE = 1.2
 
 
 @dataclass(frozen=True)
@@ -97,6 +99,21 @@ def _remove_common_plane(grids: Sequence[GridSample]) -> list[FloatArray]:
         yy, xx = np.meshgrid(g.y, g.x, indexing="ij")
         out.append(g.heights - a * xx - b * yy)
     return out
+
+
+def _texture(heights: FloatArray) -> float:
+    """Standard deviation of ``heights`` about their own least-squares plane (NaN-aware).
+
+    The plane goes: an in-patch drift ramp on a featureless patch is not texture to correlate.
+    """
+    yy, xx = np.indices(heights.shape)
+    ok = np.isfinite(heights)
+    if ok.sum() < 4:
+        return 0.0
+    A = np.column_stack([np.ones(int(ok.sum())), xx[ok], yy[ok]])
+    z = heights[ok]
+    resid = z - A @ np.linalg.lstsq(A, z, rcond=None)[0]
+    return float(np.std(resid))
 
 
 def _drop_unconstrained(x: FloatArray, pairs: IntArray, W: FloatArray) -> FloatArray:
@@ -222,10 +239,7 @@ def coarse_start(
     noise = np.array([estimate_noise(g.heights) for g in grids])
     sigma = np.where(np.isfinite(noise) & (noise > 0), noise, 1e-12)
     textured = np.array(
-        [
-            np.nanstd(lv - np.nanmean(lv)) > MIN_TEXTURE * s
-            for lv, s in zip(levelled, sigma, strict=True)
-        ]
+        [_texture(lv) > MIN_TEXTURE * s for lv, s in zip(levelled, sigma, strict=True)]
     )
     k = len(pairs)
     radius = max_shift / cell

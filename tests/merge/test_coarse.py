@@ -1,7 +1,12 @@
 import numpy as np
 
+from backend.synthetic import patch_set_from_synth
+from hardware.sim.drift import DriftModel
+from hardware.sim.surfaces import Chessboard
+from hardware.sim.synth import synthesize
 from merge.coarse import coarse_start, signal_information
 from merge.overlap import overlapping_pairs
+from merge.patchset import Patch
 from tests.conftest import Synthetic
 
 
@@ -22,6 +27,52 @@ def test_coarse_start_finds_xy_and_the_z_staircase(small_mosaic: Synthetic) -> N
     assert np.abs(err[:, :2]).max() < 15e-9  # within a cell or so: a start, not the answer
     assert np.abs(err[:, 2]).max() < 5e-9
     assert start.xy_measured.all()
+
+
+def _start_errors(synth: list, patches: list[Patch]) -> tuple[np.ndarray, np.ndarray]:
+    pairs = overlapping_pairs(np.array([p.footprint for p in patches]), margin=1e-7)
+    start = coarse_start(patches, pairs, cell=2e-8, max_shift=3e-7)
+    err = start.translation[:, :2] - np.array([s.translation[:2] for s in synth])
+    return err - err.mean(axis=0), start.xy_measured
+
+
+def test_a_fine_roughness_is_texture_though_it_raises_the_noise_estimate() -> None:
+    # a grating's flat face: 1.5 nm of roughness correlated over about a pixel, 1 nm of noise
+    # and drift ramps. The roughness also inflates the noise estimate (second differences), so
+    # a gate demanding two noise sigmas of texture refused it and left 65 nm stage errors.
+    synth = synthesize(
+        Chessboard(step=0.0, seed=3),
+        rows=2,
+        cols=2,
+        patch_size=(0.6e-6, 0.6e-6),
+        pixels=(30, 30),
+        overlap=(0.5, 0.5),
+        drift=DriftModel.typical(),
+        seed=3,
+    )
+    err, measured = _start_errors(synth, patch_set_from_synth(synth).patches)
+    assert measured.all()
+    assert np.abs(err).max() < 25e-9  # about a cell: the refinement takes it from there
+
+
+def test_noise_and_drift_ramps_are_not_texture() -> None:
+    rng = np.random.default_rng(5)
+    yy, xx = np.mgrid[0:30, 0:30] / 29.0
+    patches = [
+        Patch(
+            id=f"f{k}",
+            # white noise, a Z step and a ramp of a few nm per patch (in-patch drift)
+            heights=rng.normal(0, 1e-9, (30, 30)) + 20e-9 * k + 4e-9 * ((k - 1.5) * yy + xx),
+            origin=(k % 2 * 3e-7, k // 2 * 3e-7),
+            pixel_size=(2e-8, 2e-8),
+            order=k,
+        )
+        for k in range(4)
+    ]
+    pairs = overlapping_pairs(np.array([p.footprint for p in patches]), margin=1e-7)
+    start = coarse_start(patches, pairs, cell=2e-8, max_shift=3e-7)
+    assert not start.xy_measured.any()
+    assert np.abs(start.translation[:, :2]).max() == 0.0
 
 
 def test_noise_is_not_counted_as_texture() -> None:
