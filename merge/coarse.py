@@ -106,12 +106,11 @@ def _texture(heights: FloatArray) -> float:
 
     The plane goes: an in-patch drift ramp on a featureless patch is not texture to correlate.
     """
-    yy, xx = np.indices(heights.shape)
-    ok = np.isfinite(heights)
-    if ok.sum() < 4:
+    rows, cols = np.nonzero(np.isfinite(heights))
+    if len(rows) < 4:
         return 0.0
-    A = np.column_stack([np.ones(int(ok.sum())), xx[ok], yy[ok]])
-    z = heights[ok]
+    A = np.column_stack([np.ones(len(rows)), cols, rows]).astype(np.float64)
+    z = heights[rows, cols]
     resid = z - A @ np.linalg.lstsq(A, z, rcond=None)[0]
     return float(np.std(resid))
 

@@ -1,9 +1,11 @@
+from collections.abc import Sequence
+
 import numpy as np
 
 from backend.synthetic import patch_set_from_synth
 from hardware.sim.drift import DriftModel
 from hardware.sim.surfaces import Chessboard
-from hardware.sim.synth import synthesize
+from hardware.sim.synth import SynthPatch, synthesize
 from merge.coarse import coarse_start, signal_information
 from merge.overlap import overlapping_pairs
 from merge.patchset import Patch
@@ -29,7 +31,9 @@ def test_coarse_start_finds_xy_and_the_z_staircase(small_mosaic: Synthetic) -> N
     assert start.xy_measured.all()
 
 
-def _start_errors(synth: list, patches: list[Patch]) -> tuple[np.ndarray, np.ndarray]:
+def _start_errors(
+    synth: Sequence[SynthPatch], patches: Sequence[Patch]
+) -> tuple[np.ndarray, np.ndarray]:
     pairs = overlapping_pairs(np.array([p.footprint for p in patches]), margin=1e-7)
     start = coarse_start(patches, pairs, cell=2e-8, max_shift=3e-7)
     err = start.translation[:, :2] - np.array([s.translation[:2] for s in synth])
