@@ -15,8 +15,11 @@ a plane; modelling it as a tilt of a rigid body instead would couple heights to 
 1 mrad shears the top of a 600 nm step 0.6 nm against its foot), and noise on steep edges would
 then leak into both.
 
-Coarse to fine: the first level works on heights smoothed by one pixel and every second point,
-which widens the basin of convergence; the second on the raw heights at every point. Residuals
+Coarse to fine: the first two levels work on every second point of heights smoothed by two
+pixels, then one, which widens the basin of convergence; the last on the raw heights at every
+point. The widest level matters where the coarse start measured nothing: along the stripes of a
+1-D grating a patch starts from its stage error, and only the stripes' slight bends and defects,
+tens of nanometres wide, can bring it in. Residuals
 are re-weighted with a Cauchy function of their robust scale, so tip artefacts, dust or a changed
 surface do not pull the solution.
 
@@ -72,7 +75,11 @@ STALL = 1e-4
 DRIFT_PRIOR = 5e-9
 #: Standard deviation (radians) of the prior on a patch's rotation about z.
 SPIN_PRIOR = np.radians(2.0)
-DEFAULT_LEVELS = (Level(smooth=1.0, stride=2, max_iter=10, tol=0.05), Level(0.0, 1, 30, 1e-3))
+DEFAULT_LEVELS = (
+    Level(smooth=2.0, stride=2, max_iter=10, tol=0.05),
+    Level(1.0, 2, 10, 0.05),
+    Level(0.0, 1, 30, 1e-3),
+)
 
 
 @dataclass(frozen=True)

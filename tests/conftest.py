@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
+from pathlib import Path
 
 import pytest
 
@@ -11,6 +13,16 @@ from hardware.sim.drift import DriftModel
 from hardware.sim.surfaces import FoldedSurface
 from hardware.sim.synth import SynthPatch, synthesize
 from merge import PatchSet, PatchTransform
+
+
+def _shared_data() -> Path:
+    """The real scans of ``../shared/data`` (MOSAIC_SHARED_DATA overrides where it is)."""
+    given = os.environ.get("MOSAIC_SHARED_DATA")
+    return Path(given) if given else Path(__file__).resolve().parents[2] / "shared" / "data"
+
+
+#: Where the real AFM scans are; tests that need them skip when they are missing.
+SHARED_DATA = _shared_data()
 
 
 @dataclass

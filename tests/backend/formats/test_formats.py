@@ -4,7 +4,6 @@ every export opened by the tool it is meant for, and a whole round trip through 
 from __future__ import annotations
 
 import json
-import os
 from pathlib import Path
 
 import numpy as np
@@ -18,15 +17,9 @@ from hardware.sim.surfaces import ImageSurface
 from hardware.sim.synth import synthesize
 from merge import read_result
 from tests.backend.formats.oracle import gwyddion_convert, needs_gwyddion
+from tests.conftest import SHARED_DATA
 
-
-def _shared_data() -> Path:
-    """The real scans of ``../shared/data`` (MOSAIC_SHARED_DATA overrides where it is)."""
-    given = os.environ.get("MOSAIC_SHARED_DATA")
-    return Path(given) if given else Path(__file__).resolve().parents[4] / "shared" / "data"
-
-
-DATA = _shared_data()
+DATA = SHARED_DATA
 pytestmark = pytest.mark.skipif(
     not (DATA / "mos2.nid").is_file(), reason=f"the real scans are not at {DATA}"
 )
