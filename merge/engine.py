@@ -40,8 +40,10 @@ class PatchReport:
     overlaps : whether any other patch can overlap it (otherwise it stays nominal).
     correspondences : overlap points that entered the fit.
     residual_rms : RMS normal distance of those points to the other patches, metres.
-    xy_constrained : whether its overlaps pin down XY (a flat overlap constrains only Z).
-    xy_sigma, z_sigma : standard deviations of its translation from the fit, metres.
+    xy_constrained : whether its own overlaps pin down XY (a flat overlap constrains only Z).
+    xy_sigma, z_sigma : standard deviations of its translation (XY: the larger axis), metres,
+        marginal over the whole mosaic with its common motion fixed: a block of patches tied to
+        the rest by little texture is as uncertain as the block (:mod:`merge.uncertainty`).
     """
 
     id: str
@@ -199,7 +201,8 @@ def run(
     reports = []
     for c, p in enumerate(patches):
         f = fits[c]
-        xy_ok = f.correspondences > 0 and f.xy_sigma < XY_CONSTRAINED_FRACTION * min(p.pixel_size)
+        held = f.xy_sigma_local < XY_CONSTRAINED_FRACTION * min(p.pixel_size)
+        xy_ok = f.correspondences > 0 and held
         xx, yy = p.pixel_coordinates()
         sample = np.column_stack([xx.ravel(), yy.ravel(), p.heights.ravel()])[::7]
         R_rigid, t_rigid = transforms[c].rigid_approximation(sample[np.isfinite(sample[:, 2])])

@@ -24,6 +24,7 @@ from scipy.sparse.linalg import spsolve
 
 from merge.bank import SurfaceBank
 from merge.parallel import each
+from merge.uncertainty import line_design, noise_share, psd_part
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
@@ -55,7 +56,10 @@ class NormalSystem:
     ``rows``, ``cols``, ``vals`` are the triplets of ``A``; ``g`` (n, 6); per patch ``count``
     (n,) residuals that involve it, ``sq`` (n,) the sum of their squared normal distances and
     ``diag`` (n, 6, 6) its own information block; ``rms`` and ``rscale`` (robust scale) of the
-    normal distances, pixel units.
+    normal distances, pixel units. ``signal_vals`` (if asked for) are the values of ``A`` at the
+    same triplets without the share that slopes of the noise contribute (see
+    :func:`noise_share`): the information the surfaces themselves carry; ``line_design`` (then
+    too) how much the residuals of one scan line of a run move together (:func:`line_design`).
     """
 
     rows: IntArray
@@ -67,6 +71,8 @@ class NormalSystem:
     diag: FloatArray
     rms: float
     rscale: float = 0.0
+    signal_vals: FloatArray | None = None
+    line_design: float = 1.0
 
 
 def _blocks(starts: IntArray, rows: int) -> list[tuple[int, int]]:
@@ -89,6 +95,7 @@ def build_normal_system(
     noise: float,
     *,
     block_rows: int = BLOCK_ROWS,
+    signal: bool = False,
 ) -> NormalSystem:
     """The Gauss-Newton system over all correspondences, and per-patch statistics.
 
@@ -104,6 +111,8 @@ def build_normal_system(
         Height noise, pixel units: the least robust scale.
     block_rows : int, keyword-only
         Rows per block; changes memory and speed, never the result.
+    signal : bool, keyword-only
+        Also compute ``signal_vals`` (for uncertainties, not for steps).
     """
     n = len(bank.centre)
     src, dst, idx, starts = cand
@@ -155,13 +164,24 @@ def build_normal_system(
         )
 
     each(information, blocks)
+    signal_blocks, design = None, 1.0
+    if signal:
+        pitch2 = 0.5 * (bank.dx[dst[starts[:-1]]] ** -2 + bank.dy[dst[starts[:-1]]] ** -2)
+        share = noise_share(w, arm, starts, bank.radius[src[starts[:-1]]], noise**2 * pitch2)
+        signal_blocks = psd_part(Baa - share)
+        rows_of = np.rint((bank.points[idx, 1] + bank.half[src, 1]) / bank.dy[src])
+        design = line_design(w * r, starts, rows_of.astype(np.intp))
     count = np.bincount(src[ok], minlength=n) + np.bincount(dst[ok], minlength=n)
     d2 = d**2
     sq = np.asarray(
         np.bincount(src, weights=d2, minlength=n) + np.bincount(dst, weights=d2, minlength=n),
         dtype=np.float64,
     )
-    rows, cols, vals, g, diag = _assemble(bank, state, src[starts[:-1]], dst[starts[:-1]], Baa, ga)
+    a_seg, b_seg = src[starts[:-1]], dst[starts[:-1]]
+    rows, cols, vals, g, diag = _assemble(bank, state, a_seg, b_seg, Baa, ga)
+    signal_vals = None
+    if signal_blocks is not None:
+        signal_vals = _assemble(bank, state, a_seg, b_seg, signal_blocks, ga)[2]
     return NormalSystem(
         rows=rows,
         cols=cols,
@@ -172,6 +192,8 @@ def build_normal_system(
         sq=sq,
         rms=float(np.sqrt(np.mean(used**2))),
         rscale=rscale,
+        signal_vals=signal_vals,
+        line_design=design,
     )
 
 

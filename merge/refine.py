@@ -54,6 +54,7 @@ from merge.normal_system import (
 )
 from merge.patchset import Patch
 from merge.transforms import PatchTransform, orthonormalize, rotation_from_vector
+from merge.uncertainty import gauge_modes, translation_covariances
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
@@ -84,12 +85,19 @@ DEFAULT_LEVELS = (
 
 @dataclass(frozen=True)
 class PatchFit:
-    """Per-patch quality after the refinement (metres, counts)."""
+    """Per-patch quality of a fit (metres, counts).
+
+    ``xy_sigma`` (its larger axis) and ``z_sigma``: standard deviations of the translation,
+    marginal over the whole mosaic with the gauge fixed (:mod:`merge.uncertainty`): how well the
+    patch is placed. ``xy_sigma_local``: the same with every other patch held: whether its own
+    overlaps constrain XY at all.
+    """
 
     correspondences: int
     residual_rms: float
     xy_sigma: float
     z_sigma: float
+    xy_sigma_local: float
 
 
 @dataclass(frozen=True)
@@ -100,7 +108,6 @@ class RefineResult:
     iterations: int
     converged: bool
     history: list[float]
-    fits: list[PatchFit]
 
 
 def refine(
@@ -138,7 +145,6 @@ def refine(
     cancel : callable() -> bool, keyword-only
         Polled every iteration; true raises :class:`MergeCancelled`.
     """
-    n = len(patches)
     pairs = np.asarray(pairs, dtype=np.intp).reshape(-1, 2)
     scale = float(np.median([min(p.pixel_size) for p in patches]))
     noise = _noise(patches, scale)
@@ -190,13 +196,11 @@ def refine(
                 break
         if li == len(levels) - 1:
             converged = level_converged
-    fits = _fits(stats, n, scale, noise, np.column_stack([base.dx, base.dy]))
     return RefineResult(
         transforms=state.to_transforms(base, scale),
         iterations=iteration,
         converged=converged,
         history=history,
-        fits=fits,
     )
 
 
@@ -273,22 +277,40 @@ def assess(
     cand = bank.candidates(
         np.asarray(pairs, dtype=np.intp).reshape(-1, 2), state.R, state.s, margin
     )
-    system = build_normal_system(bank, cand, state, _noise(patches, scale))
+    noise = _noise(patches, scale)
+    system = build_normal_system(bank, cand, state, noise, signal=True)
+    n = len(patches)
+    xy_cov, z_var = np.full((n, 2, 2), np.inf), np.full(n, np.inf)
+    if system.signal_vals is not None and len(system.rows):
+        gauge = gauge_modes(state.s, bank.radius, np.diff(bank.point_start).astype(np.float64))
+        xy_cov, z_var = translation_covariances(system.rows, system.cols, system.signal_vals, gauge)
+    # each noise sample enters twice (a's points on b's surface and b's on a's): half the
+    # information the residuals count
+    rms2 = 2.0 * system.rms**2
+    xy = np.sqrt(rms2 * np.linalg.eigvalsh(np.where(np.isfinite(xy_cov), xy_cov, 0.0))[:, 1])
+    xy[~np.isfinite(xy_cov).all(axis=(1, 2))] = np.inf
+    seen = np.isfinite(z_var)
+    z = np.where(seen, np.sqrt(rms2 * system.line_design * np.where(seen, z_var, 0.0)), np.inf)
     pitch = np.column_stack([bank.dx, bank.dy])
-    return _fits(system, len(patches), scale, _noise(patches, scale), pitch)
+    local = _local_fits(system, n, noise, pitch)
+    return [
+        PatchFit(k, rms * scale, float(xy[c] * scale), float(z[c] * scale), local_xy * scale)
+        if k
+        else PatchFit(0, float("nan"), float("inf"), float("inf"), float("inf"))
+        for c, (k, rms, local_xy) in enumerate(local)
+    ]
 
 
-def _fits(
-    stats: NormalSystem | None, n: int, scale: float, noise: float, pitch: FloatArray
-) -> list[PatchFit]:
-    """Residual RMS and translation standard deviations of every patch (metres)."""
-    if stats is None:
-        return [PatchFit(0, float("nan"), float("inf"), float("inf")) for _ in range(n)]
-    out = []
+def _local_fits(
+    stats: NormalSystem, n: int, noise: float, pitch: FloatArray
+) -> list[tuple[int, float, float]]:
+    """Per patch: residuals, their RMS and the XY standard deviation with every other patch
+    held (pixel units)."""
+    out: list[tuple[int, float, float]] = []
     for c in range(n):
         k = stats.count[c]
         if k == 0:
-            out.append(PatchFit(0, float("nan"), float("inf"), float("inf")))
+            out.append((0, float("nan"), float("inf")))
             continue
         rms = float(np.sqrt(stats.sq[c] / k))
         info = stats.diag[c] + 1e-9 * np.trace(stats.diag[c]) * np.eye(6)
@@ -302,8 +324,7 @@ def _fits(
             xy_info = signal_information(xy_info, k * noise**2 * 2.0 / 9.0 * pitch2)
             vals = np.linalg.eigvalsh(xy_info)
             xy = float(rms / np.sqrt(vals.min())) if vals.min() > 0 else float("inf")
-            z = float(rms * np.sqrt(max(np.linalg.inv(info)[2, 2], 0.0)))
         except np.linalg.LinAlgError:
-            xy, z = float("inf"), float("inf")
-        out.append(PatchFit(int(k), rms * scale, xy * scale, z * scale))
+            xy = float("inf")
+        out.append((int(k), rms, xy))
     return out

@@ -1,0 +1,143 @@
+"""How well the fit places every patch: standard deviations marginal over the whole mosaic.
+
+A patch's own information block says how well it is held *if every other patch stood still*.
+That is the local question (do its overlaps constrain XY at all?), but not the placement
+uncertainty: a block of patches tied to the rest by overlaps with little texture (a grating's
+flat faces, say) can move together, every patch in it well held by its neighbours, and a
+report built from the own blocks would claim tenths of a nanometre for a block that is off by
+several. The marginal covariance — every other unknown free, the gauge (the mosaic's common
+motion, which no data see) fixed — counts such collective modes.
+
+It is the top-left block of the inverse of the bordered matrix ``[[A, G], [G', 0]]``, with ``A``
+the information of all unknowns and ``G`` the common motions; one sparse LU serves the columns
+of every patch's translation. Two corrections keep the residuals' information honest: the share
+that slopes of the noise claim is taken out (:func:`noise_share`: noise is not texture), and Z
+variances are scaled by how much the residuals of one scan line move together
+(:func:`line_design`: per-line offsets do not average out like white noise).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.sparse import bmat, coo_matrix, csc_matrix
+from scipy.sparse.linalg import splu
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.intp]
+
+#: Ridge on ``A``, relative to its largest diagonal entry: keeps directions no data see finite.
+RIDGE = 1e-9
+#: A variance above this fraction of the ridge's own (``1 / ridge``) is a direction no data see.
+UNSEEN = 1e-3
+
+
+def gauge_modes(s: FloatArray, radius: FloatArray, weight: FloatArray) -> FloatArray:
+    """The common motions of all patches, ``(6 n, 6)``, in the unknowns of the refinement.
+
+    Translation x, y, z; a spin about z and a Z plane (a tilt of the heights), both about the
+    weighted centre of the patches. ``s`` (n, 3) patch positions, ``radius`` (n,) the scale of
+    each patch's spin and plane unknowns, ``weight`` (n,) the pivot's weights (pixel units).
+    """
+    n = len(s)
+    pivot = (weight / weight.sum()) @ s[:, :2]
+    dx, dy = s[:, 0] - pivot[0], s[:, 1] - pivot[1]
+    G = np.zeros((n, 6, 6))
+    G[:, 0, 0] = G[:, 1, 1] = G[:, 2, 2] = 1.0
+    G[:, 0, 3], G[:, 1, 3], G[:, 3, 3] = -dy, dx, radius  # spin
+    G[:, 2, 4], G[:, 4, 4] = dx, radius  # plane along x
+    G[:, 2, 5], G[:, 5, 5] = dy, radius  # plane along y
+    out: FloatArray = G.reshape(6 * n, 6)
+    # like units: each mode scaled to unit length
+    norms: FloatArray = np.linalg.norm(out, axis=0)
+    return out / np.where(norms > 0, norms, 1.0)
+
+
+def translation_covariances(
+    rows: IntArray, cols: IntArray, vals: FloatArray, gauge: FloatArray
+) -> tuple[FloatArray, FloatArray]:
+    """Marginal covariances of every patch's translation, in units of the residual variance.
+
+    Parameters
+    ----------
+    rows, cols, vals : arrays
+        Triplets of the information matrix ``A`` (6 n x 6 n), duplicates summed.
+    gauge : (6 n, g) array
+        The common motions (:func:`gauge_modes`), held fixed.
+
+    Returns
+    -------
+    xy : (n, 2, 2) array
+        Covariance of each patch's XY translation (``inf`` on its diagonal where no data see it).
+    z : (n,) array
+        Variance of each patch's Z translation (``inf`` likewise).
+    """
+    size = gauge.shape[0]
+    n = size // 6
+    A = coo_matrix((vals, (rows, cols)), shape=(size, size)).tocsc()
+    ridge = RIDGE * max(float(A.diagonal().max(initial=0.0)), 1e-300)
+    A = A + _diagonal(size, ridge)
+    K = bmat([[A, csc_matrix(gauge)], [csc_matrix(gauge.T), None]], format="csc")
+    picks = (6 * np.arange(n)[:, None] + np.arange(3)).ravel()
+    rhs = np.zeros((K.shape[0], len(picks)))
+    rhs[picks, np.arange(len(picks))] = 1.0
+    X = splu(K).solve(rhs)[:size]
+    block = X[picks].reshape(n, 3, n, 3)[np.arange(n), :, np.arange(n), :]  # (n, 3, 3)
+    unseen = UNSEEN / ridge
+    xy: FloatArray = block[:, :2, :2].copy()
+    z: FloatArray = block[:, 2, 2].copy()
+    lost = np.linalg.eigvalsh(xy)[:, 1] > unseen
+    xy[lost] = np.diag([np.inf, np.inf])
+    z[z > unseen] = np.inf
+    return xy, z
+
+
+def noise_share(
+    w: FloatArray, arm: FloatArray, starts: IntArray, radius: FloatArray, noise2: FloatArray
+) -> FloatArray:
+    """Per run, the part of ``Σ w J J'`` (k, 6, 6) that slopes of white noise contribute.
+
+    The destination's slopes enter the Jacobian; their noise (per axis ``noise2`` (k,): a
+    central difference of white noise has variance σ²/2 per pitch², bilinear interpolation
+    between independent differences keeps 4/9 of it on average, so (2/9) σ² / pitch²) adds, in
+    expectation, ``noise2 · Σ w (u0 u0' + u1 u1')`` with ``u0 = (1, 0, 0, -a_y/ρ, 0, 0)`` and
+    ``u1 = (0, 1, 0, a_x/ρ, 0, 0)`` (``a`` the lever arm, ``ρ`` (k,) the source's radius).
+    Noise is not texture: this share claims precision a flat overlap does not have.
+    """
+    first = starts[:-1]
+    sw = np.add.reduceat(w, first)
+    sa = np.add.reduceat(w[:, None] * arm, first, axis=0) / radius[:, None]
+    saa = np.add.reduceat(w * np.einsum("ij,ij->i", arm, arm), first) / radius**2
+    out = np.zeros((len(first), 6, 6))
+    out[:, 0, 0] = out[:, 1, 1] = sw
+    out[:, 0, 3] = out[:, 3, 0] = -sa[:, 1]
+    out[:, 1, 3] = out[:, 3, 1] = sa[:, 0]
+    out[:, 3, 3] = saa
+    scaled: FloatArray = out * (2.0 / 9.0) * noise2[:, None, None]
+    return scaled
+
+
+def psd_part(blocks: FloatArray) -> FloatArray:
+    """Every symmetric block of ``blocks`` (k, d, d) with its negative eigenvalues set to zero."""
+    vals, vecs = np.linalg.eigh(blocks)
+    out: FloatArray = np.einsum("kij,kj,klj->kil", vecs, np.clip(vals, 0.0, None), vecs)
+    return out
+
+
+def line_design(score: FloatArray, starts: IntArray, line: IntArray) -> float:
+    """Design effect of the Z scores ``w r`` (m,) clustered by scan line within each run.
+
+    Per-line offsets (the feedback loop resetting between lines) shift all residuals of one
+    source line alike, so they average out far less than white noise: the variance of a Z
+    offset is larger than the residuals' count suggests. The ratio of the clustered to the
+    independent sum of squared scores measures by how much (1 for white noise).
+    """
+    run = np.repeat(np.arange(len(starts) - 1), np.diff(starts))
+    sums = np.bincount(run * (int(line.max(initial=0)) + 1) + line, weights=score)
+    alone = float(score @ score)
+    return max(float(sums @ sums) / alone, 1.0) if alone > 0 else 1.0
+
+
+def _diagonal(size: int, value: float) -> csc_matrix:
+    idx = np.arange(size)
+    return coo_matrix((np.full(size, value), (idx, idx)), shape=(size, size)).tocsc()

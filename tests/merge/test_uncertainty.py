@@ -1,0 +1,84 @@
+import numpy as np
+
+from backend.synthetic import registration_error
+from hardware.sim.synth import true_points
+from merge import run
+from merge.uncertainty import gauge_modes, translation_covariances
+from tests.conftest import Synthetic
+
+
+def _chain(n: int, link: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Triplets of an information matrix: patches in a row, each translation tied to the next
+    with weight ``link[i]``; spin and plane of every patch known alone (unit information)."""
+    A = np.zeros((6 * n, 6 * n))
+    for i, w in enumerate(link):
+        for k in range(3):
+            a, b = 6 * i + k, 6 * (i + 1) + k
+            A[a, a] += w
+            A[b, b] += w
+            A[a, b] -= w
+            A[b, a] -= w
+    for c in range(n):
+        A[6 * c + 3 : 6 * c + 6, 6 * c + 3 : 6 * c + 6] += np.eye(3)
+    rows, cols = np.nonzero(A)
+    return rows, cols, A[rows, cols]
+
+
+def test_a_chain_is_as_uncertain_as_its_weakest_links() -> None:
+    n = 5
+    link = np.array([4.0, 4.0, 0.01, 4.0])  # one weak link in the middle
+    rows, cols, vals = _chain(n, link)
+    gauge = np.zeros((6 * n, 3))
+    for k in range(3):
+        gauge[k::6, k] = 1.0  # common translation only
+    xy, z = translation_covariances(rows, cols, vals, gauge)
+    laplacian = np.diag(np.r_[link, 0] + np.r_[0, link]) - np.diag(link, 1) - np.diag(link, -1)
+    expected = np.diag(np.linalg.pinv(laplacian))
+    np.testing.assert_allclose(xy[:, 0, 0], expected, rtol=1e-6)
+    np.testing.assert_allclose(z, expected, rtol=1e-6)
+    # each patch is held tightly by a neighbour (own information >= 4: variance <= 0.25 with
+    # the others held), yet the halves float against each other (1 / 0.01 = 100 between them,
+    # shared 2:3 about the mean): variances of 16 and 36
+    assert (xy[:, 0, 0] > 15.0).all()
+
+
+def test_a_direction_no_data_see_is_infinite() -> None:
+    rows, cols, vals = _chain(2, np.array([1.0]))
+    keep = ~((rows % 6 == 1) | (cols % 6 == 1))  # nothing about y
+    gauge = np.zeros((12, 3))
+    for k in range(3):
+        gauge[k::6, k] = 1.0
+    xy, z = translation_covariances(rows[keep], cols[keep], vals[keep], gauge)
+    assert np.isinf(xy[:, 1, 1]).all()
+    assert np.isfinite(z).all()
+
+
+def test_gauge_modes_are_common_motions() -> None:
+    s = np.array([[0.0, 0.0, 0.0], [10.0, 0.0, 5.0], [0.0, 10.0, -5.0]])
+    G = gauge_modes(s, np.array([2.0, 2.0, 2.0]), np.ones(3))
+    assert G.shape == (18, 6)
+    np.testing.assert_allclose(np.linalg.norm(G, axis=0), 1.0)
+    assert np.linalg.matrix_rank(G) == 6
+
+
+def test_reported_sigmas_cover_the_errors(small_mosaic: Synthetic) -> None:
+    result = run(small_mosaic.patch_set)
+    by_id = {p.id: p for p in result.patches}
+    synth = small_mosaic.synth
+    _, _, (G, g) = registration_error(synth, [by_id[s.id].transform for s in synth])
+    for s in synth:
+        report = by_id[s.id]
+        q = true_points(s).reshape(-1, 3)
+        p = q.copy()
+        p[:, :2] = np.stack(np.meshgrid(*_axes(s)), axis=-1).reshape(-1, 2)
+        p[:, 2] = s.heights.ravel()
+        e = (report.transform.apply(p) @ G.T + g - q).mean(axis=0)
+        assert np.hypot(e[0], e[1]) < 4.0 * report.xy_sigma
+        assert abs(e[2]) < 4.0 * report.z_sigma
+        assert report.xy_sigma < 2e-9 and report.z_sigma < 2e-9
+
+
+def _axes(s: object) -> tuple[np.ndarray, np.ndarray]:
+    ny, nx = s.heights.shape  # type: ignore[attr-defined]
+    (x0, y0), (dx, dy) = s.origin, s.pixel_size  # type: ignore[attr-defined]
+    return x0 + np.arange(nx) * dx, y0 + np.arange(ny) * dy
