@@ -34,12 +34,11 @@ def patch_set_from_synth(synth: Sequence[SynthPatch]) -> PatchSet:
     )
 
 
-def registration_error(
+def _placed(
     synth: Sequence[SynthPatch], transforms: Sequence[PatchTransform]
-) -> tuple[float, float, tuple[FloatArray, FloatArray]]:
-    """RMS XY and Z error (metres) of where the merge puts every measured point, after the one
-    global rigid transform that fits best (the gauge), and that transform ``(G, g)``."""
-    est, true = [], []
+) -> list[tuple[FloatArray, FloatArray]]:
+    """Per patch: where the merge puts every measured point, and where it truly is (m, 3)."""
+    out = []
     for s, tr in zip(synth, transforms, strict=True):
         ny, nx = s.heights.shape
         xx, yy = np.meshgrid(
@@ -49,10 +48,42 @@ def registration_error(
         p = np.stack([xx, yy, s.heights], axis=-1).reshape(-1, 3)
         q = true_points(s).reshape(-1, 3)
         ok = np.isfinite(p).all(axis=1) & np.isfinite(q).all(axis=1)
-        est.append(tr.apply(p[ok]))
-        true.append(q[ok])
-    P, Q = np.concatenate(est), np.concatenate(true)
+        out.append((tr.apply(p[ok]), q[ok]))
+    return out
+
+
+def registration_error(
+    synth: Sequence[SynthPatch], transforms: Sequence[PatchTransform]
+) -> tuple[float, float, tuple[FloatArray, FloatArray]]:
+    """RMS XY and Z error (metres) of where the merge puts every measured point, after the one
+    global rigid transform that fits best (the gauge), and that transform ``(G, g)``."""
+    placed = _placed(synth, transforms)
+    P, Q = np.concatenate([p for p, _ in placed]), np.concatenate([q for _, q in placed])
     G, g = weighted_rigid_transform(P, Q)
     e = P @ G.T + g - Q
     exy = float(np.sqrt(np.mean(np.sum(e[:, :2] ** 2, axis=1))))
     return exy, float(np.sqrt(np.mean(e[:, 2] ** 2))), (G, g)
+
+
+def patch_errors(synth: Sequence[SynthPatch], transforms: Sequence[PatchTransform]) -> FloatArray:
+    """Mean error (n, 3), metres, of where the merge puts each patch's points, after the global
+    rigid transform of :func:`registration_error`: what each patch's sigmas should cover."""
+    _, _, (G, g) = registration_error(synth, transforms)
+    out: FloatArray = np.array(
+        [(p @ G.T + g - q).mean(axis=0) for p, q in _placed(synth, transforms)]
+    )
+    return out
+
+
+def sigma_calibration(
+    errors: FloatArray, xy_sigma: FloatArray, z_sigma: FloatArray
+) -> dict[str, float]:
+    """How honest reported sigmas are: RMS of error / sigma over the patches with finite ones,
+    XY per axis (the larger axis's sigma): 1 is honest, below is cautious, above over-confident."""
+    xy_ok, z_ok = np.isfinite(xy_sigma) & (xy_sigma > 0), np.isfinite(z_sigma) & (z_sigma > 0)
+    xy = np.sum(errors[xy_ok, :2] ** 2, axis=1) / (2.0 * xy_sigma[xy_ok] ** 2)
+    z = errors[z_ok, 2] ** 2 / z_sigma[z_ok] ** 2
+    return {
+        "xy": float(np.sqrt(xy.mean())) if xy.size else float("nan"),
+        "z": float(np.sqrt(z.mean())) if z.size else float("nan"),
+    }

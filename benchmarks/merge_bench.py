@@ -12,7 +12,9 @@ method and scores the result:
 
 Then the default method again on further draws of texture, drift and noise of every case but the
 large grid (``--draws``, 8 in all): one draw is a noisy measurement of an accuracy, so the table
-gives the median, mean and worst of them.
+gives the median, mean and worst of them, and how honest the reported per-patch sigmas are (RMS
+of each patch's mean error over its sigma, XY per axis: 1 honest, below cautious, above
+over-confident; the median over the draws).
 
 Prints a table and writes JSON (``--json``, default ``benchmarks/results/merge_bench.json``).
 Run: ``make bench`` or ``python benchmarks/merge_bench.py [--quick] [--cases a,b] [--draws N]``.
@@ -36,7 +38,12 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from backend.synthetic import patch_set_from_synth, registration_error
+from backend.synthetic import (
+    patch_errors,
+    patch_set_from_synth,
+    registration_error,
+    sigma_calibration,
+)
 from hardware.sim.drift import DriftModel
 from hardware.sim.surfaces import Chessboard, FoldedSurface, ImageSurface, Surface
 from hardware.sim.synth import SynthPatch, scan_fraction, synthesize
@@ -233,6 +240,11 @@ def run_case(case: Case, work: Path) -> dict[str, Any]:
         m = res.mosaic
         merr = map_error(m.heights, m.origin, m.pixel_size, surface, G, g)
         unconstrained = sum(not p["xy_constrained"] for p in res.document["patches"])
+        reports = {p["id"]: p for p in res.document["patches"]}
+        sigmas = np.array(
+            [[_finite(reports[s.id]["xy_sigma"]), _finite(reports[s.id]["z_sigma"])] for s in synth]
+        )
+        errors = patch_errors(synth, [tr[s.id] for s in synth])
         rows[method] = {
             "reg_xy_nm": exy * 1e9,
             "reg_z_nm": ez * 1e9,
@@ -243,6 +255,7 @@ def run_case(case: Case, work: Path) -> dict[str, Any]:
             "iterations": res.document["iterations"],
             "converged": res.document["converged"],
             "xy_unconstrained_patches": unconstrained,
+            "sigma_calibration": sigma_calibration(errors, sigmas[:, 0], sigmas[:, 1]),
         }
     return {
         "case": case.name,
@@ -252,6 +265,11 @@ def run_case(case: Case, work: Path) -> dict[str, Any]:
         "floor_nm": floor * 1e9,
         "methods": rows,
     }
+
+
+def _finite(value: float | None) -> float:
+    """A sigma from ``mosaic.json`` (null where no data constrain it)."""
+    return float("inf") if value is None else float(value)
 
 
 def draws(case: Case, first: dict[str, Any], count: int, work: Path) -> dict[str, Any]:
@@ -264,6 +282,7 @@ def draws(case: Case, first: dict[str, Any], count: int, work: Path) -> dict[str
     ratio = np.array([v["map_over_floor"] for v in runs])
     xy = np.array([v["reg_xy_nm"] for v in runs])
     z = np.array([v["reg_z_nm"] for v in runs])
+    calib = np.array([[v["sigma_calibration"]["xy"], v["sigma_calibration"]["z"]] for v in runs])
     return {
         "case": case.name,
         "draws": count,
@@ -275,6 +294,10 @@ def draws(case: Case, first: dict[str, Any], count: int, work: Path) -> dict[str
         },
         "reg_xy_nm": {"median": float(np.median(xy)), "worst": float(xy.max())},
         "reg_z_nm": {"median": float(np.median(z)), "worst": float(z.max())},
+        "sigma_calibration": {
+            "xy": float(np.nanmedian(calib[:, 0])),
+            "z": float(np.nanmedian(calib[:, 1])),
+        },
         "runs": runs,
     }
 
@@ -360,7 +383,7 @@ def main(argv: list[str] | None = None) -> int:
             print(
                 f"\ndefault method over {args.draws} draws of texture, drift and noise"
                 f"\n{'case':<13}{'map/floor median':>17}{'mean':>7}{'worst':>7}{'<= 1.5':>8}"
-                f"{'XY nm med':>10}{'worst':>7}{'Z nm med':>9}{'worst':>7}"
+                f"{'XY nm med':>10}{'worst':>7}{'Z nm med':>9}{'worst':>7}{'err/σ XY':>10}{'Z':>6}"
             )
             for case, r in zip(chosen, results, strict=True):
                 if case.rows * case.cols > 100:  # the large grid measures speed
@@ -368,10 +391,11 @@ def main(argv: list[str] | None = None) -> int:
                 d = draws(case, r, args.draws, Path(tmp))
                 spread.append(d)
                 m, xy, z = d["map_over_floor"], d["reg_xy_nm"], d["reg_z_nm"]
+                cal = d["sigma_calibration"]
                 print(
                     f"{case.name:<13}{m['median']:>17.2f}{m['mean']:>7.2f}{m['worst']:>7.2f}"
                     f"{m['within_1_5']:>5}/{d['draws']:<2}{xy['median']:>10.2f}{xy['worst']:>7.2f}"
-                    f"{z['median']:>9.2f}{z['worst']:>7.2f}",
+                    f"{z['median']:>9.2f}{z['worst']:>7.2f}{cal['xy']:>10.2f}{cal['z']:>6.2f}",
                     flush=True,
                 )
         print(f"\n{'patches (64 x 64 px)':<22}{'wall s':>8}{'ms/patch':>10}{'peak MiB':>10}")

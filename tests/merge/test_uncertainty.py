@@ -1,7 +1,6 @@
 import numpy as np
 
-from backend.synthetic import registration_error
-from hardware.sim.synth import true_points
+from backend.synthetic import patch_errors
 from merge import run
 from merge.uncertainty import gauge_modes, translation_covariances
 from tests.conftest import Synthetic
@@ -65,20 +64,9 @@ def test_reported_sigmas_cover_the_errors(small_mosaic: Synthetic) -> None:
     result = run(small_mosaic.patch_set)
     by_id = {p.id: p for p in result.patches}
     synth = small_mosaic.synth
-    _, _, (G, g) = registration_error(synth, [by_id[s.id].transform for s in synth])
-    for s in synth:
-        report = by_id[s.id]
-        q = true_points(s).reshape(-1, 3)
-        p = q.copy()
-        p[:, :2] = np.stack(np.meshgrid(*_axes(s)), axis=-1).reshape(-1, 2)
-        p[:, 2] = s.heights.ravel()
-        e = (report.transform.apply(p) @ G.T + g - q).mean(axis=0)
+    reports = [by_id[s.id] for s in synth]
+    errors = patch_errors(synth, [r.transform for r in reports])
+    for e, report in zip(errors, reports, strict=True):
         assert np.hypot(e[0], e[1]) < 4.0 * report.xy_sigma
         assert abs(e[2]) < 4.0 * report.z_sigma
         assert report.xy_sigma < 2e-9 and report.z_sigma < 2e-9
-
-
-def _axes(s: object) -> tuple[np.ndarray, np.ndarray]:
-    ny, nx = s.heights.shape  # type: ignore[attr-defined]
-    (x0, y0), (dx, dy) = s.origin, s.pixel_size  # type: ignore[attr-defined]
-    return x0 + np.arange(nx) * dx, y0 + np.arange(ny) * dy
