@@ -30,6 +30,13 @@ IntArray = NDArray[np.intp]
 RIDGE = 1e-9
 #: A variance above this fraction of the ridge's own (``1 / ridge``) is a direction no data see.
 UNSEEN = 1e-3
+#: Information (relative to ``A``'s largest diagonal entry) that holds a translation no data see.
+PIN = 1e6
+#: Rounds of holding translations no data see.
+PASSES = 4
+#: Of the variances above the unseen level, those above this fraction of the largest are the
+#: unseen translations themselves; the rest are shares the gauge spread from them.
+SHARE = 0.25
 
 
 def gauge_modes(s: FloatArray, radius: FloatArray, weight: FloatArray) -> FloatArray:
@@ -75,20 +82,38 @@ def translation_covariances(
     size = gauge.shape[0]
     n = size // 6
     A = coo_matrix((vals, (rows, cols)), shape=(size, size)).tocsc()
-    ridge = RIDGE * max(float(A.diagonal().max(initial=0.0)), 1e-300)
-    A = A + _diagonal(size, ridge)
-    K = bmat([[A, csc_matrix(gauge)], [csc_matrix(gauge.T), None]], format="csc")
-    picks = (6 * np.arange(n)[:, None] + np.arange(3)).ravel()
-    rhs = np.zeros((K.shape[0], len(picks)))
-    rhs[picks, np.arange(len(picks))] = 1.0
-    X = splu(K).solve(rhs)[:size]
-    block = X[picks].reshape(n, 3, n, 3)[np.arange(n), :, np.arange(n), :]  # (n, 3, 3)
+    top = max(float(A.diagonal().max(initial=0.0)), 1e-300)
+    ridge = RIDGE * top
     unseen = UNSEEN / ridge
+    picks = (6 * np.arange(n)[:, None] + np.arange(3)).ravel()
+    rhs = np.zeros((size + gauge.shape[1], len(picks)))
+    rhs[picks, np.arange(len(picks))] = 1.0
+    held = np.zeros((n, 3), dtype=bool)
+    # A translation no data see has a variance of about 1 / ridge, and the gauge (the mean
+    # motion is zero) would spread a share of it over every other patch: such translations
+    # are held and solved again, until no new one appears (a block that floats as a whole
+    # shows up only once its members' shares are gone).
+    for _ in range(PASSES):
+        pin = np.zeros((n, 6))
+        pin[:, :3] = np.where(held, PIN * top, 0.0)
+        K = bmat(
+            [[A + _diagonal(ridge + pin.ravel()), csc_matrix(gauge)], [csc_matrix(gauge.T), None]],
+            format="csc",
+        )
+        X = splu(K).solve(rhs)[:size]
+        block = X[picks].reshape(n, 3, n, 3)[np.arange(n), :, np.arange(n), :]  # (n, 3, 3)
+        var = np.column_stack(
+            [np.repeat(np.linalg.eigvalsh(block[:, :2, :2])[:, 1:], 2, axis=1), block[:, 2, 2]]
+        )
+        lost = (var > unseen) & ~held
+        if not lost.any():
+            break
+        # the unseen themselves, not the shares the gauge spread from them
+        held |= lost & (var >= SHARE * var[lost].max())
     xy: FloatArray = block[:, :2, :2].copy()
     z: FloatArray = block[:, 2, 2].copy()
-    lost = np.linalg.eigvalsh(xy)[:, 1] > unseen
-    xy[lost] = np.diag([np.inf, np.inf])
-    z[z > unseen] = np.inf
+    xy[held[:, :2].any(axis=1)] = np.diag([np.inf, np.inf])
+    z[held[:, 2]] = np.inf
     return xy, z
 
 
@@ -138,6 +163,6 @@ def line_design(score: FloatArray, starts: IntArray, line: IntArray) -> float:
     return max(float(sums @ sums) / alone, 1.0) if alone > 0 else 1.0
 
 
-def _diagonal(size: int, value: float) -> csc_matrix:
-    idx = np.arange(size)
-    return coo_matrix((np.full(size, value), (idx, idx)), shape=(size, size)).tocsc()
+def _diagonal(values: FloatArray) -> csc_matrix:
+    idx = np.arange(len(values))
+    return coo_matrix((values, (idx, idx)), shape=(len(values), len(values))).tocsc()

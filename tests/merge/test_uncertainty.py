@@ -52,6 +52,21 @@ def test_a_direction_no_data_see_is_infinite() -> None:
     assert np.isfinite(z).all()
 
 
+def test_a_patch_no_data_see_leaves_the_others_alone() -> None:
+    # the fifth patch is tied to nothing: its translation is unseen, and the gauge (mean motion
+    # zero) must not spread its huge variance over the four that are measured
+    link = np.array([1.0, 2.0, 1.0, 0.0])
+    rows, cols, vals = _chain(5, link)
+    gauge = np.zeros((30, 3))
+    for k in range(3):
+        gauge[k::6, k] = 1.0
+    xy, z = translation_covariances(rows, cols, vals, gauge)
+    assert np.isinf(np.diag(xy[4])).all() and np.isinf(z[4])
+    four = link[:3]
+    laplacian = np.diag(np.r_[four, 0] + np.r_[0, four]) - np.diag(four, 1) - np.diag(four, -1)
+    np.testing.assert_allclose(xy[:4, 0, 0], np.diag(np.linalg.pinv(laplacian)), rtol=1e-6)
+
+
 def test_gauge_modes_are_common_motions() -> None:
     s = np.array([[0.0, 0.0, 0.0], [10.0, 0.0, 5.0], [0.0, 10.0, -5.0]])
     G = gauge_modes(s, np.array([2.0, 2.0, 2.0]), np.ones(3))
