@@ -54,7 +54,7 @@ from merge.normal_system import (
 )
 from merge.patchset import Patch
 from merge.transforms import PatchTransform, orthonormalize, rotation_from_vector
-from merge.uncertainty import gauge_modes, translation_covariances
+from merge.uncertainty import gauge_modes, translation_sigmas
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
@@ -102,7 +102,7 @@ class PatchFit:
 
 @dataclass(frozen=True)
 class RefineResult:
-    """``T_mosaic_patch`` per patch, iterations and quality."""
+    """``T_mosaic_patch`` per patch, iterations and the residual RMS of each."""
 
     transforms: list[PatchTransform]
     iterations: int
@@ -280,17 +280,15 @@ def assess(
     noise = _noise(patches, scale)
     system = build_normal_system(bank, cand, state, noise, signal=True)
     n = len(patches)
-    xy_cov, z_var = np.full((n, 2, 2), np.inf), np.full(n, np.inf)
+    xy, z = np.full(n, np.inf), np.full(n, np.inf)
     if system.signal_vals is not None and len(system.rows):
         gauge = gauge_modes(state.s, bank.radius, np.diff(bank.point_start).astype(np.float64))
-        xy_cov, z_var = translation_covariances(system.rows, system.cols, system.signal_vals, gauge)
-    # each noise sample enters twice (a's points on b's surface and b's on a's): half the
-    # information the residuals count
-    rms2 = 2.0 * system.rms**2
-    xy = np.sqrt(rms2 * np.linalg.eigvalsh(np.where(np.isfinite(xy_cov), xy_cov, 0.0))[:, 1])
-    xy[~np.isfinite(xy_cov).all(axis=(1, 2))] = np.inf
-    seen = np.isfinite(z_var)
-    z = np.where(seen, np.sqrt(rms2 * system.line_design * np.where(seen, z_var, 0.0)), np.inf)
+        xy, z = translation_sigmas(
+            (system.rows, system.cols, system.signal_vals),
+            gauge,
+            rms=system.rms,
+            z_design=system.line_design,
+        )
     pitch = np.column_stack([bank.dx, bank.dy])
     local = _local_fits(system, n, noise, pitch)
     return [

@@ -117,6 +117,32 @@ def translation_covariances(
     return xy, z
 
 
+def translation_sigmas(
+    information: tuple[IntArray, IntArray, FloatArray],
+    gauge: FloatArray,
+    *,
+    rms: float,
+    z_design: float = 1.0,
+) -> tuple[FloatArray, FloatArray]:
+    """Standard deviations of every patch's translation (XY: its larger axis; Z), ``inf`` where
+    no data see it: :func:`translation_covariances` times the residual variance ``rms²``.
+
+    Each noise sample enters the information twice (a's points on b's surface and b's points on
+    a's), so it counts half; Z variances are further scaled by ``z_design``
+    (:func:`line_design`).
+    """
+    xy_cov, z_var = translation_covariances(*information, gauge)
+    rms2 = 2.0 * rms**2
+    seen_xy: NDArray[np.bool_] = np.asarray(np.isfinite(xy_cov).all(axis=(1, 2)))
+    largest = np.linalg.eigvalsh(np.where(seen_xy[:, None, None], xy_cov, 0.0))[:, 1]
+    xy: FloatArray = np.where(seen_xy, np.sqrt(rms2 * largest), np.inf)
+    seen_z = np.isfinite(z_var)
+    z: FloatArray = np.where(
+        seen_z, np.sqrt(rms2 * z_design * np.where(seen_z, z_var, 0.0)), np.inf
+    )
+    return xy, z
+
+
 def noise_share(
     w: FloatArray, arm: FloatArray, starts: IntArray, radius: FloatArray, noise2: FloatArray
 ) -> FloatArray:
