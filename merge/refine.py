@@ -313,7 +313,7 @@ def _local_fits(
         rms = float(np.sqrt(stats.sq[c] / k))
         info = stats.diag[c] + 1e-9 * np.trace(stats.diag[c]) * np.eye(6)
         try:
-            # marginal information of the XY translation (all other unknowns free), without the
+            # information of its XY translation with its own other unknowns free, without the
             # share that slopes of noise contribute: noise is not texture. A central difference
             # of white noise has variance σ²/2; bilinear interpolation between independent
             # differences keeps 4/9 of it on average, so (2/9) σ² per residual.
