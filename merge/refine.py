@@ -76,6 +76,9 @@ STALL = 1e-4
 DRIFT_PRIOR = 5e-9
 #: Standard deviation (radians) of the prior on a patch's rotation about z.
 SPIN_PRIOR = np.radians(2.0)
+#: An XY direction with less than this fraction of a patch's larger own XY information is one
+#: its overlaps do not see.
+LOCAL_FLOOR = 1e-6
 DEFAULT_LEVELS = (
     Level(smooth=2.0, stride=2, max_iter=10, tol=0.05),
     Level(1.0, 2, 10, 0.05),
@@ -291,6 +294,9 @@ def assess(
         )
     pitch = np.column_stack([bank.dx, bank.dy])
     local = _local_fits(system, n, noise, pitch)
+    # held by its neighbours, a patch is never placed better than its own overlaps allow (the
+    # two take the noise's share out differently: per run there, per patch here)
+    xy = np.maximum(xy, [local_xy for _, _, local_xy in local])
     return [
         PatchFit(k, rms * scale, float(xy[c] * scale), float(z[c] * scale), local_xy * scale)
         if k
@@ -321,7 +327,9 @@ def _local_fits(
             pitch2 = np.array([pitch[c, 0] ** -2, pitch[c, 1] ** -2])
             xy_info = signal_information(xy_info, k * noise**2 * 2.0 / 9.0 * pitch2)
             vals = np.linalg.eigvalsh(xy_info)
-            xy = float(rms / np.sqrt(vals.min())) if vals.min() > 0 else float("inf")
+            # at the level of the regularisation above, a direction is not seen at all
+            seen = vals.min() > LOCAL_FLOOR * max(float(vals.max()), 1e-300)
+            xy = float(rms / np.sqrt(vals.min())) if seen else float("inf")
         except np.linalg.LinAlgError:
             xy = float("inf")
         out.append((int(k), rms, xy))

@@ -81,6 +81,7 @@ def test_flat_overlaps_constrain_z_but_not_xy() -> None:
     ]
     result = run(PatchSet(patches))
     assert not any(p.xy_constrained for p in result.patches)
+    assert all(p.xy_sigma == float("inf") for p in result.patches)  # no placement claimed
     assert any("constrain Z but not XY" in w for w in result.warnings)
     z = [p.transform.t[2] for p in result.patches]
     assert z[1] - z[0] == pytest.approx(-5e-9, abs=0.3e-9)  # the Z staircase is still removed
