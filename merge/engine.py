@@ -223,7 +223,7 @@ def run(
         if linked[c] and not xy_ok and cfg.method in ("default", "paper"):
             warnings.append(
                 f"patch {p.id!r}: its overlaps constrain Z but not XY (too flat or a 1-D "
-                "structure); its XY stays at the coarse estimate"
+                "structure); its XY there is a guess, not a measurement"
             )
     mosaic = render_mosaic(patches, transforms, pixel_size=cfg.pixel_size, feather=cfg.feather)
     timings["render"] = time.perf_counter() - clock - timings["start"] - timings["solve"]
