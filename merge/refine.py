@@ -80,7 +80,7 @@ SPIN_PRIOR = np.radians(2.0)
 #: its overlaps do not see.
 LOCAL_FLOOR = 1e-6
 DEFAULT_LEVELS = (
-    Level(smooth=2.0, stride=2, max_iter=10, tol=0.05),
+    Level(smooth=2.0, stride=2, max_iter=6, tol=0.05),
     Level(1.0, 2, 10, 0.05),
     Level(0.0, 1, 30, 1e-3),
 )
