@@ -15,6 +15,7 @@ predicts.
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -99,6 +100,29 @@ def _remove_common_plane(grids: Sequence[GridSample]) -> list[FloatArray]:
         yy, xx = np.meshgrid(g.y, g.x, indexing="ij")
         out.append(g.heights - a * xx - b * yy)
     return out
+
+
+def _fill_empty_lines(grid: GridSample) -> GridSample:
+    """The grid with rows and columns that no pixel fell in filled from their neighbours.
+
+    With pixels longer than the cell along one axis (4:1 pixels, the cell set by the fine axis
+    so that texture along it survives), whole lines of cells between scan lines stay empty; they
+    are interpolated linearly along that axis. Holes within sampled lines stay holes.
+    """
+    h = grid.heights.copy()
+    for axis in (0, 1):
+        view = h if axis == 0 else h.T  # lines along ``axis`` are rows of ``view``
+        full = np.isfinite(view).any(axis=1)
+        if full.all() or full.sum() < 2:
+            continue
+        idx = np.flatnonzero(full)
+        empty = np.flatnonzero(~full)
+        inner = empty[(empty > idx[0]) & (empty < idx[-1])]
+        below = idx[np.searchsorted(idx, inner) - 1]
+        above = idx[np.searchsorted(idx, inner)]
+        f = ((inner - below) / (above - below))[:, None]
+        view[inner] = (1 - f) * view[below] + f * view[above]
+    return dataclasses.replace(grid, heights=h)
 
 
 def _texture(heights: FloatArray) -> float:
@@ -225,7 +249,9 @@ def coarse_start(
         min(p.origin[1] - 0.5 * p.pixel_size[1] for p in patches),
     )
     grids = [
-        grid_downsample(p.heights, p.pixel_size, cell=cell, origin=p.origin, anchor=anchor)
+        _fill_empty_lines(
+            grid_downsample(p.heights, p.pixel_size, cell=cell, origin=p.origin, anchor=anchor)
+        )
         for p in patches
     ]
     # lattice index (row, column) of every grid's cell (0, 0)

@@ -5,6 +5,7 @@ from hardware.sim.drift import DriftModel
 from hardware.sim.surfaces import Chessboard
 from hardware.sim.synth import synthesize
 from merge.coarse import coarse_start, signal_information
+from merge.engine import coarse_cell, default_cell
 from merge.overlap import overlapping_pairs
 from merge.patchset import Patch
 from tests.conftest import Synthetic
@@ -50,6 +51,29 @@ def test_a_fine_roughness_is_texture_though_it_raises_the_noise_estimate() -> No
     err -= err.mean(axis=0)  # the gauge
     assert start.xy_measured.all()
     assert np.abs(err).max() < 25e-9  # about a cell: the refinement takes it from there
+
+
+def test_oblong_pixels_keep_the_texture_along_their_fine_axis() -> None:
+    # 10 x 40 nm pixels: a lattice at the coarse pitch averaged the roughness away along x and
+    # left every x shift unmeasured; one at the fine pitch, its empty lines filled, keeps it
+    synth = synthesize(
+        Chessboard(step=0.0, seed=4),
+        rows=2,
+        cols=2,
+        patch_size=(0.6e-6, 0.6e-6),
+        pixels=(60, 15),
+        overlap=(0.5, 0.5),
+        drift=DriftModel.harsh(),
+        seed=4,
+    )
+    ps = patch_set_from_synth(synth)
+    pairs = overlapping_pairs(np.array([p.footprint for p in ps]), margin=1e-7)
+    cell = coarse_cell(ps, default_cell(ps))
+    start = coarse_start(ps.patches, pairs, cell=cell, max_shift=3e-7)
+    err = start.translation[:, :2] - np.array([s.translation[:2] for s in synth])
+    err -= err.mean(axis=0)
+    assert start.xy_measured.all()
+    assert np.abs(err[:, 0]).max() < 25e-9
 
 
 def test_noise_and_drift_ramps_are_not_texture() -> None:
