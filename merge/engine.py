@@ -99,13 +99,13 @@ COARSE_CELLS = 32
 
 
 def coarse_cell(patch_set: PatchSet, cell: float) -> float:
-    """The cell of the coarse start: the finer pixel pitch (so that texture along the fine axis
-    of oblong pixels survives) times a whole factor that brings the smaller patch side down to
-    about :data:`COARSE_CELLS` cells (the start needs about a pixel, not better), and never
-    above ``cell``'s multiple of that."""
+    """The cell of the coarse start: the finer of ``cell`` and the finest pixel pitch (so that
+    texture along the fine axis of oblong pixels survives) times a whole factor that brings the
+    smaller patch side down to about :data:`COARSE_CELLS` cells (the start needs about a pixel,
+    not better)."""
     side = min(min(p.extent) for p in patch_set)
     fine = min(min(p.pixel_size) for p in patch_set)
-    base = fine if fine < cell else cell
+    base = min(fine, cell)
     return base * max(1, round(side / base / COARSE_CELLS))
 
 
