@@ -65,10 +65,12 @@ class CoarseStart:
 
     translation : (n, 3) metres, ``t`` of ``q = p + t`` per patch.
     xy_measured : (n,) bool, whether any pair measured the patch's XY.
+    xy_complete : (n,) bool, whether its pairs measured XY along both axes.
     """
 
     translation: FloatArray
     xy_measured: NDArray[np.bool_]
+    xy_complete: NDArray[np.bool_]
 
 
 def _remove_common_plane(grids: Sequence[GridSample]) -> list[FloatArray]:
@@ -139,8 +141,11 @@ def _texture(heights: FloatArray) -> float:
     return float(np.std(resid))
 
 
-def _drop_unconstrained(x: FloatArray, pairs: IntArray, W: FloatArray) -> FloatArray:
-    """Zero each patch's offset along directions its pairs hardly measure, all taken together.
+def _drop_unconstrained(
+    x: FloatArray, pairs: IntArray, W: FloatArray
+) -> tuple[FloatArray, NDArray[np.bool_]]:
+    """Zero each patch's offset along directions its pairs hardly measure, all taken together;
+    and whether they measure both directions.
 
     The pairs of a patch on a 1-D structure (a grating's stripes, a single straight edge) all
     measure nearly the same direction; their small differences in angle would otherwise turn
@@ -150,11 +155,13 @@ def _drop_unconstrained(x: FloatArray, pairs: IntArray, W: FloatArray) -> FloatA
     np.add.at(info, pairs[:, 0], W)
     np.add.at(info, pairs[:, 1], W)
     out = x.copy()
+    complete = np.zeros(len(x), dtype=bool)
     for c in range(len(x)):
         vals, vecs = np.linalg.eigh(info[c])
         weak = vecs[:, vals < APERTURE * max(vals.max(), 0.0)]
         out[c] -= weak @ (weak.T @ x[c])
-    return out
+        complete[c] = vals.max() > 0 and weak.shape[1] == 0
+    return out, complete
 
 
 def _channels(levelled: FloatArray) -> FloatArray:
@@ -316,6 +323,7 @@ def coarse_start(
         accept(i, peak)
 
     translation = np.zeros((n, 3))
+    complete = np.zeros(n, dtype=bool)
     # every patch's stage error is a priori within about half the searched range
     xy_prior = 1.0 / (0.5 * max_shift) ** 2
     if estimate_xy and k:
@@ -358,7 +366,9 @@ def coarse_start(
                 e = expected(j)
                 measure(j, (e[0] + pred[1] / cell, e[1] + pred[0] / cell), 2.0)
             sol = solve_pair_differences(n, pairs, xy_m, xy_w, prior=xy_prior)
-        translation[:, :2] = _drop_unconstrained(sol.x, pairs, xy_w * sol.robust[:, None, None])
+        translation[:, :2], complete = _drop_unconstrained(
+            sol.x, pairs, xy_w * sol.robust[:, None, None]
+        )
     # Z offsets at the XY the network settled on (nominal overlap when XY is not estimated)
     z_m, z_w = np.zeros(k), np.zeros(k)
     for i in range(k):
@@ -375,4 +385,4 @@ def coarse_start(
     translation[:, 2] = zsol.x[:, 0]
     measured = np.zeros(n, dtype=bool)
     measured[pairs[np.trace(xy_w, axis1=1, axis2=2) > 0].ravel()] = True
-    return CoarseStart(translation=translation, xy_measured=measured)
+    return CoarseStart(translation=translation, xy_measured=measured, xy_complete=complete)

@@ -150,6 +150,7 @@ def run(
         for c in np.flatnonzero(~linked)
     ]
     transforms = [PatchTransform() for _ in range(n)]
+    complete = False
     if cfg.method != "nominal" and cfg.init == "auto" and len(pairs):
         start = coarse_start(
             patches,
@@ -159,13 +160,15 @@ def run(
             estimate_xy=cfg.method != "zlevel",
         )
         transforms = [PatchTransform(t=tc) for tc in start.translation]
+        complete = bool(start.xy_complete[linked].all())
     timings["start"] = time.perf_counter() - clock
     iterations, converged, history = 0, True, []
     if cfg.method in ("default", "paper") and len(pairs):
         # pairs at the estimated places, with a margin for what the refinement may still move
         near = overlapping_pairs(_moved_boxes(boxes, transforms), margin=4.0 * cell)
         if cfg.method == "default":
-            levels: tuple[Level, ...] = DEFAULT_LEVELS
+            # the widest level is for patches the start left unmeasured along some direction
+            levels: tuple[Level, ...] = DEFAULT_LEVELS[1:] if complete else DEFAULT_LEVELS
             if cfg.max_iter is not None:
                 levels = tuple(
                     Level(lv.smooth, lv.stride, max(1, min(lv.max_iter, cfg.max_iter)), lv.tol)
