@@ -17,12 +17,11 @@ then leak into both.
 
 Coarse to fine: the first two levels work on every second point of heights smoothed by two
 pixels, then one, which widens the basin of convergence; the last on the raw heights at every
-point. The widest level matters (and the engine asks for it) only where the coarse start left
-a direction unmeasured: along the stripes of a
-1-D grating a patch starts from its stage error, and only the stripes' slight bends and defects,
-tens of nanometres wide, can bring it in. Residuals
-are re-weighted with a Cauchy function of their robust scale, so tip artefacts, dust or a changed
-surface do not pull the solution.
+point. The widest level matters (and the engine asks for it) only where the coarse start left a
+direction unmeasured: along the stripes of a 1-D grating a patch starts from its stage error,
+and only the stripes' slight bends and defects, tens of nanometres wide, can bring it in.
+Residuals are re-weighted with a Cauchy function of their robust scale, so tip artefacts, dust
+or a changed surface do not pull the solution.
 
 Gauge: after every step the common motion of all patches (rotation about z, a Z plane and a
 translation — none changes any residual) is removed: the mean rotation and mean drift plane are
