@@ -4,7 +4,7 @@ from backend.synthetic import patch_set_from_synth
 from hardware.sim.drift import DriftModel
 from hardware.sim.surfaces import Chessboard
 from hardware.sim.synth import synthesize
-from merge.coarse import coarse_start, signal_information
+from merge.coarse import CoarseStart, coarse_start, signal_information
 from merge.engine import coarse_cell, default_cell
 from merge.overlap import overlapping_pairs
 from merge.patchset import Patch
@@ -30,48 +30,41 @@ def test_coarse_start_finds_xy_and_the_z_staircase(small_mosaic: Synthetic) -> N
     assert start.xy_measured.all()
 
 
-def test_a_fine_roughness_is_texture_though_it_raises_the_noise_estimate() -> None:
-    # a grating's flat face: 1.5 nm of roughness correlated over about a pixel, 1 nm of noise
-    # and drift ramps. The roughness also inflates the noise estimate (second differences), so
-    # a gate demanding two noise sigmas of texture refused it and left 65 nm stage errors.
+def _flat_face_start(
+    pixels: tuple[int, int], drift: DriftModel, seed: int
+) -> tuple[CoarseStart, np.ndarray]:
+    """The coarse start of 2 x 2 patches on a grating's flat face (1.5 nm of roughness
+    correlated over about a pixel, 1 nm of noise), and its XY errors less their mean (m)."""
     synth = synthesize(
-        Chessboard(step=0.0, seed=3),
+        Chessboard(step=0.0, seed=seed),
         rows=2,
         cols=2,
         patch_size=(0.6e-6, 0.6e-6),
-        pixels=(30, 30),
+        pixels=pixels,
         overlap=(0.5, 0.5),
-        drift=DriftModel.typical(),
-        seed=3,
-    )
-    patches = patch_set_from_synth(synth).patches
-    pairs = overlapping_pairs(np.array([p.footprint for p in patches]), margin=1e-7)
-    start = coarse_start(patches, pairs, cell=2e-8, max_shift=3e-7)
-    err = start.translation[:, :2] - np.array([s.translation[:2] for s in synth])
-    err -= err.mean(axis=0)  # the gauge
-    assert start.xy_measured.all()
-    assert np.abs(err).max() < 25e-9  # about a cell: the refinement takes it from there
-
-
-def test_oblong_pixels_keep_the_texture_along_their_fine_axis() -> None:
-    # 10 x 40 nm pixels: a lattice at the coarse pitch averaged the roughness away along x and
-    # left every x shift unmeasured; one at the fine pitch, its empty lines filled, keeps it
-    synth = synthesize(
-        Chessboard(step=0.0, seed=4),
-        rows=2,
-        cols=2,
-        patch_size=(0.6e-6, 0.6e-6),
-        pixels=(60, 15),
-        overlap=(0.5, 0.5),
-        drift=DriftModel.harsh(),
-        seed=4,
+        drift=drift,
+        seed=seed,
     )
     ps = patch_set_from_synth(synth)
     pairs = overlapping_pairs(np.array([p.footprint for p in ps]), margin=1e-7)
     cell = coarse_cell(ps, default_cell(ps))
     start = coarse_start(ps.patches, pairs, cell=cell, max_shift=3e-7)
     err = start.translation[:, :2] - np.array([s.translation[:2] for s in synth])
-    err -= err.mean(axis=0)
+    return start, err - err.mean(axis=0)  # the gauge
+
+
+def test_a_fine_roughness_is_texture_though_it_raises_the_noise_estimate() -> None:
+    # the roughness also inflates the noise estimate (second differences), so a gate demanding
+    # two noise sigmas of texture refused it and left 65 nm stage errors
+    start, err = _flat_face_start((30, 30), DriftModel.typical(), 3)
+    assert start.xy_measured.all()
+    assert np.abs(err).max() < 25e-9  # about a cell: the refinement takes it from there
+
+
+def test_oblong_pixels_keep_the_texture_along_their_fine_axis() -> None:
+    # 10 x 40 nm pixels: a lattice at the coarse pitch averaged the roughness away along x and
+    # left x shifts unmeasured; one at the fine pitch, its empty lines filled, keeps it
+    start, err = _flat_face_start((60, 15), DriftModel.harsh(), 4)
     assert start.xy_measured.all()
     assert np.abs(err[:, 0]).max() < 25e-9
 
