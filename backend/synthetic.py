@@ -52,14 +52,20 @@ def _placed(
     return out
 
 
+def _gauge(
+    placed: list[tuple[FloatArray, FloatArray]],
+) -> tuple[FloatArray, FloatArray, tuple[FloatArray, FloatArray]]:
+    """All placed and true points, and the global rigid transform that fits them best."""
+    P, Q = np.concatenate([p for p, _ in placed]), np.concatenate([q for _, q in placed])
+    return P, Q, weighted_rigid_transform(P, Q)
+
+
 def registration_error(
     synth: Sequence[SynthPatch], transforms: Sequence[PatchTransform]
 ) -> tuple[float, float, tuple[FloatArray, FloatArray]]:
     """RMS XY and Z error (metres) of where the merge puts every measured point, after the one
     global rigid transform that fits best (the gauge), and that transform ``(G, g)``."""
-    placed = _placed(synth, transforms)
-    P, Q = np.concatenate([p for p, _ in placed]), np.concatenate([q for _, q in placed])
-    G, g = weighted_rigid_transform(P, Q)
+    P, Q, (G, g) = _gauge(_placed(synth, transforms))
     e = P @ G.T + g - Q
     exy = float(np.sqrt(np.mean(np.sum(e[:, :2] ** 2, axis=1))))
     return exy, float(np.sqrt(np.mean(e[:, 2] ** 2))), (G, g)
@@ -68,10 +74,9 @@ def registration_error(
 def patch_errors(synth: Sequence[SynthPatch], transforms: Sequence[PatchTransform]) -> FloatArray:
     """Mean error (n, 3), metres, of where the merge puts each patch's points, after the global
     rigid transform of :func:`registration_error`: what each patch's sigmas should cover."""
-    _, _, (G, g) = registration_error(synth, transforms)
-    out: FloatArray = np.array(
-        [(p @ G.T + g - q).mean(axis=0) for p, q in _placed(synth, transforms)]
-    )
+    placed = _placed(synth, transforms)
+    _, _, (G, g) = _gauge(placed)
+    out: FloatArray = np.array([(p @ G.T + g - q).mean(axis=0) for p, q in placed])
     return out
 
 

@@ -28,6 +28,7 @@ from merge.ncc import CorrelationPeak, best_shift, find_peak, masked_ncc
 from merge.network import solve_pair_differences
 from merge.noise import estimate_noise
 from merge.patchset import Patch
+from merge.uncertainty import psd_part
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
@@ -206,8 +207,7 @@ def _information(a: FloatArray, b: FloatArray, shift: tuple[int, int], sigma: fl
 def signal_information(tensor: FloatArray, noise_part: FloatArray | float) -> FloatArray:
     """``tensor - diag(noise_part)``, projected onto the positive semi-definite matrices."""
     noise = np.broadcast_to(np.asarray(noise_part, dtype=np.float64), (len(tensor),))
-    vals, vecs = np.linalg.eigh(tensor - np.diag(noise))
-    out: FloatArray = (vecs * np.clip(vals, 0.0, None)) @ vecs.T
+    out: FloatArray = psd_part((tensor - np.diag(noise))[None])[0]
     return out
 
 

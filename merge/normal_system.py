@@ -164,10 +164,11 @@ def build_normal_system(
         )
 
     each(information, blocks)
+    a_seg, b_seg = src[starts[:-1]], dst[starts[:-1]]
     signal_blocks, design = None, 1.0
     if signal:
-        pitch2 = 0.5 * (bank.dx[dst[starts[:-1]]] ** -2 + bank.dy[dst[starts[:-1]]] ** -2)
-        share = noise_share(w, arm, starts, bank.radius[src[starts[:-1]]], noise**2 * pitch2)
+        pitch2 = 0.5 * (bank.dx[b_seg] ** -2 + bank.dy[b_seg] ** -2)
+        share = noise_share(w, arm, starts, bank.radius[a_seg], noise**2 * pitch2)
         signal_blocks = psd_part(Baa - share)
         rows_of = np.rint((bank.points[idx, 1] + bank.half[src, 1]) / bank.dy[src])
         design = line_design(w * r, starts, rows_of.astype(np.intp))
@@ -177,7 +178,6 @@ def build_normal_system(
         np.bincount(src, weights=d2, minlength=n) + np.bincount(dst, weights=d2, minlength=n),
         dtype=np.float64,
     )
-    a_seg, b_seg = src[starts[:-1]], dst[starts[:-1]]
     rows, cols, vals, g, diag = _assemble(bank, state, a_seg, b_seg, Baa, ga)
     signal_vals = None
     if signal_blocks is not None:
