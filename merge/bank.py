@@ -80,6 +80,8 @@ class SurfaceBank:
         # (pixels, 3): height, dh/dx, dh/dy of every pixel, so one gather fetches all three
         self.surface = np.concatenate(surface)
         self.points = np.concatenate(pts)
+        #: the patch of every point
+        self.owner = np.repeat(np.arange(n, dtype=np.intp), np.diff(self.point_start))
 
     def lookup(
         self, dst: IntArray, p_local: FloatArray
@@ -97,10 +99,12 @@ class SurfaceBank:
         j0 = np.clip(np.floor(u).astype(np.intp), 0, nx - 2)
         fv, fu = np.clip(v - i0, 0.0, 1.0)[:, None], np.clip(u - j0, 0.0, 1.0)[:, None]
         k = self.offset[dst] + i0 * nx + j0
-        a = self.surface
-        top = a[k] + fu * (a[k + 1] - a[k])
-        val = top + fv * (a[k + nx] + fu * (a[k + nx + 1] - a[k + nx]) - top)
-        ok = inside & np.isfinite(val).all(axis=1)
+        a = self.surface  # take() gathers rows several times faster than fancy indexing
+        a00, a01 = a.take(k, axis=0), a.take(k + 1, axis=0)
+        a10, a11 = a.take(k + nx, axis=0), a.take(k + nx + 1, axis=0)
+        top = a00 + fu * (a01 - a00)
+        val = top + fv * (a10 + fu * (a11 - a10) - top)
+        ok = inside & np.isfinite(val.sum(axis=1))
         return val[:, 0], val[:, 1], val[:, 2], ok
 
     def candidates(
@@ -113,30 +117,34 @@ class SurfaceBank:
         and global point index, plus the start of every directed pair's run of rows (runs are
         contiguous).
         """
-        src_l, dst_l, idx_l, starts = [], [], [], [0]
+        pairs = np.asarray(pairs, dtype=np.intp).reshape(-1, 2)
         # Both ways: the points of each patch against the other's surface, which averages the
         # interpolation of either surface (Jacobians act on both patches of a pair).
-        for a, b in pairs.tolist():
-            for src, dst in ((a, b), (b, a)):
-                # the destination's outline in the source's local frame
-                hx, hy = self.half[dst]
-                corners = np.array([[-hx, -hy, 0], [hx, -hy, 0], [hx, hy, 0], [-hx, hy, 0]])
-                loc = (corners @ (R[src].T @ R[dst]).T) + R[src].T @ (s[dst] - s[src])
-                lo = loc[:, :2].min(axis=0) - margin
-                hi = loc[:, :2].max(axis=0) + margin
-                p = self.points[self.point_start[src] : self.point_start[src + 1]]
-                sel = np.flatnonzero(
-                    (p[:, 0] >= lo[0])
-                    & (p[:, 0] <= hi[0])
-                    & (p[:, 1] >= lo[1])
-                    & (p[:, 1] <= hi[1])
-                )
-                if len(sel) == 0:
-                    continue
-                src_l.append(np.full(len(sel), src, dtype=np.intp))
-                dst_l.append(np.full(len(sel), dst, dtype=np.intp))
-                idx_l.append(sel + self.point_start[src])
-                starts.append(starts[-1] + len(sel))
+        src_all, dst_all = pairs.ravel(), pairs[:, ::-1].ravel()
+        # every destination's outline in its source's local frame, all directed pairs at once
+        hx, hy = self.half[dst_all, 0], self.half[dst_all, 1]
+        corners = np.zeros((len(dst_all), 4, 3))
+        corners[:, :, 0] = np.column_stack([-hx, hx, hx, -hx])
+        corners[:, :, 1] = np.column_stack([-hy, -hy, hy, hy])
+        Rsd = np.einsum("kji,kjl->kil", R[src_all], R[dst_all])
+        loc = np.einsum("kij,kcj->kci", Rsd, corners)
+        loc += np.einsum("kji,kj->ki", R[src_all], s[dst_all] - s[src_all])[:, None, :]
+        lo = loc[:, :, :2].min(axis=1) - margin
+        hi = loc[:, :, :2].max(axis=1) + margin
+        x, y = self.points[:, 0], self.points[:, 1]
+        src_l, dst_l, idx_l, starts = [], [], [], [0]
+        for k, (src, dst) in enumerate(zip(src_all.tolist(), dst_all.tolist(), strict=True)):
+            first, last = self.point_start[src], self.point_start[src + 1]
+            px, py = x[first:last], y[first:last]
+            sel = np.flatnonzero(
+                (px >= lo[k, 0]) & (px <= hi[k, 0]) & (py >= lo[k, 1]) & (py <= hi[k, 1])
+            )
+            if len(sel) == 0:
+                continue
+            src_l.append(np.full(len(sel), src, dtype=np.intp))
+            dst_l.append(np.full(len(sel), dst, dtype=np.intp))
+            idx_l.append(sel + first)
+            starts.append(starts[-1] + len(sel))
         if not idx_l:
             e = np.empty(0, dtype=np.intp)
             return e, e, e, np.zeros(1, dtype=np.intp)

@@ -33,7 +33,7 @@ Candidates = tuple[IntArray, IntArray, IntArray, IntArray]
 #: Levenberg damping, relative to the largest curvature of each patch's own unknowns.
 DAMPING = 1e-4
 #: Rows per block of the system build (whole runs are kept together).
-BLOCK_ROWS = 1 << 16
+BLOCK_ROWS = 1 << 15
 
 
 @dataclass
@@ -138,7 +138,7 @@ def build_normal_system(
     def residuals(block: tuple[int, int]) -> None:
         lo, hi = starts[block[0]], starts[block[1]]
         r[lo:hi], w_plane[lo:hi], grad[lo:hi], arm[lo:hi] = _residuals(
-            bank, src[lo:hi], dst[lo:hi], idx[lo:hi], state
+            bank, idx[lo:hi], dst[lo:hi], starts[block[0] : block[1] + 1] - lo, state
         )
 
     each(residuals, blocks)
@@ -156,12 +156,11 @@ def build_normal_system(
     def information(block: tuple[int, int]) -> None:
         first, last = block
         lo, hi = starts[first], starts[last]
+        runs = starts[first : last + 1] - lo
         J = _jacobians(
-            bank, src[lo:hi], dst[lo:hi], idx[lo:hi], state, grad[lo:hi], ok[lo:hi], arm[lo:hi]
+            bank, idx[lo:hi], dst[lo:hi], runs, state, grad[lo:hi], ok[lo:hi], arm[lo:hi]
         )
-        Baa[first:last], ga[first:last] = segment_sums(
-            J, w[lo:hi], r[lo:hi], starts[first : last + 1] - lo
-        )
+        Baa[first:last], ga[first:last] = segment_sums(J, w[lo:hi], r[lo:hi], runs)
 
     each(information, blocks)
     a_seg, b_seg = src[starts[:-1]], dst[starts[:-1]]
@@ -197,48 +196,73 @@ def build_normal_system(
     )
 
 
+def _run_maps(state: PatchState, a: IntArray, b: IntArray) -> tuple[FloatArray, FloatArray]:
+    """Per run: the affine map ``p_b = M p_a + c`` from the source's frame to the destination's.
+
+    ``q = R_a p + s_a + e_z (slope_a · p_xy)`` in the mosaic, then ``p_b = R_b' (q - s_b)``:
+    ``M = R_b' (R_a + e_z [slope_a, 0])`` (k, 3, 3) and ``c = R_b' (s_a - s_b)`` (k, 3).
+    """
+    A = state.R[a].copy()
+    A[:, 2, :2] += state.slope[a]
+    M = np.einsum("kji,kjl->kil", state.R[b], A)
+    c = np.einsum("kji,kj->ki", state.R[b], state.s[a] - state.s[b])
+    return M, c
+
+
 def _residuals(
-    bank: SurfaceBank, src: IntArray, dst: IntArray, idx: IntArray, state: PatchState
+    bank: SurfaceBank, idx: IntArray, dst: IntArray, starts: IntArray, state: PatchState
 ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
     """Per row: residual, plane weight (0 where invalid), normal slopes (m, 2), lever arm (m, 2).
 
-    The residual is the height of the source point above the destination's surface and drift
-    plane; its gradient with respect to the mosaic position is the destination's normal
+    Rows ``idx`` (points) over ``dst`` (patches) come in runs ``starts[k]:starts[k + 1]`` of one
+    directed pair each, so every run moves its points with one small matrix product. The
+    residual is the height of the source point above the destination's surface and drift plane;
+    its gradient with respect to the mosaic position is the destination's normal
     ``(-slope_x, -slope_y, 1)``, whose squared length divides the plane weight.
     """
-    R, s, slope = state.R, state.s, state.slope
+    a, b = bank.owner[idx[starts[:-1]]], dst[starts[:-1]]
+    M, c = _run_maps(state, a, b)
     p_src = bank.points[idx]
-    rot = np.einsum("mij,mj->mi", R[src], p_src)
-    q = rot + s[src]
-    q[:, 2] += np.einsum("mi,mi->m", slope[src], p_src[:, :2])
-    p_dst = np.einsum("mji,mj->mi", R[dst], q - s[dst])
+    p_dst = np.empty_like(p_src)
+    arm = np.empty((len(idx), 2))
+    Ra = state.R[a, :2, :]
+    for k in range(len(a)):
+        lo, hi = starts[k], starts[k + 1]
+        np.matmul(p_src[lo:hi], M[k].T, out=p_dst[lo:hi])
+        p_dst[lo:hi] += c[k]
+        np.matmul(p_src[lo:hi], Ra[k].T, out=arm[lo:hi])
     h, gx, gy, ok = bank.lookup(dst, p_dst)
-    r = np.where(ok, p_dst[:, 2] - np.einsum("mi,mi->m", slope[dst], p_dst[:, :2]) - h, 0.0)
-    grad = np.column_stack([gx, gy]) + slope[dst]
+    slope = state.slope[dst]
+    r = np.where(ok, p_dst[:, 2] - np.einsum("mi,mi->m", slope, p_dst[:, :2]) - h, 0.0)
+    grad = np.column_stack([gx, gy]) + slope
     grad[~ok] = 0.0
     w_plane = np.where(ok, 1.0 / np.maximum(1.0 + np.einsum("ij,ij->i", grad, grad), 1.0), 0.0)
-    return r, w_plane, grad, rot[:, :2]
+    return r, w_plane, grad, arm
 
 
 def _jacobians(
     bank: SurfaceBank,
-    src: IntArray,
-    dst: IntArray,
     idx: IntArray,
+    dst: IntArray,
+    starts: IntArray,
     state: PatchState,
     grad: FloatArray,
     ok: NDArray[np.bool_],
     arm: FloatArray,
 ) -> FloatArray:
-    """(m, 6) derivative of every residual with respect to its source patch's unknowns."""
+    """(m, 6) derivative of every residual with respect to its source patch's unknowns.
+
+    The translation part is the destination's normal in the mosaic, ``R_b (-grad, 1)``: one
+    rotation per run.
+    """
     nrm = np.column_stack([-grad, ok.astype(np.float64)])
-    m = np.einsum("mij,mj->mi", state.R[dst], nrm)
-    rho = bank.radius[src, None]
+    m = np.empty_like(nrm)
+    for k, b in enumerate(dst[starts[:-1]]):
+        lo, hi = starts[k], starts[k + 1]
+        np.matmul(nrm[lo:hi], state.R[b].T, out=m[lo:hi])
+    rho = bank.radius[bank.owner[idx], None]
     spin = (m[:, 1] * arm[:, 0] - m[:, 0] * arm[:, 1])[:, None]
     return np.concatenate([m, spin / rho, bank.points[idx, :2] / rho], axis=1)
-
-
-_IU = np.triu_indices(6)
 
 
 def segment_sums(
@@ -247,14 +271,15 @@ def segment_sums(
     """Per run of rows ``starts[k]:starts[k + 1]``: ``Σ w J J'`` (k, 6, 6) and ``Σ w r J`` (k, 6).
 
     ``J`` (m, 6), ``w`` and ``r`` (m,); runs are non-empty and cover the rows from
-    ``starts[0]`` on. Only the 21 distinct products of the symmetric outer product are formed.
+    ``starts[0]`` on. One matrix product per run (runs hold hundreds of rows).
     """
+    k = len(starts) - 1
+    B, grad = np.empty((k, 6, 6)), np.empty((k, 6))
     wJ = J * w[:, None]
-    grad = np.add.reduceat(wJ * r[:, None], starts[:-1], axis=0)
-    upper = np.add.reduceat(wJ[:, _IU[0]] * J[:, _IU[1]], starts[:-1], axis=0)
-    B = np.empty((len(starts) - 1, 6, 6))
-    B[:, _IU[0], _IU[1]] = upper
-    B[:, _IU[1], _IU[0]] = upper
+    for j in range(k):
+        lo, hi = starts[j], starts[j + 1]
+        B[j] = wJ[lo:hi].T @ J[lo:hi]
+        grad[j] = r[lo:hi] @ wJ[lo:hi]
     return B, grad
 
 

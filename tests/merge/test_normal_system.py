@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from merge.bank import SurfaceBank
-from merge.normal_system import PatchState, build_normal_system, segment_sums
+from merge.normal_system import PatchState, _residuals, build_normal_system, segment_sums
 from merge.patchset import Patch
 
 
@@ -36,6 +36,25 @@ def _bank() -> tuple[SurfaceBank, PatchState]:
     R[:, 0, 0], R[:, 0, 1], R[:, 1, 0], R[:, 1, 1], R[:, 2, 2] = c, -s, s, c, 1.0
     state = PatchState(R, bank.centre + rng.normal(0, 0.3, (4, 3)), rng.normal(0, 1e-3, (4, 2)))
     return bank, state
+
+
+def test_residuals_move_every_point_as_its_patch_state_says() -> None:
+    bank, state = _bank()
+    pairs = np.array([[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]])
+    src, dst, idx, starts = bank.candidates(pairs, state.R, state.s, 1.5)
+    r, w_plane, _, arm = _residuals(bank, idx, dst, starts, state)
+    # row by row: into the mosaic with the source's state, back out with the destination's
+    p = bank.points[idx]
+    rot = np.einsum("mij,mj->mi", state.R[src], p)
+    q = rot + state.s[src]
+    q[:, 2] += np.einsum("mi,mi->m", state.slope[src], p[:, :2])
+    p_dst = np.einsum("mji,mj->mi", state.R[dst], q - state.s[dst])
+    h, _, _, ok = bank.lookup(dst, p_dst)
+    expected = p_dst[:, 2] - np.einsum("mi,mi->m", state.slope[dst], p_dst[:, :2]) - h
+    assert ok.sum() > 0.5 * len(ok)
+    np.testing.assert_array_equal(w_plane > 0, ok)
+    np.testing.assert_allclose(r[ok], expected[ok], atol=1e-9)
+    np.testing.assert_allclose(arm, rot[:, :2], atol=1e-12)
 
 
 @pytest.mark.parametrize("block_rows", [1, 97, 1000])
