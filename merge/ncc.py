@@ -83,7 +83,7 @@ def masked_ncc(
     # Single precision halves the memory traffic of this, the start's costliest step: inputs
     # are standardised, so sums stay far from float32's limits, and the scores need ~1e-4 at
     # most (the refinement, in double precision, measures the sub-pixel shift).
-    def F(x: FloatArray) -> NDArray[np.complex64]:
+    def F(x: NDArray[np.float64] | NDArray[np.bool_]) -> NDArray[np.complex64]:
         x32 = x.astype(np.float32)
         out: NDArray[np.complex64] = fft.rfft2(x32, shape, axes=(-2, -1), workers=WORKERS)
         return out
