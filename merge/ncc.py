@@ -186,7 +186,9 @@ def find_peak(
     ``ambiguity``: separate peaks scoring within this much of the best are taken as equally
     likely — a periodic structure repeats its peak one period apart, and which of them scores
     highest then depends on noise and on what the overlap happens to hold — and the one nearest
-    the expected shift wins.
+    the expected shift wins. So are bumps along one ridge (the NCC of a straight edge or of a
+    grating's stripes is high all along it) unless the best stands out of the ridge by as much:
+    then it is the texture along the edge, and it wins (see :func:`_alike`).
     """
     ky = np.arange(ncc.shape[0]) - zero[0]
     kx = np.arange(ncc.shape[1]) - zero[1]
@@ -212,8 +214,10 @@ def find_peak(
         cy, cx = np.nonzero(local)
         if len(cy) > 1:
             dist2 = (ky[cy] - expected[0]) ** 2 + (kx[cx] - expected[1]) ** 2
-            k = int(np.argmin(dist2))
-            iy, ix = int(cy[k]), int(cx[k])
+            for k in np.argsort(dist2, kind="stable").tolist():
+                if _alike(score, (iy, ix), (int(cy[k]), int(cx[k])), ambiguity):
+                    iy, ix = int(cy[k]), int(cx[k])
+                    break
     sub = [0.0, 0.0]
     border = False
     for axis, (i, n_axis) in enumerate(((iy, ncc.shape[0]), (ix, ncc.shape[1]))):
@@ -234,3 +238,19 @@ def find_peak(
         overlap=int(count[iy, ix]),
         at_border=border,
     )
+
+
+def _alike(score: FloatArray, best: tuple[int, int], other: tuple[int, int], margin: float) -> bool:
+    """Whether peak ``other`` of ``score`` is as likely as the ``best``, both within ``margin``.
+
+    Along the straight path between them, a valley deeper than ``margin`` below ``other``
+    separates two peaks (a period apart): alike. Without one they lie on one ridge: alike only
+    if the best does not rise above the path by more than ``margin`` (bumps of noise along a
+    stripe), not when it does (texture pins the shift along an edge).
+    """
+    steps = max(abs(other[0] - best[0]), abs(other[1] - best[1]), 1) + 1
+    rows = np.rint(np.linspace(best[0], other[0], steps)).astype(np.intp)
+    cols = np.rint(np.linspace(best[1], other[1], steps)).astype(np.intp)
+    low = float(score[rows, cols].min())
+    separated = low < score[other] - margin
+    return bool(separated or score[best] - low <= margin)

@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 from scipy.ndimage import gaussian_filter
 
-from merge.ncc import best_shift, masked_ncc
+from merge.ncc import best_shift, find_peak, masked_ncc
 
 
 def texture(seed: int, shape: tuple[int, int] = (60, 60)) -> np.ndarray:
@@ -75,3 +75,33 @@ def test_a_unique_peak_wins_however_far_from_the_expected_shift() -> None:
     peak = best_shift(a, b, expected=(0.0, 0.0), min_overlap=200, ambiguity=0.1)
     assert peak is not None
     assert peak.integer_shift == (6, -9)
+
+
+def _ridge(bumps: dict[int, float], seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """An NCC map with a ridge along x through dy = 0 (a straight edge) at 0.7, noise of 0.02
+    along it, and bumps ``{dx: height}`` above the ridge."""
+    ky = np.arange(21)[:, None] - 10
+    ncc = 0.7 * np.exp(-(ky**2) / 4.0) + np.zeros((21, 41))
+    ncc[10] += np.random.default_rng(seed).uniform(-0.02, 0.02, 41)
+    for dx, height in bumps.items():
+        kernel = np.array([[0.5, 0.7, 0.5], [0.7, 1.0, 0.7], [0.5, 0.7, 0.5]])
+        ncc[9:12, 19 + dx : 22 + dx] += height * kernel
+    return ncc, np.full(ncc.shape, 500.0)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_texture_along_an_edge_beats_the_expected_shift(seed: int) -> None:
+    # a bump at the expected shift scores within the ambiguity of the best at dx = +8, but the
+    # best stands out of the ridge between them by more: that is where the texture matches
+    ncc, count = _ridge({0: 0.06, 8: 0.16}, seed)
+    peak = find_peak(ncc, count, (10, 20), radius=(12, 12), ambiguity=0.1)
+    assert peak is not None and peak.integer_shift == (0, 8)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_along_a_bare_ridge_the_expected_shift_wins(seed: int) -> None:
+    # bumps of noise only (the highest at dx = +8): which of them scores highest says nothing,
+    # so the bump nearest the expected shift wins (bumps lie a few cells apart)
+    ncc, count = _ridge({8: 0.03}, seed)
+    peak = find_peak(ncc, count, (10, 20), radius=(12, 12), ambiguity=0.1)
+    assert peak is not None and peak.integer_shift[0] == 0 and abs(peak.integer_shift[1]) <= 3
