@@ -46,6 +46,10 @@ PRECISION = 0.1
 APERTURE = 0.01
 #: Pairs correlated together through one set of FFTs.
 BATCH = 64
+#: A first-pass peak scoring this many robust spreads below the median of all pairs' peaks is
+#: taken for a chance one (see _drop_odd_scores); the spread is at least SCORE_SPREAD_FLOOR.
+ODD_SCORE = 5.0
+SCORE_SPREAD_FLOOR = 0.02
 #: Weights of the correlated channels: heights, x slope, y slope.
 CHANNEL_WEIGHTS = (0.5, 0.25, 0.25)
 #: Pairs overlapping nominally by fewer cells than this along either axis are not correlated.
@@ -165,6 +169,23 @@ def _drop_unconstrained(
     return out, complete
 
 
+def _drop_odd_scores(score: FloatArray, xy_w: FloatArray) -> None:
+    """Unmeasure (in place) first-pass pairs whose peak scores far below the set's usual.
+
+    On one surface the true peaks of all pairs score alike (0.95-0.99 on a textured sample); a
+    pair whose true shift lies beyond the search window still returns its best peak inside,
+    a chance one that scores far lower and would claim the full precision of a real one. Such
+    pairs are measured again in the second pass, near the shift their neighbours predict.
+    """
+    found = np.isfinite(score)
+    if found.sum() < 8:
+        return
+    med = float(np.median(score[found]))
+    spread = max(1.4826 * float(np.median(np.abs(score[found] - med))), SCORE_SPREAD_FLOOR)
+    odd = found & (score < med - ODD_SCORE * spread)
+    xy_w[odd] = 0.0
+
+
 def _channels(levelled: FloatArray) -> FloatArray:
     """What is correlated: the heights and their slopes (after one cell of smoothing).
 
@@ -276,6 +297,7 @@ def coarse_start(
     k = len(pairs)
     radius = max_shift / cell
     xy_m, xy_w = np.zeros((k, 2)), np.zeros((k, 2, 2))
+    score = np.full(k, np.nan)
     nominal_overlap = np.zeros(k)
     for i in range(k):
         a, b = int(pairs[i, 0]), int(pairs[i, 1])
@@ -298,6 +320,7 @@ def coarse_start(
         xy_w[i] = 0.0
         if peak is None or peak.at_border or peak.score < MIN_SCORE:
             return
+        score[i] = peak.score
         e = expected(i)
         xy_m[i] = [(peak.shift[1] - e[1]) * cell, (peak.shift[0] - e[0]) * cell]
         s_pair = float(np.hypot(sigma[a], sigma[b]) / np.sqrt(2.0))
@@ -356,6 +379,7 @@ def coarse_start(
                             ambiguity=AMBIGUITY,
                         ),
                     )
+        _drop_odd_scores(score, xy_w)
         sol = solve_pair_differences(n, pairs, xy_m, xy_w, prior=xy_prior)
         # second pass: re-measure doubtful pairs near the shift the network predicts
         unmeasured = np.trace(xy_w, axis1=1, axis2=2) == 0

@@ -4,7 +4,7 @@ from backend.synthetic import patch_set_from_synth
 from hardware.sim.drift import DriftModel
 from hardware.sim.surfaces import Chessboard
 from hardware.sim.synth import synthesize
-from merge.coarse import CoarseStart, coarse_start, signal_information
+from merge.coarse import CoarseStart, _drop_odd_scores, coarse_start, signal_information
 from merge.engine import coarse_cell, default_cell
 from merge.overlap import overlapping_pairs
 from merge.patchset import Patch
@@ -99,3 +99,27 @@ def test_overlapping_pairs_are_found_by_footprint() -> None:
     boxes = np.array([[0, 0, 1, 1], [0.9, 0, 2, 1], [3, 0, 4, 1]], dtype=float)
     assert overlapping_pairs(boxes).tolist() == [[0, 1]]
     assert overlapping_pairs(boxes, margin=0.6).tolist() == [[0, 1], [1, 2]]
+
+
+def _weights(count: int) -> np.ndarray:
+    return np.repeat(np.eye(2)[None], count, axis=0)
+
+
+def test_a_peak_far_below_the_usual_score_is_not_a_measurement() -> None:
+    # a textured surface: true peaks score 0.95-0.99; one pair found only a chance peak
+    score = np.array([0.97, 0.96, 0.98, 0.99, 0.95, 0.97, 0.98, 0.96, 0.97, 0.56, np.nan])
+    w = _weights(len(score))
+    _drop_odd_scores(score, w)
+    assert not w[9].any()
+    assert all(w[i].any() for i in range(9)) and w[10].any()  # unmatched pairs are left alone
+
+
+def test_scores_that_vary_widely_drop_nothing() -> None:
+    # a sparse grating: peaks from 0.6 (roughness along an edge) to 0.99 (corners) are all real
+    score = np.linspace(0.6, 0.99, 12)
+    w = _weights(len(score))
+    _drop_odd_scores(score, w)
+    assert w.any(axis=(1, 2)).all()
+    few = _weights(5)
+    _drop_odd_scores(np.array([0.99, 0.99, 0.99, 0.99, 0.4]), few)
+    assert few.any(axis=(1, 2)).all()  # too few pairs to know what is usual
