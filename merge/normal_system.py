@@ -202,7 +202,7 @@ def _run_maps(state: PatchState, a: IntArray, b: IntArray) -> tuple[FloatArray, 
     ``q = R_a p + s_a + e_z (slope_a · p_xy)`` in the mosaic, then ``p_b = R_b' (q - s_b)``:
     ``M = R_b' (R_a + e_z [slope_a, 0])`` (k, 3, 3) and ``c = R_b' (s_a - s_b)`` (k, 3).
     """
-    A = state.R[a].copy()
+    A = state.R[a]  # a gathered copy
     A[:, 2, :2] += state.slope[a]
     M = np.einsum("kji,kjl->kil", state.R[b], A)
     c = np.einsum("kji,kj->ki", state.R[b], state.s[a] - state.s[b])
