@@ -3,7 +3,8 @@
 In snake order, vertically adjacent patches were scanned up to two rows apart in time, so their Z
 offsets can differ by hundreds of nanometres, far more than the grid spacing: a 3-D
 nearest-neighbour search would pair the wrong points. So first, for every overlapping pair, a
-masked normalized cross-correlation of the down-sampled heights and slopes (``_channels``)
+masked normalized cross-correlation of the down-sampled heights and slopes
+(:func:`merge.lattice.correlated_channels`)
 measures the XY shift — it is blind to Z offsets by construction; of peaks a period apart (a
 grating) that score alike, the one nearest the expected shift wins — and the median height
 difference at that shift measures the Z offset. All patches are then solved at once from these
@@ -15,20 +16,19 @@ predicts.
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
 
-from merge.downsample import GridSample, grid_downsample
-from merge.heightfield import smooth_nan
+from merge.downsample import grid_downsample
+from merge.lattice import correlated_channels, fill_empty_lines, remove_common_plane, texture
 from merge.ncc import CorrelationPeak, best_shift, find_peak, masked_ncc
 from merge.network import solve_pair_differences
 from merge.noise import estimate_noise
 from merge.patchset import Patch
-from merge.uncertainty import psd_part
+from merge.uncertainty import signal_information
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
@@ -78,74 +78,6 @@ class CoarseStart:
     xy_complete: NDArray[np.bool_]
 
 
-def _remove_common_plane(grids: Sequence[GridSample]) -> list[FloatArray]:
-    """Heights minus one plane shared by all patches, fitted with a free offset per patch.
-
-    A sample tilt is common to every patch, while the Z staircase is not; levelling each patch on
-    its own would tilt patches differently around a large step and spoil the correlation.
-    """
-    sxx = sxy = syy = sxz = syz = 0.0
-    for g in grids:
-        yy, xx = np.meshgrid(g.y, g.x, indexing="ij")
-        ok = np.isfinite(g.heights)
-        if ok.sum() < 3:
-            continue
-        x, y, z = (
-            xx[ok] - xx[ok].mean(),
-            yy[ok] - yy[ok].mean(),
-            g.heights[ok] - g.heights[ok].mean(),
-        )
-        sxx += float(x @ x)
-        sxy += float(x @ y)
-        syy += float(y @ y)
-        sxz += float(x @ z)
-        syz += float(y @ z)
-    det = sxx * syy - sxy**2
-    a, b = ((syy * sxz - sxy * syz) / det, (sxx * syz - sxy * sxz) / det) if det > 0 else (0, 0)
-    out = []
-    for g in grids:
-        yy, xx = np.meshgrid(g.y, g.x, indexing="ij")
-        out.append(g.heights - a * xx - b * yy)
-    return out
-
-
-def _fill_empty_lines(grid: GridSample) -> GridSample:
-    """The grid with rows and columns that no pixel fell in filled from their neighbours.
-
-    With pixels longer than the cell along one axis (4:1 pixels, the cell set by the fine axis
-    so that texture along it survives), whole lines of cells between scan lines stay empty; they
-    are interpolated linearly along that axis. Holes within sampled lines stay holes.
-    """
-    h = grid.heights.copy()
-    for axis in (0, 1):
-        view = h if axis == 0 else h.T  # lines along ``axis`` are rows of ``view``
-        full = np.isfinite(view).any(axis=1)
-        if full.all() or full.sum() < 2:
-            continue
-        idx = np.flatnonzero(full)
-        empty = np.flatnonzero(~full)
-        inner = empty[(empty > idx[0]) & (empty < idx[-1])]
-        below = idx[np.searchsorted(idx, inner) - 1]
-        above = idx[np.searchsorted(idx, inner)]
-        f = ((inner - below) / (above - below))[:, None]
-        view[inner] = (1 - f) * view[below] + f * view[above]
-    return dataclasses.replace(grid, heights=h)
-
-
-def _texture(heights: FloatArray) -> float:
-    """Standard deviation of ``heights`` about their own least-squares plane (NaN-aware).
-
-    The plane goes: an in-patch drift ramp on a featureless patch is not texture to correlate.
-    """
-    rows, cols = np.nonzero(np.isfinite(heights))
-    if len(rows) < 4:
-        return 0.0
-    A = np.column_stack([np.ones(len(rows)), cols, rows]).astype(np.float64)
-    z = heights[rows, cols]
-    resid = z - A @ np.linalg.lstsq(A, z, rcond=None)[0]
-    return float(np.std(resid))
-
-
 def _drop_unconstrained(
     x: FloatArray, pairs: IntArray, W: FloatArray
 ) -> tuple[FloatArray, NDArray[np.bool_]]:
@@ -186,17 +118,6 @@ def _drop_odd_scores(score: FloatArray, xy_w: FloatArray) -> None:
     xy_w[odd] = 0.0
 
 
-def _channels(levelled: FloatArray) -> FloatArray:
-    """What is correlated: the heights and their slopes (after one cell of smoothing).
-
-    Heights alone let a smooth background ramp correlate with itself at any shift (the NCC
-    removes offsets, not ramps); slopes turn a ramp into a constant, which the NCC removes, and
-    keep the wide, smooth edges of a grating that a high-pass filter would erase.
-    """
-    gy, gx = np.gradient(smooth_nan(levelled, 1.0))
-    return np.stack([levelled, gx, gy])
-
-
 def _information(a: FloatArray, b: FloatArray, shift: tuple[int, int], sigma: float) -> FloatArray:
     """XY information (per cell², 2 x 2, order x, y) of a shift: structure tensor of the overlap.
 
@@ -222,13 +143,6 @@ def _information(a: FloatArray, b: FloatArray, shift: tuple[int, int], sigma: fl
     vals, vecs = np.linalg.eigh(info)
     vals = np.where(vals >= APERTURE * vals.max(), np.minimum(vals, PRECISION**-2), 0.0)
     out: FloatArray = (vecs * vals) @ vecs.T
-    return out
-
-
-def signal_information(tensor: FloatArray, noise_part: FloatArray | float) -> FloatArray:
-    """``tensor - diag(noise_part)``, projected onto the positive semi-definite matrices."""
-    noise = np.broadcast_to(np.asarray(noise_part, dtype=np.float64), (len(tensor),))
-    out: FloatArray = psd_part((tensor - np.diag(noise))[None])[0]
     return out
 
 
@@ -277,7 +191,7 @@ def coarse_start(
         min(p.origin[1] - 0.5 * p.pixel_size[1] for p in patches),
     )
     grids = [
-        _fill_empty_lines(
+        fill_empty_lines(
             grid_downsample(p.heights, p.pixel_size, cell=cell, origin=p.origin, anchor=anchor)
         )
         for p in patches
@@ -287,12 +201,12 @@ def coarse_start(
         (round((g.y[0] - anchor[1]) / cell - 0.5), round((g.x[0] - anchor[0]) / cell - 0.5))
         for g in grids
     ]
-    levelled = _remove_common_plane(grids)
-    channels = [_channels(lv) for lv in levelled]
+    levelled = remove_common_plane(grids)
+    channels = [correlated_channels(lv) for lv in levelled]
     noise = np.array([estimate_noise(g.heights) for g in grids])
     sigma = np.where(np.isfinite(noise) & (noise > 0), noise, 1e-12)
     textured = np.array(
-        [_texture(lv) > MIN_TEXTURE * s for lv, s in zip(levelled, sigma, strict=True)]
+        [texture(lv) > MIN_TEXTURE * s for lv, s in zip(levelled, sigma, strict=True)]
     )
     k = len(pairs)
     radius = max_shift / cell

@@ -42,7 +42,6 @@ import numpy as np
 from numpy.typing import NDArray
 
 from merge.bank import SurfaceBank
-from merge.coarse import signal_information
 from merge.errors import MergeCancelled
 from merge.noise import estimate_noise
 from merge.normal_system import (
@@ -54,7 +53,7 @@ from merge.normal_system import (
 )
 from merge.patchset import Patch
 from merge.transforms import PatchTransform, orthonormalize, rotation_from_vector
-from merge.uncertainty import gauge_modes, translation_sigmas
+from merge.uncertainty import gauge_modes, signal_information, translation_sigmas
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]

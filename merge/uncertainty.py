@@ -192,3 +192,10 @@ def line_design(score: FloatArray, starts: IntArray, line: IntArray) -> float:
 def _diagonal(values: FloatArray) -> csc_matrix:
     idx = np.arange(len(values))
     return coo_matrix((values, (idx, idx)), shape=(len(values), len(values))).tocsc()
+
+
+def signal_information(tensor: FloatArray, noise_part: FloatArray | float) -> FloatArray:
+    """``tensor - diag(noise_part)``, projected onto the positive semi-definite matrices."""
+    noise = np.broadcast_to(np.asarray(noise_part, dtype=np.float64), (len(tensor),))
+    out: FloatArray = psd_part((tensor - np.diag(noise))[None])[0]
+    return out

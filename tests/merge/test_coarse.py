@@ -4,10 +4,11 @@ from backend.synthetic import patch_set_from_synth
 from hardware.sim.drift import DriftModel
 from hardware.sim.surfaces import Chessboard
 from hardware.sim.synth import synthesize
-from merge.coarse import CoarseStart, _drop_odd_scores, coarse_start, signal_information
+from merge.coarse import CoarseStart, _drop_odd_scores, coarse_start
 from merge.engine import coarse_cell, default_cell
 from merge.overlap import overlapping_pairs
 from merge.patchset import Patch
+from merge.uncertainty import signal_information
 from tests.conftest import Synthetic
 
 

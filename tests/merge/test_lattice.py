@@ -1,0 +1,56 @@
+"""The coarse start's lattice images: common levelling, filled lines, texture, channels."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from merge.downsample import GridSample
+from merge.lattice import correlated_channels, fill_empty_lines, remove_common_plane, texture
+
+
+def _grid(heights: np.ndarray, x0: float = 0.0) -> GridSample:
+    my, mx = heights.shape
+    return GridSample(
+        heights=heights,
+        counts=np.ones(heights.shape, dtype=np.intp),
+        x=(x0 + np.arange(mx) * 1e-8).astype(np.float64),
+        y=(np.arange(my) * 1e-8).astype(np.float64),
+        cell=1e-8,
+    )
+
+
+def test_one_sample_tilt_goes_and_each_patch_keeps_its_offset() -> None:
+    yy, xx = np.mgrid[0:20, 0:30] * 1e-8
+    tilt = 0.02 * xx - 0.01 * yy
+    grids = [_grid(tilt[:, :20] + 50e-9), _grid(tilt[:, 10:] - 80e-9, x0=1e-7)]
+    a, b = remove_common_plane(grids)
+    assert np.ptp(a) == pytest.approx(0.0, abs=1e-15)
+    assert np.ptp(b) == pytest.approx(0.0, abs=1e-15)
+    assert float(a[0, 0] - b[0, 0]) == pytest.approx(130e-9, rel=1e-9)  # the staircase stays
+
+
+def test_empty_lines_between_scan_lines_are_interpolated_and_holes_stay() -> None:
+    h = np.tile(np.arange(8.0)[:, None], (1, 4))
+    h[[1, 3], :] = np.nan  # lines no pixel fell in
+    h[6, 2] = np.nan  # a hole within a sampled line
+    filled = fill_empty_lines(_grid(h)).heights
+    np.testing.assert_allclose(filled[[1, 3], :], [[1.0] * 4, [3.0] * 4])
+    assert np.isnan(filled[6, 2]) and np.isfinite(np.delete(filled.ravel(), 6 * 4 + 2)).all()
+
+
+def test_texture_is_what_is_left_about_the_patch_plane() -> None:
+    rng = np.random.default_rng(0)
+    yy, xx = np.mgrid[0:40, 0:40].astype(np.float64)
+    noise = rng.normal(0, 1.0, xx.shape)
+    assert texture(3.0 * xx - 2.0 * yy + noise) == pytest.approx(noise.std(), rel=0.05)
+    assert texture(np.full((1, 3), 1.0)) == 0.0  # too few points for a plane
+
+
+def test_channels_are_heights_and_slopes_that_flatten_a_ramp() -> None:
+    yy, xx = np.mgrid[0:12, 0:16].astype(np.float64)
+    ch = correlated_channels(0.5 * xx + 0.25 * yy)
+    assert ch.shape == (3, 12, 16)
+    inner = (slice(4, -4), slice(4, -4))  # the smoothing holds the border's values
+    np.testing.assert_allclose(ch[1][inner], 0.5, atol=1e-3)
+    np.testing.assert_allclose(ch[2][inner], 0.25, atol=1e-3)
