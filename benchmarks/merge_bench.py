@@ -80,6 +80,11 @@ class Case:
         """The same case on the ``k``-th other draw of surface texture, drift and noise."""
         return dataclasses.replace(self, seed=self.seed + 1000 * k)
 
+    @property
+    def measures_speed(self) -> bool:
+        """The large grid times the merge; it is not redrawn."""
+        return self.rows * self.cols > 100
+
     def synthesize(self) -> tuple[Surface, list[SynthPatch]]:
         """The case's surface and its patch set with the truth."""
         surface = self.surface(self.seed)
@@ -277,13 +282,17 @@ def _finite(value: float | None) -> float:
     return float("inf") if value is None else float(value)
 
 
+def default_run(case: Case, k: int, work: Path) -> dict[str, Any]:
+    """The default method's row on the ``k``-th draw of ``case``, with the draw's floor."""
+    r = run_case(dataclasses.replace(case.redrawn(k), methods=("default",)), work)
+    return dict(r["methods"]["default"]) | {"floor_nm": r["floor_nm"]}
+
+
 def draws(case: Case, first: dict[str, Any], count: int, work: Path) -> dict[str, Any]:
     """The default method on ``count`` draws of the case (the first one already run): one
     random draw of texture, drift and noise is a noisy measurement of an accuracy."""
     runs = [first["methods"]["default"] | {"floor_nm": first["floor_nm"]}]
-    for k in range(1, count):
-        r = run_case(dataclasses.replace(case.redrawn(k), methods=("default",)), work)
-        runs.append(r["methods"]["default"] | {"floor_nm": r["floor_nm"]})
+    runs += [default_run(case, k, work) for k in range(1, count)]
     ratio = np.array([v["map_over_floor"] for v in runs])
     xy = np.array([v["reg_xy_nm"] for v in runs])
     z = np.array([v["reg_z_nm"] for v in runs])
@@ -320,8 +329,7 @@ def sweep(case: Case, count: int, work: Path) -> dict[str, Any]:
     table of eight does not show."""
     runs = []
     for k in range(SWEEP_FIRST, SWEEP_FIRST + count):
-        r = run_case(dataclasses.replace(case.redrawn(k), methods=("default",)), work)
-        v = r["methods"]["default"]
+        v = default_run(case, k, work)
         gross = v["map_over_floor"] > GROSS_MAP or (case.textured and v["reg_xy_nm"] > GROSS_XY_NM)
         runs.append(
             {
@@ -433,7 +441,7 @@ def main(argv: list[str] | None = None) -> int:
                 f"{'XY nm med':>10}{'worst':>7}{'Z nm med':>9}{'worst':>7}{'err/σ XY':>10}{'Z':>6}"
             )
             for case, r in zip(chosen, results, strict=True):
-                if case.rows * case.cols > 100:  # the large grid measures speed
+                if case.measures_speed:
                     continue
                 d = draws(case, r, args.draws, Path(tmp))
                 spread.append(d)
@@ -453,7 +461,7 @@ def main(argv: list[str] | None = None) -> int:
                 f"\n{'case':<13}{'map/floor median':>17}{'<= 1.5':>8}{'gross':>7}  draws"
             )
             for case in chosen:
-                if case.rows * case.cols > 100:
+                if case.measures_speed:
                     continue
                 sw = sweep(case, args.sweep, Path(tmp))
                 swept.append(sw)
