@@ -9,9 +9,10 @@ measures the XY shift — it is blind to Z offsets by construction; of peaks a p
 grating) that score alike, the one nearest the expected shift wins — and the median height
 difference at that shift measures the Z offset. All patches are then solved at once from these
 pairwise differences (:mod:`merge.network`), with robust weights and with each pair's XY
-information as a 2 x 2 matrix (a straight edge fixes only its normal), and a second pass
-re-measures the pairs the first solution disagreed with in a narrow window around the shift it
-predicts.
+information as a 2 x 2 matrix (a straight edge fixes only its normal). A patch whose links
+found nothing or disagree with the rest is then placed against all its neighbours at once
+(:mod:`merge.placement`), and a second pass re-measures the doubtful pairs in a narrow window
+around the shift the network, so mended, predicts.
 """
 
 from __future__ import annotations
@@ -23,12 +24,19 @@ import numpy as np
 from numpy.typing import NDArray
 
 from merge.downsample import grid_downsample
-from merge.lattice import correlated_channels, fill_empty_lines, remove_common_plane, texture
-from merge.ncc import CorrelationPeak, best_shift, find_peak, masked_ncc
+from merge.lattice import (
+    correlated_channels,
+    fill_empty_lines,
+    overlap_information,
+    overlap_z_difference,
+    remove_common_plane,
+    texture,
+)
+from merge.ncc import CorrelationPeak, find_peak, masked_ncc
 from merge.network import solve_pair_differences
 from merge.noise import estimate_noise
 from merge.patchset import Patch
-from merge.uncertainty import signal_information
+from merge.placement import PairMap, place_patch
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
@@ -50,6 +58,15 @@ BATCH = 64
 #: taken for a chance one (see _drop_odd_scores); the spread is at least SCORE_SPREAD_FLOOR.
 ODD_SCORE = 5.0
 SCORE_SPREAD_FLOOR = 0.02
+#: A pair the network weighs below this is in doubt: measured again, and its patches placed
+#: against all their neighbours.
+DOUBT = 0.2
+#: A link the network weighs at least this much holds its patches.
+TRUSTED = 0.5
+#: Search radius of a patch placed against all its neighbours, in first-pass radii: wider, since
+#: a patch whose links all failed may be the one whose stage error exceeded the first search,
+#: and the pooled score of all its pairs is far less prone to chance peaks than one pair's.
+PLACE_RADIUS = 1.5
 #: Weights of the correlated channels: heights, x slope, y slope.
 CHANNEL_WEIGHTS = (0.5, 0.25, 0.25)
 #: Pairs overlapping nominally by fewer cells than this along either axis are not correlated.
@@ -78,6 +95,14 @@ class CoarseStart:
     xy_complete: NDArray[np.bool_]
 
 
+def _patch_information(n: int, pairs: IntArray, W: FloatArray) -> FloatArray:
+    """(n, 2, 2) sum of the XY information ``W`` (k, 2, 2) of every patch's pairs."""
+    info = np.zeros((n, 2, 2))
+    np.add.at(info, pairs[:, 0], W)
+    np.add.at(info, pairs[:, 1], W)
+    return info
+
+
 def _drop_unconstrained(
     x: FloatArray, pairs: IntArray, W: FloatArray
 ) -> tuple[FloatArray, NDArray[np.bool_]]:
@@ -88,9 +113,7 @@ def _drop_unconstrained(
     measure nearly the same direction; their small differences in angle would otherwise turn
     their errors across the edge into large, meaningless offsets along it.
     """
-    info = np.zeros((len(x), 2, 2))
-    np.add.at(info, pairs[:, 0], W)
-    np.add.at(info, pairs[:, 1], W)
+    info = _patch_information(len(x), pairs, W)
     out = x.copy()
     complete = np.zeros(len(x), dtype=bool)
     for c in range(len(x)):
@@ -118,48 +141,29 @@ def _drop_odd_scores(score: FloatArray, xy_w: FloatArray) -> None:
     xy_w[odd] = 0.0
 
 
-def _information(a: FloatArray, b: FloatArray, shift: tuple[int, int], sigma: float) -> FloatArray:
-    """XY information (per cell², 2 x 2, order x, y) of a shift: structure tensor of the overlap.
+def _patches_in_doubt(
+    n: int,
+    pairs: IntArray,
+    unmeasured: NDArray[np.bool_],
+    robust: FloatArray,
+    can: NDArray[np.bool_],
+    W: FloatArray,
+) -> list[int]:
+    """Patches with measurable pairs of which none is trusted or some conflict with the rest;
+    those with the most trusted links first (their neighbours are the likeliest in place).
 
-    Capped at ``1 / PRECISION²``: a correlation peak on a lattice is never better than a tenth
-    of a cell (discretisation, interpolation bias), however sharp the edges.
+    Not a patch whose pairs (information ``W``, (k, 2, 2)) measured one direction only: on a
+    1-D structure (a grating) where it lies along the stripes is a guess that a pooled search
+    would only replace by a bump of the ridge.
     """
-    dy, dx = shift
-    ha, wa = a.shape
-    hb, wb = b.shape
-    y0, y1 = max(0, -dy), min(ha, hb - dy)
-    x0, x1 = max(0, -dx), min(wa, wb - dx)
-    if y1 - y0 < 2 or x1 - x0 < 2:
-        return np.zeros((2, 2))
-    gy, gx = (np.asarray(v, dtype=np.float64) for v in np.gradient(a[y0:y1, x0:x1]))
-    ok = np.isfinite(gx) & np.isfinite(gy) & np.isfinite(b[y0 + dy : y1 + dy, x0 + dx : x1 + dx])
-    gx, gy = gx[ok], gy[ok]
-    tensor = np.array([[gx @ gx, gx @ gy], [gx @ gy, gy @ gy]])
-    # Noise is not texture: a central difference of white noise has variance σ²/2, which would
-    # otherwise claim precision along a straight edge (the aperture problem) or on a flat terrace.
-    info = signal_information(tensor, gx.size * sigma**2 / 2.0) / (2.0 * sigma**2)
-    # A direction with a tiny share of the information is not measured at all: pairs whose
-    # nearly parallel edges are combined would otherwise amplify their errors along the edges.
-    vals, vecs = np.linalg.eigh(info)
-    vals = np.where(vals >= APERTURE * vals.max(), np.minimum(vals, PRECISION**-2), 0.0)
-    out: FloatArray = (vecs * vals) @ vecs.T
-    return out
-
-
-def _z_difference(a: FloatArray, b: FloatArray, shift: tuple[int, int]) -> tuple[float, int]:
-    """Median of ``b[y + dy, x + dx] - a[y, x]`` over the overlap, and the overlap size."""
-    dy, dx = shift
-    ha, wa = a.shape
-    hb, wb = b.shape
-    y0, y1 = max(0, -dy), min(ha, hb - dy)
-    x0, x1 = max(0, -dx), min(wa, wb - dx)
-    if y1 <= y0 or x1 <= x0:
-        return float("nan"), 0
-    diff = b[y0 + dy : y1 + dy, x0 + dx : x1 + dx] - a[y0:y1, x0:x1]
-    diff = diff[np.isfinite(diff)]
-    if diff.size == 0:
-        return float("nan"), 0
-    return float(np.median(diff)), int(diff.size)
+    trusted = np.bincount(pairs[~unmeasured & (robust >= TRUSTED)].ravel(), minlength=n)
+    conflicting = np.bincount(pairs[can & ~unmeasured & (robust < DOUBT)].ravel(), minlength=n)
+    measurable = np.bincount(pairs[can].ravel(), minlength=n)
+    doubt = np.flatnonzero((measurable > 0) & ((trusted == 0) | (conflicting > 0)))
+    vals = np.linalg.eigvalsh(_patch_information(n, pairs, W)[doubt])
+    doubt = doubt[(vals[:, 1] == 0) | (vals[:, 0] >= APERTURE * vals[:, 1])]
+    order: list[int] = doubt[np.argsort(-trusted[doubt], kind="stable")].tolist()
+    return order
 
 
 def coarse_start(
@@ -238,19 +242,33 @@ def coarse_start(
         e = expected(i)
         xy_m[i] = [(peak.shift[1] - e[1]) * cell, (peak.shift[0] - e[0]) * cell]
         s_pair = float(np.hypot(sigma[a], sigma[b]) / np.sqrt(2.0))
-        xy_w[i] = _information(levelled[a], levelled[b], peak.integer_shift, s_pair) / cell**2
+        info = overlap_information(
+            levelled[a],
+            levelled[b],
+            peak.integer_shift,
+            s_pair,
+            precision=PRECISION,
+            aperture=APERTURE,
+        )
+        xy_w[i] = info / cell**2
 
     def min_overlap(i: int) -> int:
         return max(16, int(MIN_OVERLAP_FRACTION * nominal_overlap[i]))
 
+    # NCC maps of the first pass, kept for the second pass and the placements
+    maps: dict[int, tuple[FloatArray, FloatArray, tuple[int, int]]] = {}
+
+    def correlation(i: int) -> tuple[FloatArray, FloatArray, tuple[int, int]]:
+        if i not in maps:
+            a, b = pairs[i]
+            maps[i] = masked_ncc(channels[a], channels[b], weights=CHANNEL_WEIGHTS)
+        return maps[i]
+
     def measure(i: int, centre: tuple[float, float], rad: float) -> None:
-        a, b = pairs[i]
         peak = None
         if measurable(i):
-            peak = best_shift(
-                channels[a],
-                channels[b],
-                weights=CHANNEL_WEIGHTS,
+            peak = find_peak(
+                *correlation(i),
                 expected=centre,
                 radius=(rad, rad),
                 min_overlap=min_overlap(i),
@@ -258,6 +276,21 @@ def coarse_start(
                 ambiguity=AMBIGUITY,
             )
         accept(i, peak)
+
+    def pair_map(i: int, c: int, x: FloatArray) -> PairMap:
+        """Pair ``i`` seen from its patch ``c``, the other patch held at ``x`` (metres)."""
+        a, b = int(pairs[i, 0]), int(pairs[i, 1])
+        ncc, count, zero = correlation(i)
+        e = expected(i)
+        held = -x[b] if c == a else x[a]  # shift = e + (x_a - x_b) / cell
+        return PairMap(
+            ncc=ncc,
+            count=count,
+            zero=zero,
+            at_rest=(e[0] + round(held[1] / cell), e[1] + round(held[0] / cell)),
+            sign=1 if c == a else -1,
+            min_overlap=min_overlap(i),
+        )
 
     translation = np.zeros((n, 3))
     complete = np.zeros(n, dtype=bool)
@@ -280,6 +313,7 @@ def coarse_start(
                 )
                 for j, i in enumerate(chunk):
                     e = expected(i)
+                    maps[i] = (ncc[j], count[j], zero)
                     accept(
                         i,
                         find_peak(
@@ -295,12 +329,31 @@ def coarse_start(
                     )
         _drop_odd_scores(score, xy_w)
         sol = solve_pair_differences(n, pairs, xy_m, xy_w, prior=xy_prior)
-        # second pass: re-measure doubtful pairs near the shift the network predicts
         unmeasured = np.trace(xy_w, axis1=1, axis2=2) == 0
-        redo = np.flatnonzero(unmeasured | (sol.robust < 0.2))
+        doubtful = unmeasured | (sol.robust < DOUBT)
+        can_measure = np.array([measurable(i) for i in range(k)], dtype=bool)
+        # patches whose links found nothing or conflict: placed against all neighbours at once
+        x_start = sol.x.copy()
+        moved = np.zeros(n, dtype=bool)
+        for c in _patches_in_doubt(n, pairs, unmeasured, sol.robust, can_measure, xy_w):
+            mine = np.flatnonzero(can_measure & np.any(pairs == c, axis=1))
+            u = place_patch(
+                [pair_map(i, c, x_start) for i in mine.tolist()],
+                centre=(x_start[c, 1] / cell, x_start[c, 0] / cell),
+                radius=PLACE_RADIUS * radius,
+                prior=SHIFT_PRIOR,
+                ambiguity=AMBIGUITY,
+                min_score=MIN_SCORE,
+            )
+            if u is not None:
+                x_start[c] = (u[1] * cell, u[0] * cell)
+                moved[c] = True
+        # second pass: doubtful pairs, and those of placed patches, re-measured near the shift
+        # the network (mended by the placements) predicts
+        redo = np.flatnonzero(doubtful | moved[pairs[:, 0]] | moved[pairs[:, 1]])
         if len(redo):
             for j in redo.tolist():
-                pred = sol.x[pairs[j, 0]] - sol.x[pairs[j, 1]]
+                pred = x_start[pairs[j, 0]] - x_start[pairs[j, 1]]
                 e = expected(j)
                 measure(j, (e[0] + pred[1] / cell, e[1] + pred[0] / cell), 2.0)
             sol = solve_pair_differences(n, pairs, xy_m, xy_w, prior=xy_prior)
@@ -314,7 +367,7 @@ def coarse_start(
         e = expected(i)
         pred = translation[a, :2] - translation[b, :2]
         shift = (round(e[0] + pred[1] / cell), round(e[1] + pred[0] / cell))
-        dz, cnt = _z_difference(grids[a].heights, grids[b].heights, shift)
+        dz, cnt = overlap_z_difference(grids[a].heights, grids[b].heights, shift)
         if nominal_overlap[i] > 0 and cnt >= 16 and np.isfinite(dz):
             # variance of a median of differences of two noisy maps: (π/2) · 2σ² / count
             var = np.pi * (sigma[a] ** 2 + sigma[b] ** 2) / 2.0 / cnt

@@ -1,5 +1,6 @@
 """The patches on the coarse start's common lattice: levelled together, gaps filled, and the
-channels that are correlated (heights and slopes); and how much texture a patch holds.
+channels that are correlated (heights and slopes); how much texture a patch holds; and what the
+overlap of two patches at a shift measures (XY information, Z offset).
 
 Pure functions of arrays; :mod:`merge.coarse` averages the patches onto the lattice
 (:func:`merge.downsample.grid_downsample`) and correlates what these return.
@@ -15,6 +16,7 @@ from numpy.typing import NDArray
 
 from merge.downsample import GridSample
 from merge.heightfield import smooth_nan
+from merge.uncertainty import signal_information
 
 FloatArray = NDArray[np.float64]
 
@@ -96,3 +98,64 @@ def correlated_channels(levelled: FloatArray) -> FloatArray:
     """
     gy, gx = np.gradient(smooth_nan(levelled, 1.0))
     return np.stack([levelled, gx, gy])
+
+
+def _overlap(
+    a_shape: tuple[int, ...], b_shape: tuple[int, ...], shift: tuple[int, int]
+) -> tuple[slice, slice, slice, slice] | None:
+    """Slices (rows and columns of ``a``, then of ``b``) where ``b[y + dy, x + dx]`` meets
+    ``a[y, x]``; None if they do not overlap."""
+    dy, dx = shift
+    y0, y1 = max(0, -dy), min(a_shape[0], b_shape[0] - dy)
+    x0, x1 = max(0, -dx), min(a_shape[1], b_shape[1] - dx)
+    if y1 <= y0 or x1 <= x0:
+        return None
+    return slice(y0, y1), slice(x0, x1), slice(y0 + dy, y1 + dy), slice(x0 + dx, x1 + dx)
+
+
+def overlap_information(
+    a: FloatArray,
+    b: FloatArray,
+    shift: tuple[int, int],
+    sigma: float,
+    *,
+    precision: float,
+    aperture: float,
+) -> FloatArray:
+    """XY information (per cell², 2 x 2, order x, y) of a shift: structure tensor of the overlap.
+
+    ``sigma`` is the noise of the difference of the two images, metres. Capped at
+    ``1 / precision²`` (cells): a correlation peak on a lattice is never better than about a
+    tenth of a cell (discretisation, interpolation bias), however sharp the edges. A direction
+    with less than ``aperture`` of the larger information is not measured at all.
+    """
+    where = _overlap(a.shape, b.shape, shift)
+    if where is None or where[0].stop - where[0].start < 2 or where[1].stop - where[1].start < 2:
+        return np.zeros((2, 2))
+    ya, xa, yb, xb = where
+    gy, gx = (np.asarray(v, dtype=np.float64) for v in np.gradient(a[ya, xa]))
+    ok = np.isfinite(gx) & np.isfinite(gy) & np.isfinite(b[yb, xb])
+    gx, gy = gx[ok], gy[ok]
+    tensor = np.array([[gx @ gx, gx @ gy], [gx @ gy, gy @ gy]])
+    # Noise is not texture: a central difference of white noise has variance σ²/2, which would
+    # otherwise claim precision along a straight edge (the aperture problem) or on a flat terrace.
+    info = signal_information(tensor, gx.size * sigma**2 / 2.0) / (2.0 * sigma**2)
+    # A direction with a tiny share of the information is not measured at all: pairs whose
+    # nearly parallel edges are combined would otherwise amplify their errors along the edges.
+    vals, vecs = np.linalg.eigh(info)
+    vals = np.where(vals >= aperture * vals.max(), np.minimum(vals, precision**-2), 0.0)
+    out: FloatArray = (vecs * vals) @ vecs.T
+    return out
+
+
+def overlap_z_difference(a: FloatArray, b: FloatArray, shift: tuple[int, int]) -> tuple[float, int]:
+    """Median of ``b[y + dy, x + dx] - a[y, x]`` over the overlap, and the overlap size."""
+    where = _overlap(a.shape, b.shape, shift)
+    if where is None:
+        return float("nan"), 0
+    ya, xa, yb, xb = where
+    diff = b[yb, xb] - a[ya, xa]
+    diff = diff[np.isfinite(diff)]
+    if diff.size == 0:
+        return float("nan"), 0
+    return float(np.median(diff)), int(diff.size)

@@ -2,9 +2,9 @@ import numpy as np
 
 from backend.synthetic import patch_set_from_synth
 from hardware.sim.drift import DriftModel
-from hardware.sim.surfaces import Chessboard
+from hardware.sim.surfaces import Chessboard, FoldedSurface
 from hardware.sim.synth import synthesize
-from merge.coarse import CoarseStart, _drop_odd_scores, coarse_start
+from merge.coarse import CoarseStart, _drop_odd_scores, _patches_in_doubt, coarse_start
 from merge.engine import coarse_cell, default_cell
 from merge.overlap import overlapping_pairs
 from merge.patchset import Patch
@@ -124,3 +124,45 @@ def test_scores_that_vary_widely_drop_nothing() -> None:
     few = _weights(5)
     _drop_odd_scores(np.array([0.99, 0.99, 0.99, 0.99, 0.4]), few)
     assert few.any(axis=(1, 2)).all()  # too few pairs to know what is usual
+
+
+def test_a_patch_beyond_the_first_search_is_placed_against_all_its_neighbours() -> None:
+    # 3 x 3 patches of a folded surface, all in place but the last corner, whose stage error
+    # (200 nm) lies beyond the pairwise search (150 nm): its pairs return chance peaks or
+    # nothing, and alone they would leave it hundreds of nanometres off or at nominal
+    surface = FoldedSurface(seed=5, tile=2.56e-6)
+    rng = np.random.default_rng(5)
+    side, pixel = 0.6e-6, 20e-9
+    stage: dict[tuple[int | None, int | None], tuple[float, float]] = {(2, 2): (200e-9, -40e-9)}
+    patches = []
+    for r in range(3):
+        for c in range(3):
+            x0, y0 = 0.3e-6 + c * side / 2, 0.3e-6 + r * side / 2
+            tx, ty = stage.get((r, c), (0.0, 0.0))
+            xx, yy = np.meshgrid(x0 + tx + pixel * np.arange(30), y0 + ty + pixel * np.arange(30))
+            heights = surface.height(xx, yy) + rng.normal(0.0, 1e-9, xx.shape)
+            patches.append(Patch(f"r{r}c{c}", heights, (x0, y0), (pixel, pixel), row=r, col=c))
+    pairs = overlapping_pairs(np.array([p.footprint for p in patches]), margin=1.5e-7)
+    start = coarse_start(patches, pairs, cell=pixel, max_shift=1.5e-7)
+    truth = np.array([stage.get((p.row, p.col), (0.0, 0.0)) for p in patches])
+    err = start.translation[:, :2] - truth
+    err -= err.mean(axis=0)  # the gauge
+    assert np.abs(err).max() < 15e-9
+
+
+def test_patches_in_doubt_are_those_with_conflicting_or_no_trusted_links_seen_in_2d() -> None:
+    # a triangle of patches and a fourth linked to patch 2 only; pair (0, 1) conflicts
+    pairs = np.array([[0, 1], [1, 2], [0, 2], [2, 3]])
+    unmeasured = np.array([False, False, False, True])
+    robust = np.array([0.1, 1.0, 1.0, 1.0])
+    can = np.ones(4, dtype=bool)
+    both = np.broadcast_to(np.eye(2), (4, 2, 2)).copy()
+    both[3] = 0.0  # found nothing
+    # patches 0 and 1 conflict (though each has a trusted link); patch 3's only pair found
+    # nothing; patch 2 is held by its trusted links
+    assert sorted(_patches_in_doubt(4, pairs, unmeasured, robust, can, both)) == [0, 1, 3]
+    # seen along x only (a grating's pairs): where a peak lies along the stripes is a guess,
+    # and a pooled search would pick a bump on the ridge; a patch with nothing measured stays
+    along_x = np.broadcast_to(np.diag([1.0, 0.0]), (4, 2, 2)).copy()
+    along_x[3] = 0.0
+    assert _patches_in_doubt(4, pairs, unmeasured, robust, can, along_x) == [3]

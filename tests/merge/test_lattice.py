@@ -1,4 +1,5 @@
-"""The coarse start's lattice images: common levelling, filled lines, texture, channels."""
+"""The coarse start's lattice images: common levelling, filled lines, texture, channels, and
+what an overlap at a shift measures."""
 
 from __future__ import annotations
 
@@ -6,7 +7,14 @@ import numpy as np
 import pytest
 
 from merge.downsample import GridSample
-from merge.lattice import correlated_channels, fill_empty_lines, remove_common_plane, texture
+from merge.lattice import (
+    correlated_channels,
+    fill_empty_lines,
+    overlap_information,
+    overlap_z_difference,
+    remove_common_plane,
+    texture,
+)
 
 
 def _grid(heights: np.ndarray, x0: float = 0.0) -> GridSample:
@@ -54,3 +62,30 @@ def test_channels_are_heights_and_slopes_that_flatten_a_ramp() -> None:
     inner = (slice(4, -4), slice(4, -4))  # the smoothing holds the border's values
     np.testing.assert_allclose(ch[1][inner], 0.5, atol=1e-3)
     np.testing.assert_allclose(ch[2][inner], 0.25, atol=1e-3)
+
+
+def test_a_straight_edge_informs_across_it_only_and_texture_in_both_directions() -> None:
+    rng = np.random.default_rng(0)
+    cols = np.arange(40.0)
+    edge = np.tile(50e-9 * np.tanh((cols - 20.0) / 2.0), (30, 1))  # an edge along y
+    noisy = edge + rng.normal(0.0, 1e-9, edge.shape)
+    info = overlap_information(noisy, noisy, (0, 5), 1e-9, precision=0.1, aperture=0.01)
+    vals, vecs = np.linalg.eigh(info)
+    assert vals[1] == pytest.approx(100.0)  # capped at a tenth of a cell, across the edge
+    assert abs(vecs[0, 1]) > 0.999
+    assert abs(vals[0]) < 1e-9  # the aperture problem: nothing along it
+    rough = rng.normal(0.0, 5e-9, (30, 40))
+    both = overlap_information(rough, rough, (2, -3), 1e-9, precision=0.1, aperture=0.01)
+    assert np.linalg.eigvalsh(both).min() > 0
+    # no overlap, or a one-line one, measures nothing
+    assert not overlap_information(rough, rough, (30, 0), 1e-9, precision=0.1, aperture=0.01).any()
+    assert not overlap_information(rough, rough, (29, 0), 1e-9, precision=0.1, aperture=0.01).any()
+
+
+def test_the_z_difference_is_the_median_over_the_overlap_at_the_shift() -> None:
+    a = np.arange(20.0).reshape(4, 5)
+    b = np.full((4, 5), np.nan)
+    b[1:, 2:] = a[:3, :3] + 7.0  # b[y + 1, x + 2] = a[y, x] + 7
+    b[3, 4] = 1e9  # an outlier the median ignores
+    assert overlap_z_difference(a, b, (1, 2)) == (7.0, 9)
+    assert overlap_z_difference(a, b, (4, 0)) == (pytest.approx(np.nan, nan_ok=True), 0)
