@@ -351,7 +351,7 @@ class Priors:
     """Gaussian priors on the absolute state, in the scaled units of the unknowns (pixels)."""
 
     plane: FloatArray  # (n, 2) drift plane times radius
-    plane_sigma: float
+    plane_sigma: FloatArray  # (2,) along x (the fast axis) and y
     shift: FloatArray  # (n, 2) XY offset from the start
     shift_sigma: float
     spin: FloatArray  # (n,) rotation about z times radius
@@ -375,7 +375,7 @@ def solve_system(system: NormalSystem, priors: Priors) -> FloatArray:
     if system.rscale > 0:
         r2 = system.rscale**2
         for cols_, value, sigma in (
-            ([4, 5], priors.plane, np.full((n, 1), priors.plane_sigma)),
+            ([4, 5], priors.plane, np.broadcast_to(priors.plane_sigma, (n, 2))),
             ([0, 1], priors.shift, np.full((n, 1), priors.shift_sigma)),
             ([3], priors.spin[:, None], priors.spin_sigma[:, None]),
         ):

@@ -73,6 +73,12 @@ class Level:
 STALL = 1e-4
 #: Expected in-patch Z drift (metres, centre to corner) of the drift-plane prior.
 DRIFT_PRIOR = 5e-9
+#: Share of the drift prior along the fast axis (x). A Z drift in time tilts a patch along its
+#: slow axis; along a line it moves by one line's share (1 / lines, a few per cent). Overlaps
+#: measure neighbours' relative tilts, but across a narrow overlap only weakly: left free, these
+#: weak differences add up to a mosaic-wide bowl (on TGX1, 0.4 nm per µm² in x², half the Z
+#: error). A tenth leaves room for what the plane does not model (a scanner's bow).
+FAST_DRIFT_SHARE = 0.1
 #: Standard deviation (radians) of the prior on a patch's rotation about z.
 SPIN_PRIOR = np.radians(2.0)
 #: An XY direction with less than this fraction of a patch's larger own XY information is one
@@ -136,8 +142,9 @@ def refine(
         Coarse-to-fine schedule.
     drift_prior : float, keyword-only
         Expected size of the in-patch Z drift, metres from the patch centre to its corner (a
-        Gaussian prior on the drift plane). Overlaps pin down the differences of neighbouring
-        planes well but a mosaic-wide bend only weakly; the prior keeps that bend out.
+        Gaussian prior on the drift plane; along the fast axis :data:`FAST_DRIFT_SHARE` of it).
+        Overlaps pin down the differences of neighbouring planes well but a mosaic-wide bend
+        only weakly; the prior keeps that bend out.
     shift_prior : float, keyword-only
         Standard deviation (metres) of a prior holding each patch's XY near its start. It only
         matters where the data do not constrain XY (a flat overlap, the stripes of a 1-D
@@ -157,8 +164,11 @@ def refine(
     base = SurfaceBank(patches, scale, 0.0, 1)
     state = _State.from_transforms(start, base, scale)
     start_s = state.s.copy()
+    plane_sigma = np.full(2, drift_prior / scale)  # the first level: as loose along both axes
     for li, level in enumerate(levels):
         bank = SurfaceBank(patches, scale, level.smooth, level.stride)
+        if li == 1:
+            plane_sigma = _plane_sigma(state.slope * bank.radius[:, None], drift_prior / scale)
         margin = 1.5 * float(max(bank.dx.max(), bank.dy.max()))
         cand = bank.candidates(pairs, state.R, state.s, margin)
         moved = 0.0
@@ -172,7 +182,7 @@ def refine(
             stats = build_normal_system(bank, cand, state, noise)
             priors = Priors(
                 plane=state.slope * bank.radius[:, None],
-                plane_sigma=drift_prior / scale,
+                plane_sigma=plane_sigma,
                 shift=state.s[:, :2] - (start_s[:, :2] + bank.centre[:, :2] - base.centre[:, :2]),
                 shift_sigma=shift_prior / scale,
                 spin=state.spin() * bank.radius,
@@ -204,6 +214,21 @@ def refine(
         converged=converged,
         history=history,
     )
+
+
+def _plane_sigma(plane: FloatArray, drift_prior: float) -> FloatArray:
+    """Prior sigmas (x, y) of the drift planes (n, 2), both times the patch radius (pixels).
+
+    Physics sets them: :data:`FAST_DRIFT_SHARE` of ``drift_prior`` along the lines, all of it
+    across. But where the planes the first level found spread more than ``drift_prior`` along
+    an axis, the patches' tilts are not a drift in time (each patch levelled on its own before
+    export, a scanner's bow), and a prior as tight would bend the mosaic to flatten them: there
+    the prior follows their spread. (Below it, the spread is mostly the first level's noise.)
+    """
+    physics = np.array([FAST_DRIFT_SHARE, 1.0]) * drift_prior
+    spread = np.sqrt(np.mean(plane**2, axis=0)) if len(plane) else np.zeros(2)
+    out: FloatArray = np.where(spread > drift_prior, spread, physics)
+    return out
 
 
 def _noise(patches: Sequence[Patch], scale: float) -> float:

@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
 from merge import MergeCancelled, MergeConfig, Patch, PatchSet, run
+from merge.kabsch import weighted_rigid_transform
 from tests.conftest import Synthetic
 
 
@@ -99,3 +102,32 @@ def test_config_is_validated() -> None:
     ):
         with pytest.raises(ValueError, match="must"):
             MergeConfig(**bad)  # type: ignore[arg-type]
+
+
+def test_patches_levelled_one_by_one_before_export_still_merge(small_mosaic: Synthetic) -> None:
+    # AFM software often removes each scan's own best plane before export: the patches' tilts
+    # are then arbitrary (tens of nm), not a drift in time, and a drift prior held to physics
+    # would bend the mosaic to flatten them
+    levelled = []
+    for p in small_mosaic.patch_set.patches:
+        ny, nx = p.heights.shape
+        yy, xx = np.mgrid[0:ny, 0:nx]
+        A = np.column_stack([np.ones(nx * ny), xx.ravel(), yy.ravel()])
+        plane = A @ np.linalg.lstsq(A, p.heights.ravel(), rcond=None)[0]
+        levelled.append(dataclasses.replace(p, heights=p.heights - plane.reshape(ny, nx)))
+    result = run(PatchSet(levelled))
+    # XY only: the levelling changed the heights, not where the points are
+    placed, truth = [], []
+    for s, tr in zip(small_mosaic.synth, result.transforms, strict=True):
+        ny, nx = s.heights.shape
+        xx, yy = np.meshgrid(
+            s.origin[0] + np.arange(nx) * s.pixel_size[0],
+            s.origin[1] + np.arange(ny) * s.pixel_size[1],
+        )
+        p = np.column_stack([xx.ravel(), yy.ravel(), np.zeros(xx.size)])
+        placed.append(tr.apply(p) * [1.0, 1.0, 0.0])
+        truth.append(p @ s.rotation.T + s.translation * [1.0, 1.0, 0.0])
+    P, Q = np.concatenate(placed), np.concatenate(truth)
+    G, g = weighted_rigid_transform(P, Q)
+    assert np.sqrt(np.mean(np.sum((P @ G.T + g - Q) ** 2, axis=1))) < 1.5e-9
+    assert all(p.residual_rms < 3e-9 for p in result.patches)

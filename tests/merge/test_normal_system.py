@@ -6,7 +6,14 @@ import numpy as np
 import pytest
 
 from merge.bank import SurfaceBank
-from merge.normal_system import PatchState, _residuals, build_normal_system, segment_sums
+from merge.normal_system import (
+    PatchState,
+    Priors,
+    _residuals,
+    build_normal_system,
+    segment_sums,
+    solve_system,
+)
 from merge.patchset import Patch
 
 
@@ -76,3 +83,28 @@ def test_no_correspondence_gives_an_empty_system() -> None:
     cand = bank.candidates(np.empty((0, 2), dtype=np.intp), state.R, state.s, 1.5)
     system = build_normal_system(bank, cand, state, 0.1)
     assert system.rms == 0.0 and len(system.vals) == 0 and not system.g.any()
+
+
+def test_the_drift_plane_prior_holds_each_axis_by_its_own_sigma() -> None:
+    bank, state = _bank()
+    pairs = np.array([[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]])
+    system = build_normal_system(bank, bank.candidates(pairs, state.R, state.s, 1.5), state, 0.1)
+    plane = np.full((4, 2), 2.0)  # every patch tilted by 2 (pixels at its radius) both ways
+
+    def step(sigma_x: float, sigma_y: float) -> np.ndarray:
+        priors = Priors(
+            plane=plane,
+            plane_sigma=np.array([sigma_x, sigma_y]),
+            shift=np.zeros((4, 2)),
+            shift_sigma=np.inf,
+            spin=np.zeros(4),
+            spin_sigma=np.full(4, np.inf),
+        )
+        out: np.ndarray = solve_system(system, priors)
+        return out
+
+    even, fast = step(1.0, 1.0), step(0.1, 1.0)
+    # the relative tilts are the data's; the common one is the prior's, by its sigma per axis
+    assert abs(fast[:, 4].mean() + 2.0) < abs(even[:, 4].mean() + 2.0)
+    assert abs(fast[:, 4].mean() + 2.0) < 0.05
+    assert fast[:, 5].mean() == pytest.approx(even[:, 5].mean(), abs=0.05)

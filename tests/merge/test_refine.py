@@ -1,4 +1,4 @@
-"""The refinement's coarse-to-fine schedule on a real scan."""
+"""The refinement: its coarse-to-fine schedule on a real scan, its drift-plane prior."""
 
 from __future__ import annotations
 
@@ -10,6 +10,7 @@ from hardware.sim.drift import DriftModel
 from hardware.sim.surfaces import ImageSurface
 from hardware.sim.synth import synthesize
 from merge import run
+from merge.refine import FAST_DRIFT_SHARE, _plane_sigma
 from tests.conftest import SHARED_DATA
 
 GRID = SHARED_DATA / "grid.npy"
@@ -38,3 +39,12 @@ def test_a_real_1d_grating_registers_along_its_stripes() -> None:
     exy, ez, _ = registration_error(synth, [by_id[s.id] for s in synth])
     assert exy < 7e-9
     assert ez < 1e-9
+
+
+def test_the_drift_prior_is_physics_unless_the_tilts_spread_wider() -> None:
+    rng = np.random.default_rng(0)
+    drift = rng.normal(0.0, [0.2, 3.0], (50, 2))  # a drift in time: tilts across the lines
+    np.testing.assert_allclose(_plane_sigma(drift, 5.0), [5.0 * FAST_DRIFT_SHARE, 5.0])
+    levelled = rng.normal(0.0, [40.0, 3.0], (50, 2))  # tilts along the lines too: not a drift
+    sigma = _plane_sigma(levelled, 5.0)
+    assert sigma[0] == pytest.approx(40.0, rel=0.25) and sigma[1] == 5.0
