@@ -76,8 +76,8 @@ DRIFT_PRIOR = 5e-9
 #: Share of the drift prior along the fast axis (x). A Z drift in time tilts a patch along its
 #: slow axis; along a line it moves by one line's share (1 / lines, a few per cent). Overlaps
 #: measure neighbours' relative tilts, but across a narrow overlap only weakly: left free, these
-#: weak differences add up to a mosaic-wide bowl (on TGX1, 0.4 nm per µm² in x², half the Z
-#: error). A tenth leaves room for what the plane does not model (a scanner's bow).
+#: weak differences add up to a mosaic-wide bowl (on TGX1 draw 0, 0.4 nm per µm² in x²; Z error
+#: 0.60 -> 0.51 nm without it). A tenth leaves room for what the plane does not model (a bow).
 FAST_DRIFT_SHARE = 0.1
 #: Standard deviation (radians) of the prior on a patch's rotation about z.
 SPIN_PRIOR = np.radians(2.0)
