@@ -12,7 +12,8 @@ A chance peak of one pair does not line up with the other pairs' maps; the true 
 scores on all of them. Each pair's NCC ``r`` over ``n`` overlapping cells is turned into Fisher's
 ``z = atanh(r)`` (variance about ``1 / n``) and pooled with weights ``n``,
 ``Z = sum(n atanh r) / sqrt(sum n)``: a high chance score on a small overlap then counts for less
-than a good score on a large one.
+than a good score on a large one. Beyond :data:`SATURATION` of the largest pooled overlap in the
+window, more cells count no more: displacements are then ranked by the pooled mean ``z`` alone.
 """
 
 from __future__ import annotations
