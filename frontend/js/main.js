@@ -405,7 +405,8 @@ async function start() {
     $("viewer").srcdoc = "<p style='font:14px system-ui'>The 3D viewer is off (MOSAIC_VIEWER=false).</p>";
   }
   const sems = await act(() => get("/api/sem"));
-  if (sems && sems.length) await act(() => sem.load(sems[sems.length - 1]));
+  // the latest image, unless the operator already asked for one while the page started
+  if (sems && sems.length && sem.loads === 0) await act(() => sem.load(sems[sems.length - 1]));
 }
 
 start();

@@ -18,6 +18,7 @@ export class SemView {
     this.roi = null;
     this.drag = null;
     this.plan = null;
+    this.loads = 0; // images asked for so far: only the newest one is shown
     canvas.addEventListener("mousedown", (e) => this.down(e));
     canvas.addEventListener("mousemove", (e) => this.move(e));
     window.addEventListener("mouseup", (e) => this.up(e));
@@ -26,9 +27,13 @@ export class SemView {
   }
 
   async load(meta) {
+    const ticket = ++this.loads;
     const response = await fetch(`/api/sem/${meta.id}/image.png`);
     const blob = await response.blob();
     const bitmap = await createImageBitmap(blob);
+    // an image asked for later (the operator acquired one while this one loaded) wins, and
+    // keeps the ROI drawn on it
+    if (ticket !== this.loads) return;
     this.image = { bitmap, meta };
     this.canvas.dataset.semId = meta.id;
     this.roi = null;

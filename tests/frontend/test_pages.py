@@ -173,6 +173,39 @@ def _plan_an_impossible_overlap(pg: Any) -> None:
     pg.wait_for_function("document.querySelector('#plan-error').textContent.includes('overlap')")
 
 
+def test_an_image_acquired_while_the_page_starts_is_kept_with_its_roi(
+    page: tuple[Any, list[str]],
+) -> None:
+    # the page shows the latest stored image once it has started; an operator who acquires one
+    # and draws an ROI before that must not lose both to the older image
+    pg, errors = page
+    held: list[Any] = []
+    pg.route("**/api/sem", lambda route: held.append(route))  # the list of stored images
+    pg.reload()
+    for _ in range(100):
+        if held:
+            break
+        pg.wait_for_timeout(100)
+    assert held, "the page did not ask for the stored images"
+    pg.click("#sem-acquire")
+    pg.wait_for_selector("#sem-canvas[data-sem-id]")
+    acquired = pg.get_attribute("#sem-canvas", "data-sem-id")
+    box = pg.locator("#sem-canvas").bounding_box()
+    pg.mouse.move(box["x"] + 300, box["y"] + 200)
+    pg.mouse.down()
+    pg.mouse.move(box["x"] + 360, box["y"] + 260)
+    pg.mouse.up()
+    assert pg.input_value("input[name=roi_width]") != ""
+    with pg.expect_response("**/api/sem"):
+        for route in held:
+            route.continue_()
+    pg.unroute("**/api/sem")
+    pg.wait_for_timeout(500)  # the page's start finishes
+    assert pg.get_attribute("#sem-canvas", "data-sem-id") == acquired
+    assert pg.input_value("input[name=roi_width]") != ""
+    assert errors == [], errors
+
+
 def test_a_refused_request_shows_the_servers_message(page: tuple[Any, list[str]]) -> None:
     pg, errors = page
     pg.fill("#token", "not-the-token-at-all")
