@@ -159,16 +159,21 @@ def test_a_mosaic_from_roi_to_merged_preview(
     assert errors == [], errors
 
 
-def _plan_an_impossible_overlap(pg: Any) -> None:
-    """Draw an ROI on an SEM image (acquired if none is shown) and ask for a 95 % overlap."""
-    if not pg.get_attribute("#sem-canvas", "data-sem-id"):
-        pg.click("#sem-acquire")
-        pg.wait_for_selector("#sem-canvas[data-sem-id]")
+def _draw_small_roi(pg: Any) -> None:
+    """Drag a small ROI on the SEM image shown."""
     box = pg.locator("#sem-canvas").bounding_box()
     pg.mouse.move(box["x"] + 300, box["y"] + 200)
     pg.mouse.down()
     pg.mouse.move(box["x"] + 360, box["y"] + 260)
     pg.mouse.up()
+
+
+def _plan_an_impossible_overlap(pg: Any) -> None:
+    """Draw an ROI on an SEM image (acquired if none is shown) and ask for a 95 % overlap."""
+    if not pg.get_attribute("#sem-canvas", "data-sem-id"):
+        pg.click("#sem-acquire")
+        pg.wait_for_selector("#sem-canvas[data-sem-id]")
+    _draw_small_roi(pg)
     pg.fill("input[name=ox]", "95")
     pg.wait_for_function("document.querySelector('#plan-error').textContent.includes('overlap')")
 
@@ -190,11 +195,7 @@ def test_an_image_acquired_while_the_page_starts_is_kept_with_its_roi(
     pg.click("#sem-acquire")
     pg.wait_for_selector("#sem-canvas[data-sem-id]")
     acquired = pg.get_attribute("#sem-canvas", "data-sem-id")
-    box = pg.locator("#sem-canvas").bounding_box()
-    pg.mouse.move(box["x"] + 300, box["y"] + 200)
-    pg.mouse.down()
-    pg.mouse.move(box["x"] + 360, box["y"] + 260)
-    pg.mouse.up()
+    _draw_small_roi(pg)
     assert pg.input_value("input[name=roi_width]") != ""
     with pg.expect_response("**/api/sem"):
         for route in held:
