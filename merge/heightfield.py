@@ -12,16 +12,27 @@ FloatArray = NDArray[np.float64]
 
 
 def smooth_nan(heights: FloatArray, sigma: float) -> FloatArray:
-    """Gaussian smoothing (``sigma`` in pixels) that ignores NaN and keeps them NaN."""
+    """Gaussian smoothing (``sigma`` in pixels) that ignores NaN and keeps them NaN.
+
+    Beyond its border a patch is continued point-symmetrically (``2 h_0 - h_k``), which keeps
+    the slope there. Repeating the border value instead bends a slope that crosses the border
+    by a good fraction of slope x sigma (on a grating's flank, nanometres), and patches overlap
+    exactly along their borders: the coarse levels of the refinement then pulled neighbours
+    apart along a 1-D grating's stripes (grid-real median XY error 5.6 nm; 2.9 nm so).
+    """
     h = np.asarray(heights, dtype=np.float64)
     if sigma <= 0:
         return h.copy()
+    pad = int(np.ceil(4.0 * sigma)) + 1  # the filter's reach (it truncates at 4 sigma)
+    padded = min(h.shape) > pad
+    if padded:
+        h = np.pad(h, pad, mode="reflect", reflect_type="odd")
     ok = np.isfinite(h)
     num = ndimage.gaussian_filter(np.where(ok, h, 0.0), sigma, mode="nearest")
     den = ndimage.gaussian_filter(ok.astype(np.float64), sigma, mode="nearest")
     with np.errstate(invalid="ignore", divide="ignore"):
         out: FloatArray = np.where(ok & (den > 1e-6), num / den, np.nan)
-    return out
+    return out[pad:-pad, pad:-pad] if padded else out
 
 
 def slopes(heights: FloatArray, pixel_size: tuple[float, float]) -> tuple[FloatArray, FloatArray]:
