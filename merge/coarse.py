@@ -12,7 +12,8 @@ pairwise differences (:mod:`merge.network`), with robust weights and with each p
 information as a 2 x 2 matrix (a straight edge fixes only its normal). A patch whose links
 found nothing or disagree with the rest is then placed against all its neighbours at once
 (:mod:`merge.placement`), and a second pass re-measures the doubtful pairs in a narrow window
-around the shift the network, so mended, predicts.
+around the shift the network, so mended, predicts. Scans levelled one by one before export get
+the planes their levelling took back first (:mod:`merge.tilts`).
 """
 
 from __future__ import annotations
@@ -37,6 +38,7 @@ from merge.network import solve_pair_differences
 from merge.noise import estimate_noise
 from merge.patchset import Patch
 from merge.placement import PairMap, place_patch
+from merge.tilts import levelled_one_by_one, patch_tilts, untilted
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
@@ -88,11 +90,15 @@ class CoarseStart:
     translation : (n, 3) metres, ``t`` of ``q = p + t`` per patch.
     xy_measured : (n,) bool, whether any pair measured the patch's XY.
     xy_complete : (n,) bool, whether its pairs measured XY along both axes.
+    tilt : (n, 2) dz/dx, dz/dy of the plane each patch lost when it was levelled on its own
+        before export (zero for raw scans, :mod:`merge.tilts`); Z in ``translation`` is then
+        at the patch's centre.
     """
 
     translation: FloatArray
     xy_measured: NDArray[np.bool_]
     xy_complete: NDArray[np.bool_]
+    tilt: FloatArray
 
 
 def _patch_information(n: int, pairs: IntArray, W: FloatArray) -> FloatArray:
@@ -205,17 +211,7 @@ def coarse_start(
         (round((g.y[0] - anchor[1]) / cell - 0.5), round((g.x[0] - anchor[0]) / cell - 0.5))
         for g in grids
     ]
-    levelled = remove_common_plane(grids)
-    channels = [correlated_channels(lv) for lv in levelled]
-    noise = np.array([estimate_noise(g.heights) for g in grids])
-    sigma = np.where(np.isfinite(noise) & (noise > 0), noise, 1e-12)
-    textured = np.array(
-        [texture(lv) > MIN_TEXTURE * s for lv, s in zip(levelled, sigma, strict=True)]
-    )
     k = len(pairs)
-    radius = max_shift / cell
-    xy_m, xy_w = np.zeros((k, 2)), np.zeros((k, 2, 2))
-    score = np.full(k, np.nan)
     nominal_overlap = np.zeros(k)
     for i in range(k):
         a, b = int(pairs[i, 0]), int(pairs[i, 1])
@@ -224,6 +220,29 @@ def coarse_start(
         oy = min(offs[a][0] + ha, offs[b][0] + hb) - max(offs[a][0], offs[b][0])
         ox = min(offs[a][1] + wa, offs[b][1] + wb) - max(offs[a][1], offs[b][1])
         nominal_overlap[i] = max(oy, 0) * max(ox, 0) if min(ox, oy) >= MIN_OVERLAP_CELLS else 0
+    least_overlap = np.maximum(16, (MIN_OVERLAP_FRACTION * nominal_overlap).astype(int))
+    # scans levelled one by one before export: the planes that took off, back first
+    tilt = np.zeros((n, 2))
+    if levelled_one_by_one([p.heights for p in patches]):
+        tilt = patch_tilts(
+            grids,
+            offs,
+            pairs,
+            nominal_overlap > 0,
+            radius=max_shift / cell,
+            min_overlap=least_overlap.tolist(),
+        )
+        grids = [untilted(g, t, p.center) for g, t, p in zip(grids, tilt, patches, strict=True)]
+    levelled = remove_common_plane(grids)
+    channels = [correlated_channels(lv) for lv in levelled]
+    noise = np.array([estimate_noise(g.heights) for g in grids])
+    sigma = np.where(np.isfinite(noise) & (noise > 0), noise, 1e-12)
+    textured = np.array(
+        [texture(lv) > MIN_TEXTURE * s for lv, s in zip(levelled, sigma, strict=True)]
+    )
+    radius = max_shift / cell
+    xy_m, xy_w = np.zeros((k, 2)), np.zeros((k, 2, 2))
+    score = np.full(k, np.nan)
 
     def expected(i: int) -> tuple[int, int]:
         a, b = pairs[i]
@@ -252,9 +271,6 @@ def coarse_start(
         )
         xy_w[i] = info / cell**2
 
-    def min_overlap(i: int) -> int:
-        return max(16, int(MIN_OVERLAP_FRACTION * nominal_overlap[i]))
-
     # NCC maps of the first pass, kept for the second pass and the placements
     maps: dict[int, tuple[FloatArray, FloatArray, tuple[int, int]]] = {}
 
@@ -271,7 +287,7 @@ def coarse_start(
                 *correlation(i),
                 expected=centre,
                 radius=(rad, rad),
-                min_overlap=min_overlap(i),
+                min_overlap=int(least_overlap[i]),
                 prior=SHIFT_PRIOR,
                 ambiguity=AMBIGUITY,
             )
@@ -289,7 +305,7 @@ def coarse_start(
             zero=zero,
             at_rest=(e[0] + round(held[1] / cell), e[1] + round(held[0] / cell)),
             sign=1 if c == a else -1,
-            min_overlap=min_overlap(i),
+            min_overlap=int(least_overlap[i]),
         )
 
     translation = np.zeros((n, 3))
@@ -322,7 +338,7 @@ def coarse_start(
                             zero,
                             expected=(float(e[0]), float(e[1])),
                             radius=(radius, radius),
-                            min_overlap=min_overlap(i),
+                            min_overlap=int(least_overlap[i]),
                             prior=SHIFT_PRIOR,
                             ambiguity=AMBIGUITY,
                         ),
@@ -376,4 +392,6 @@ def coarse_start(
     translation[:, 2] = zsol.x[:, 0]
     measured = np.zeros(n, dtype=bool)
     measured[pairs[np.trace(xy_w, axis1=1, axis2=2) > 0].ravel()] = True
-    return CoarseStart(translation=translation, xy_measured=measured, xy_complete=complete)
+    return CoarseStart(
+        translation=translation, xy_measured=measured, xy_complete=complete, tilt=tilt
+    )

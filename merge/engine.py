@@ -159,7 +159,11 @@ def run(
             max_shift=max_shift,
             estimate_xy=cfg.method != "zlevel",
         )
-        transforms = [PatchTransform(t=tc) for tc in start.translation]
+        # a tilt the start found (scans levelled one by one) is the drift plane's start
+        transforms = [
+            PatchTransform(t=tc, slope=-tilt, centre=np.array(p.center))
+            for tc, tilt, p in zip(start.translation, start.tilt, patches, strict=True)
+        ]
         complete = bool(start.xy_complete[linked].all())
     timings["start"] = time.perf_counter() - clock
     iterations, converged, history = 0, True, []

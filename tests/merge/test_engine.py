@@ -7,7 +7,11 @@ import dataclasses
 import numpy as np
 import pytest
 
-from merge import MergeCancelled, MergeConfig, Patch, PatchSet, run
+from backend.synthetic import patch_set_from_synth
+from hardware.sim.drift import DriftModel
+from hardware.sim.surfaces import Chessboard
+from hardware.sim.synth import SynthPatch, synthesize
+from merge import MergeCancelled, MergeConfig, Patch, PatchSet, PatchTransform, run
 from merge.kabsch import weighted_rigid_transform
 from tests.conftest import Synthetic
 
@@ -104,21 +108,23 @@ def test_config_is_validated() -> None:
             MergeConfig(**bad)  # type: ignore[arg-type]
 
 
-def test_patches_levelled_one_by_one_before_export_still_merge(small_mosaic: Synthetic) -> None:
-    # AFM software often removes each scan's own best plane before export: the patches' tilts
-    # are then arbitrary (tens of nm), not a drift in time, and a drift prior held to physics
-    # would bend the mosaic to flatten them
+def _levelled_one_by_one(patch_set: PatchSet) -> PatchSet:
+    """Every patch less its own least-squares plane, as AFM software exports them."""
     levelled = []
-    for p in small_mosaic.patch_set.patches:
+    for p in patch_set.patches:
         ny, nx = p.heights.shape
         yy, xx = np.mgrid[0:ny, 0:nx]
         A = np.column_stack([np.ones(nx * ny), xx.ravel(), yy.ravel()])
         plane = A @ np.linalg.lstsq(A, p.heights.ravel(), rcond=None)[0]
         levelled.append(dataclasses.replace(p, heights=p.heights - plane.reshape(ny, nx)))
-    result = run(PatchSet(levelled))
-    # XY only: the levelling changed the heights, not where the points are
+    return PatchSet(levelled)
+
+
+def _xy_error(synth: list[SynthPatch], transforms: list[PatchTransform]) -> float:
+    """RMS XY error (m) of all points after the best global rigid motion: the levelling changed
+    the heights, not where the points are."""
     placed, truth = [], []
-    for s, tr in zip(small_mosaic.synth, result.transforms, strict=True):
+    for s, tr in zip(synth, transforms, strict=True):
         ny, nx = s.heights.shape
         xx, yy = np.meshgrid(
             s.origin[0] + np.arange(nx) * s.pixel_size[0],
@@ -129,5 +135,36 @@ def test_patches_levelled_one_by_one_before_export_still_merge(small_mosaic: Syn
         truth.append(p @ s.rotation.T + s.translation * [1.0, 1.0, 0.0])
     P, Q = np.concatenate(placed), np.concatenate(truth)
     G, g = weighted_rigid_transform(P, Q)
-    assert np.sqrt(np.mean(np.sum((P @ G.T + g - Q) ** 2, axis=1))) < 1.5e-9
+    return float(np.sqrt(np.mean(np.sum((P @ G.T + g - Q) ** 2, axis=1))))
+
+
+def test_patches_levelled_one_by_one_before_export_still_merge(small_mosaic: Synthetic) -> None:
+    # AFM software often removes each scan's own best plane before export: the patches' tilts
+    # are then arbitrary (tens of nm), not a drift in time, and a drift prior held to physics
+    # would bend the mosaic to flatten them
+    result = run(_levelled_one_by_one(small_mosaic.patch_set))
+    assert _xy_error(small_mosaic.synth, result.transforms) < 1.5e-9
     assert all(p.residual_rms < 3e-9 for p in result.patches)
+
+
+def test_levelled_patches_across_large_steps_merge() -> None:
+    # Around a 600 nm step each patch's own plane tilts it by hundreds of nanometres, each
+    # differently: neighbours disagree by a ramp that the correlation of heights cannot see
+    # past (the start put this mosaic 67 nm off before it restored the tilts)
+    grating = Chessboard(seed=3, offset=(0.9e-6, 0.9e-6))
+    synth = synthesize(
+        grating,
+        rows=3,
+        cols=4,
+        patch_size=(0.6e-6, 1.2e-6),
+        pixels=(30, 60),
+        overlap=(0.5, 0.33),
+        drift=DriftModel.typical(),
+        seed=1,
+    )
+    levelled = _levelled_one_by_one(patch_set_from_synth(synth))
+    spread = [np.ptp(p.heights - s.heights) for p, s in zip(levelled, synth, strict=True)]
+    assert max(spread) > 200e-9  # the levelling took large planes off
+    result = run(levelled)
+    assert _xy_error(synth, result.transforms) < 2e-9
+    assert all(p.residual_rms < 4e-9 for p in result.patches)
