@@ -166,7 +166,8 @@ def refine(
     start_s = state.s.copy()
     plane_sigma = np.full(2, drift_prior / scale)  # the first level: as loose along both axes
     for li, level in enumerate(levels):
-        bank = SurfaceBank(patches, scale, level.smooth, level.stride)
+        raw = level.smooth == 0 and level.stride == 1
+        bank = base if raw else SurfaceBank(patches, scale, level.smooth, level.stride)
         if li == 1:
             plane_sigma = _plane_sigma(state.slope * bank.radius[:, None], drift_prior / scale)
         margin = 1.5 * float(max(bank.dx.max(), bank.dy.max()))
