@@ -132,25 +132,31 @@ class SurfaceBank:
         lo = loc[:, :, :2].min(axis=1) - margin
         hi = loc[:, :, :2].max(axis=1) + margin
         x, y = self.points[:, 0], self.points[:, 1]
-        src_l, dst_l, idx_l, starts = [], [], [], [0]
-        for k, (src, dst) in enumerate(zip(src_all.tolist(), dst_all.tolist(), strict=True)):
+        # every source's points against all its destinations' outlines at once; the rows of
+        # directed pair k are then a slice of its source's hits
+        hits: list[IntArray] = [np.empty(0, dtype=np.intp)] * len(src_all)
+        for src in np.unique(src_all).tolist():
+            ks = np.flatnonzero(src_all == src)
             first, last = self.point_start[src], self.point_start[src + 1]
             px, py = x[first:last], y[first:last]
-            sel = np.flatnonzero(
-                (px >= lo[k, 0]) & (px <= hi[k, 0]) & (py >= lo[k, 1]) & (py <= hi[k, 1])
+            inside = (
+                (px >= lo[ks, 0, None])
+                & (px <= hi[ks, 0, None])
+                & (py >= lo[ks, 1, None])
+                & (py <= hi[ks, 1, None])
             )
-            if len(sel) == 0:
-                continue
-            src_l.append(np.full(len(sel), src, dtype=np.intp))
-            dst_l.append(np.full(len(sel), dst, dtype=np.intp))
-            idx_l.append(sel + first)
-            starts.append(starts[-1] + len(sel))
-        if not idx_l:
+            col, pt = np.nonzero(inside)  # sorted by destination, then point
+            bounds = np.searchsorted(col, np.arange(len(ks) + 1))
+            for j, k in enumerate(ks.tolist()):
+                hits[k] = pt[bounds[j] : bounds[j + 1]] + first
+        counts = np.array([len(h) for h in hits], dtype=np.intp)
+        kept = counts > 0
+        if not kept.any():
             e = np.empty(0, dtype=np.intp)
             return e, e, e, np.zeros(1, dtype=np.intp)
         return (
-            np.concatenate(src_l),
-            np.concatenate(dst_l),
-            np.concatenate(idx_l),
-            np.array(starts, dtype=np.intp),
+            np.repeat(src_all[kept], counts[kept]),
+            np.repeat(dst_all[kept], counts[kept]),
+            np.concatenate([h for h in hits if len(h)]).astype(np.intp),
+            np.concatenate([[0], np.cumsum(counts[kept])]).astype(np.intp),
         )
