@@ -135,7 +135,7 @@ def patch_tilts(
     n, k = len(grids), len(pairs)
     slopes = []
     for g in grids:
-        gy, gx = np.gradient(smooth_nan(g.heights, 1.0))
+        gy, gx = np.gradient(smooth_nan(g.heights, 1.0, border="mirror"))
         slopes.append(np.stack([gx, gy]))
     measured, weight = np.zeros((k, 2)), np.zeros(k)
     groups: dict[tuple[tuple[int, ...], tuple[int, ...]], list[int]] = {}

@@ -22,14 +22,16 @@ def test_smoothing_leaves_a_plane_alone_up_to_its_border(sigma: float) -> None:
     # the flank of a step crossing a patch border: repeating the border value would bend it
     # there by about slope x sigma (2.5 px x 1 px here)
     h = _plane()
-    np.testing.assert_allclose(smooth_nan(h, sigma), h, atol=1e-9)
+    np.testing.assert_allclose(smooth_nan(h, sigma, border="mirror"), h, atol=1e-9)
+    # repeating the border value bends it there (the default, for narrow smoothing)
+    assert np.abs(smooth_nan(h, sigma) - h)[:, 0].max() > 0.2 * 2.5 * sigma
 
 
 def test_smoothing_keeps_holes_and_fills_nothing() -> None:
     h = _plane()
     h[10:13, 5:9] = np.nan
     h[0, 0] = np.nan
-    out = smooth_nan(h, 1.0)
+    out = smooth_nan(h, 1.0, border="mirror")
     np.testing.assert_array_equal(np.isnan(out), np.isnan(h))
     # away from the holes the plane is untouched
     np.testing.assert_allclose(out[18:, 15:], h[18:, 15:], atol=1e-9)
@@ -37,7 +39,7 @@ def test_smoothing_keeps_holes_and_fills_nothing() -> None:
 
 def test_smoothing_a_patch_smaller_than_the_filter_still_works() -> None:
     h = _plane((5, 6))
-    out = smooth_nan(h, 2.0)
+    out = smooth_nan(h, 2.0, border="mirror")
     assert out.shape == h.shape and np.isfinite(out).all()
     # the mean level survives even where the border cannot be continued
     assert abs(out.mean() - h.mean()) < 1.0
