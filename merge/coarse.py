@@ -33,7 +33,7 @@ from merge.lattice import (
     remove_common_plane,
     texture,
 )
-from merge.ncc import CorrelationPeak, find_peak, masked_ncc
+from merge.ncc import CorrelationPeak, find_peak, masked_ncc, pair_maps
 from merge.network import solve_pair_differences
 from merge.noise import estimate_noise
 from merge.patchset import Patch
@@ -315,34 +315,24 @@ def coarse_start(
     if estimate_xy and k:
         # first pass: all measurable pairs, batched by image shapes through one set of FFTs
         todo = [i for i in range(k) if measurable(i)]
-        groups: dict[tuple[tuple[int, ...], tuple[int, ...]], list[int]] = {}
-        for i in todo:
-            key = (channels[pairs[i, 0]].shape, channels[pairs[i, 1]].shape)
-            groups.setdefault(key, []).append(i)
-        for members in groups.values():
-            for lo in range(0, len(members), BATCH):
-                chunk = members[lo : lo + BATCH]
-                ncc, count, zero = masked_ncc(
-                    np.stack([channels[pairs[i, 0]] for i in chunk]),
-                    np.stack([channels[pairs[i, 1]] for i in chunk]),
-                    weights=CHANNEL_WEIGHTS,
-                )
-                for j, i in enumerate(chunk):
-                    e = expected(i)
-                    maps[i] = (ncc[j], count[j], zero)
-                    accept(
-                        i,
-                        find_peak(
-                            ncc[j],
-                            count[j],
-                            zero,
-                            expected=(float(e[0]), float(e[1])),
-                            radius=(radius, radius),
-                            min_overlap=int(least_overlap[i]),
-                            prior=SHIFT_PRIOR,
-                            ambiguity=AMBIGUITY,
-                        ),
-                    )
+        for i, ncc, count, zero in pair_maps(
+            channels, pairs, todo, weights=CHANNEL_WEIGHTS, batch=BATCH
+        ):
+            e = expected(i)
+            maps[i] = (ncc, count, zero)
+            accept(
+                i,
+                find_peak(
+                    ncc,
+                    count,
+                    zero,
+                    expected=(float(e[0]), float(e[1])),
+                    radius=(radius, radius),
+                    min_overlap=int(least_overlap[i]),
+                    prior=SHIFT_PRIOR,
+                    ambiguity=AMBIGUITY,
+                ),
+            )
         _drop_odd_scores(score, xy_w)
         sol = solve_pair_differences(n, pairs, xy_m, xy_w, prior=xy_prior)
         unmeasured = np.trace(xy_w, axis1=1, axis2=2) == 0

@@ -7,7 +7,7 @@ the score.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -121,6 +121,34 @@ def masked_ncc(
     if single:
         return ncc[0], count[0], (ha - 1, wa - 1)
     return ncc, count, (ha - 1, wa - 1)
+
+
+def pair_maps(
+    images: Sequence[FloatArray],
+    pairs: NDArray[np.intp],
+    which: Sequence[int],
+    *,
+    weights: Sequence[float] | None = None,
+    batch: int = 64,
+) -> Iterator[tuple[int, FloatArray, FloatArray, tuple[int, int]]]:
+    """:func:`masked_ncc` of the pairs ``which`` (rows of ``pairs``, indices into ``images``).
+
+    Pairs of equal shapes go through one set of FFTs, up to ``batch`` at a time. Yields
+    ``(row, ncc, count, zero)`` per pair.
+    """
+    groups: dict[tuple[tuple[int, ...], tuple[int, ...]], list[int]] = {}
+    for i in which:
+        groups.setdefault((images[pairs[i, 0]].shape, images[pairs[i, 1]].shape), []).append(i)
+    for members in groups.values():
+        for lo in range(0, len(members), batch):
+            chunk = members[lo : lo + batch]
+            ncc, count, zero = masked_ncc(
+                np.stack([images[pairs[i, 0]] for i in chunk]),
+                np.stack([images[pairs[i, 1]] for i in chunk]),
+                weights=weights,
+            )
+            for j, i in enumerate(chunk):
+                yield i, ncc[j], count[j], zero
 
 
 def _masked_mean(x: FloatArray, mask: NDArray[np.bool_]) -> FloatArray:

@@ -29,7 +29,7 @@ from numpy.typing import NDArray
 
 from merge.downsample import GridSample
 from merge.heightfield import smooth_nan
-from merge.ncc import find_peak, masked_ncc
+from merge.ncc import find_peak, pair_maps
 from merge.network import solve_pair_differences
 
 FloatArray = NDArray[np.float64]
@@ -42,8 +42,6 @@ FLAT_TO_ROUNDING = 1e-5
 LEVELLED_SHARE = 0.9
 #: Fewest overlapping cells a slope difference is measured on.
 MIN_CELLS = 16
-#: Pairs correlated together through one set of FFTs.
-BATCH = 64
 
 
 def own_plane_change(heights: FloatArray) -> float:
@@ -138,32 +136,22 @@ def patch_tilts(
         gy, gx = np.gradient(smooth_nan(g.heights, 1.0, border="mirror"))
         slopes.append(np.stack([gx, gy]))
     measured, weight = np.zeros((k, 2)), np.zeros(k)
-    groups: dict[tuple[tuple[int, ...], tuple[int, ...]], list[int]] = {}
-    for i in np.flatnonzero(usable).tolist():
-        groups.setdefault((slopes[pairs[i, 0]].shape, slopes[pairs[i, 1]].shape), []).append(i)
-    for members in groups.values():
-        for lo in range(0, len(members), BATCH):
-            chunk = members[lo : lo + BATCH]
-            ncc, count, zero = masked_ncc(
-                np.stack([slopes[pairs[i, 0]] for i in chunk]),
-                np.stack([slopes[pairs[i, 1]] for i in chunk]),
-            )
-            for j, i in enumerate(chunk):
-                a, b = int(pairs[i, 0]), int(pairs[i, 1])
-                shift = (offsets[a][0] - offsets[b][0], offsets[a][1] - offsets[b][1])
-                peak = find_peak(
-                    ncc[j],
-                    count[j],
-                    zero,
-                    expected=(float(shift[0]), float(shift[1])),
-                    radius=(radius, radius),
-                    min_overlap=int(min_overlap[i]),
-                )
-                if peak is not None and not peak.at_border:
-                    shift = peak.integer_shift
-                med, var, _ = slope_difference(slopes[a], slopes[b], shift)
-                if np.isfinite(var):
-                    measured[i], weight[i] = -med, 1.0 / var  # x_a - x_b
+    for i, ncc, count, zero in pair_maps(slopes, pairs, np.flatnonzero(usable).tolist()):
+        a, b = int(pairs[i, 0]), int(pairs[i, 1])
+        shift = (offsets[a][0] - offsets[b][0], offsets[a][1] - offsets[b][1])
+        peak = find_peak(
+            ncc,
+            count,
+            zero,
+            expected=(float(shift[0]), float(shift[1])),
+            radius=(radius, radius),
+            min_overlap=int(min_overlap[i]),
+        )
+        if peak is not None and not peak.at_border:
+            shift = peak.integer_shift
+        med, var, _ = slope_difference(slopes[a], slopes[b], shift)
+        if np.isfinite(var):
+            measured[i], weight[i] = -med, 1.0 / var  # x_a - x_b
     if not weight.any():
         return np.zeros((n, 2))
     sol = solve_pair_differences(n, pairs, measured, weight)
