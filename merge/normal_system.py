@@ -1,8 +1,13 @@
 """The Gauss-Newton normal system of the default method, and its damped solution.
 
 Every row is one point of a source patch over a destination patch: its residual is the height
-of the point above the destination's surface (drift plane included), weighted to a distance
-along the surface normal, and re-weighted with a Cauchy function of the robust residual scale.
+of the point above the destination's surface (drift plane included), linearised on the surface's
+tangent plane, and re-weighted with a Cauchy function of the robust residual scale. Heights are
+what the noise is in, so a residual on a steep flank counts as much as one on a terrace:
+weighting them to distances along the normal (``1 / (1 + |slope|²)``) discarded most of what
+the flanks, where XY is measured, hold (TGX1 over 18 draws: map/floor mean 1.43 -> 1.37;
+variations with 25-30 % overlaps, 2 nm noise, 1° rotations, square patches better by 5-11 %;
+the 1-D grating's XY 2.0 -> 2.1 nm, its map as before).
 Each patch has six unknowns, in pixel units: translation (3), spin about z times the patch
 radius, and the drift plane times the radius. The system is sparse: one 6 x 6 block per patch and
 per overlapping pair.
@@ -54,12 +59,13 @@ class NormalSystem:
     """The sparse system ``A x = g`` (6 unknowns per patch) and fit statistics.
 
     ``rows``, ``cols``, ``vals`` are the triplets of ``A``; ``g`` (n, 6); per patch ``count``
-    (n,) residuals that involve it, ``sq`` (n,) the sum of their squared normal distances and
-    ``diag`` (n, 6, 6) its own information block; ``rms`` and ``rscale`` (robust scale) of the
-    normal distances, pixel units. ``signal_vals`` (if asked for) are the values of ``A`` at the
-    same triplets without the share that slopes of the noise contribute (see
-    :func:`noise_share`): the information the surfaces themselves carry; ``line_design`` (then
-    too) how much the residuals of one scan line of a run move together (:func:`line_design`).
+    (n,) residuals that involve it, ``sq`` (n,) the sum of their squares as distances along the
+    surface normal and ``diag`` (n, 6, 6) its own information block; ``rms`` and ``rscale``
+    (robust scale) of the residuals (heights), pixel units. ``signal_vals`` (if asked for) are
+    the values of ``A`` at the same triplets without the share that slopes of the noise
+    contribute (see :func:`noise_share`): the information the surfaces themselves carry;
+    ``line_design`` (then too) how much the residuals of one scan line of a run move together
+    (:func:`line_design`).
     """
 
     rows: IntArray
@@ -132,23 +138,23 @@ def build_normal_system(
     blocks = _blocks(starts, block_rows)
     # pass 1: residual, slopes and lever arm of every row; the robust scale needs all of them
     m = len(idx)
-    r, w_plane, arm = np.empty(m), np.empty(m), np.empty((m, 2))
+    r, valid, arm = np.empty(m), np.empty(m), np.empty((m, 2))
     grad = np.empty((m, 2))
 
     def residuals(block: tuple[int, int]) -> None:
         lo, hi = starts[block[0]], starts[block[1]]
-        r[lo:hi], w_plane[lo:hi], grad[lo:hi], arm[lo:hi] = _residuals(
+        r[lo:hi], valid[lo:hi], grad[lo:hi], arm[lo:hi] = _residuals(
             bank, idx[lo:hi], dst[lo:hi], starts[block[0] : block[1] + 1] - lo, state
         )
 
     each(residuals, blocks)
-    d = r * np.sqrt(w_plane)
-    ok = w_plane > 0
+    d = r
+    ok = valid > 0
     used = np.abs(d[ok])
     if used.size == 0:
         return empty
     rscale = max(1.4826 * float(np.median(used)), noise)
-    w = w_plane / (1.0 + (d / (3.0 * rscale)) ** 2)
+    w = valid / (1.0 + (d / (3.0 * rscale)) ** 2)
     # pass 2: per run, the source's information block and gradient
     k = len(starts) - 1
     Baa, ga = np.empty((k, 6, 6)), np.empty((k, 6))
@@ -172,7 +178,9 @@ def build_normal_system(
         rows_of = np.rint((bank.points[idx, 1] + bank.half[src, 1]) / bank.dy[src])
         design = line_design(w * r, starts, rows_of.astype(np.intp))
     count = np.bincount(src[ok], minlength=n) + np.bincount(dst[ok], minlength=n)
-    d2 = d**2
+    # reported per patch as distances along the normal: how far the surfaces lie apart (a flank
+    # misplaced by a nanometre is tens of nanometres off in height)
+    d2 = d**2 / (1.0 + np.einsum("ij,ij->i", grad, grad))
     sq = np.asarray(
         np.bincount(src, weights=d2, minlength=n) + np.bincount(dst, weights=d2, minlength=n),
         dtype=np.float64,
@@ -212,13 +220,13 @@ def _run_maps(state: PatchState, a: IntArray, b: IntArray) -> tuple[FloatArray, 
 def _residuals(
     bank: SurfaceBank, idx: IntArray, dst: IntArray, starts: IntArray, state: PatchState
 ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
-    """Per row: residual, plane weight (0 where invalid), normal slopes (m, 2), lever arm (m, 2).
+    """Per row: residual, validity (1 or 0), normal slopes (m, 2), lever arm (m, 2).
 
     Rows ``idx`` (points) over ``dst`` (patches) come in runs ``starts[k]:starts[k + 1]`` of one
     directed pair each, so every run moves its points with one small matrix product. The
     residual is the height of the source point above the destination's surface and drift plane;
     its gradient with respect to the mosaic position is the destination's normal
-    ``(-slope_x, -slope_y, 1)``, whose squared length divides the plane weight.
+    ``(-slope_x, -slope_y, 1)``.
     """
     a, b = bank.owner[idx[starts[:-1]]], dst[starts[:-1]]
     M, c = _run_maps(state, a, b)
@@ -236,8 +244,7 @@ def _residuals(
     r = np.where(ok, p_dst[:, 2] - np.einsum("mi,mi->m", slope, p_dst[:, :2]) - h, 0.0)
     grad = np.column_stack([gx, gy]) + slope
     grad[~ok] = 0.0
-    w_plane = np.where(ok, 1.0 / np.maximum(1.0 + np.einsum("ij,ij->i", grad, grad), 1.0), 0.0)
-    return r, w_plane, grad, arm
+    return r, ok.astype(np.float64), grad, arm
 
 
 def _jacobians(

@@ -1,9 +1,10 @@
 """The default method: simultaneous GPA refinement on the full-resolution height grids.
 
 Every patch is a continuous surface (bilinear in its own frame). For every point of a patch that
-falls on another patch, the residual is its distance to that surface along the normal
-(point-to-plane with the plane taken from the height map's slopes at the sub-pixel foot of the
-point, so correspondences are sub-cell). All 6 rigid degrees of freedom of all patches are
+falls on another patch, the residual is its height above that surface, linearised on the
+surface's tangent plane (point-to-plane, the plane taken from the height map's slopes at the
+sub-pixel foot of the point, so correspondences are sub-cell; heights, not distances along the
+normal, since heights are what the noise is in). All 6 rigid degrees of freedom of all patches are
 solved together, every Gauss-Newton step, from one sparse normal system: this is the Generalized
 Procrustes objective — the sum over every overlap point of its squared distances to the other
 patches is, up to a factor, its squared distance to their mean — never a chain of pairwise
