@@ -10,7 +10,7 @@ import pytest
 
 from backend.synthetic import patch_set_from_synth, registration_error
 from hardware.sim.drift import DriftModel
-from hardware.sim.surfaces import FoldedSurface
+from hardware.sim.surfaces import FoldedSurface, Surface
 from hardware.sim.synth import SynthPatch, synthesize
 from merge import PatchSet, PatchTransform
 
@@ -29,7 +29,7 @@ SHARED_DATA = _shared_data()
 class Synthetic:
     synth: list[SynthPatch]
     patch_set: PatchSet
-    surface: FoldedSurface
+    surface: Surface
 
     def registration_error(self, transforms: list[PatchTransform]) -> tuple[float, float]:
         """RMS XY and Z error (m) over all points after the best global rigid transform."""
@@ -43,20 +43,23 @@ def folded() -> FoldedSurface:
 
 
 def make_synthetic(
-    surface: FoldedSurface,
+    surface: Surface,
     *,
     rows: int = 2,
     cols: int = 3,
     seed: int = 1,
     drift: DriftModel | None = None,
+    patch_size: tuple[float, float] = (0.8e-6, 0.8e-6),
+    pixels: tuple[int, int] = (40, 40),
+    overlap: tuple[float, float] = (0.4, 0.4),
 ) -> Synthetic:
     synth = synthesize(
         surface,
         rows=rows,
         cols=cols,
-        patch_size=(0.8e-6, 0.8e-6),
-        pixels=(40, 40),
-        overlap=(0.4, 0.4),
+        patch_size=patch_size,
+        pixels=pixels,
+        overlap=overlap,
         drift=drift or DriftModel.typical(),
         seed=seed,
     )

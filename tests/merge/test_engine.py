@@ -7,13 +7,11 @@ import dataclasses
 import numpy as np
 import pytest
 
-from backend.synthetic import patch_set_from_synth
-from hardware.sim.drift import DriftModel
 from hardware.sim.surfaces import Chessboard
-from hardware.sim.synth import SynthPatch, synthesize
+from hardware.sim.synth import SynthPatch
 from merge import MergeCancelled, MergeConfig, Patch, PatchSet, PatchTransform, run
 from merge.kabsch import weighted_rigid_transform
-from tests.conftest import Synthetic
+from tests.conftest import Synthetic, make_synthetic
 
 
 def test_default_method_recovers_the_truth(small_mosaic: Synthetic) -> None:
@@ -151,18 +149,16 @@ def test_levelled_patches_across_large_steps_merge() -> None:
     # Around a 600 nm step each patch's own plane tilts it by hundreds of nanometres, each
     # differently: neighbours disagree by a ramp that the correlation of heights cannot see
     # past (the start put this mosaic 67 nm off before it restored the tilts)
-    grating = Chessboard(seed=3, offset=(0.9e-6, 0.9e-6))
-    synth = synthesize(
-        grating,
+    grating = make_synthetic(
+        Chessboard(seed=3, offset=(0.9e-6, 0.9e-6)),
         rows=3,
         cols=4,
         patch_size=(0.6e-6, 1.2e-6),
         pixels=(30, 60),
         overlap=(0.5, 0.33),
-        drift=DriftModel.typical(),
-        seed=1,
     )
-    levelled = _levelled_one_by_one(patch_set_from_synth(synth))
+    synth = grating.synth
+    levelled = _levelled_one_by_one(grating.patch_set)
     spread = [np.ptp(p.heights - s.heights) for p, s in zip(levelled, synth, strict=True)]
     assert max(spread) > 200e-9  # the levelling took large planes off
     result = run(levelled)
