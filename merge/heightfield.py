@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import functools
+from collections.abc import Callable, Sequence
 from typing import Literal
 
 import numpy as np
@@ -36,6 +37,141 @@ def smooth_nan(
     with np.errstate(invalid="ignore", divide="ignore"):
         out: FloatArray = np.where(ok & (den > 1e-6), num / den, np.nan)
     return out[pad:-pad, pad:-pad] if padded else out
+
+
+#: Pixels of point-symmetric continuation before the spline prefilter: the prefilter's reach
+#: (its influence falls by 2 - √3 ≈ 0.27 per pixel, so to 0.5 % over four).
+SPLINE_PAD = 4
+
+
+def upsample2(values: FloatArray) -> FloatArray:
+    """Cubic B-spline interpolation of ``values`` (..., ny, nx) at every half pixel.
+
+    Returns (..., 2 ny - 1, 2 nx - 1): node ``(2 i, 2 j)`` is pixel ``(i, j)``, the others lie
+    halfway between. Beyond the border the values continue point-symmetrically (``2 h_0 - h_k``,
+    which keeps slopes). Where the spline's support (the pixels within one of a node, both sides
+    of a half node) holds a NaN, the result is NaN; holes are filled with their nearest value
+    before the prefilter, so their influence ends there.
+    """
+    a = np.asarray(values, dtype=np.float64)
+    if a.ndim < 2 or min(a.shape[-2:]) < 2:
+        raise ValueError(f"need at least 2 x 2 values, got shape {a.shape}")
+    # the best plane goes through exactly (only what departs from it meets the border guess)
+    ny, nx = a.shape[-2:]
+    plane = _best_plane(a)
+    a = a - plane(np.arange(ny, dtype=np.float64), np.arange(nx, dtype=np.float64))
+    bad = ~np.isfinite(a)
+    if bad.any():
+        for k in np.ndindex(a.shape[:-2]):
+            if bad[k].all():
+                a[k] = 0.0
+            elif bad[k].any():
+                idx = ndimage.distance_transform_edt(
+                    bad[k], return_distances=False, return_indices=True
+                )
+                a[k] = a[k][tuple(idx)]
+    pad = [(0, 0)] * (a.ndim - 2) + [(SPLINE_PAD, SPLINE_PAD)] * 2
+    c = np.pad(a, pad, mode="reflect", reflect_type="odd")
+    for axis in (-1, -2):
+        c = ndimage.spline_filter1d(c, order=3, axis=axis, mode="mirror")
+    p = SPLINE_PAD
+    for axis in (-1, -2):
+        c = np.moveaxis(c, axis, 0)
+        n = c.shape[0] - 2 * p
+        fine = np.empty((2 * n - 1, *c.shape[1:]))
+        fine[0::2] = (c[p - 1 : p + n - 1] + 4.0 * c[p : p + n] + c[p + 1 : p + n + 1]) / 6.0
+        fine[1::2] = (
+            c[p - 1 : p + n - 2]
+            + 23.0 * (c[p : p + n - 1] + c[p + 1 : p + n])
+            + c[p + 2 : p + n + 1]
+        ) / 48.0
+        c = np.moveaxis(fine, 0, axis)
+    if bad.any():
+        near = ndimage.binary_dilation(bad, structure=_square(a.ndim))
+        fine_bad = np.zeros(c.shape, dtype=bool)
+        fine_bad[..., 0::2, 0::2] = near
+        fine_bad[..., 1::2, :] |= _either(fine_bad[..., 0::2, :], axis=-2)
+        fine_bad[..., :, 1::2] |= _either(fine_bad[..., :, 0::2], axis=-1)
+        c[fine_bad] = np.nan
+    out: FloatArray = c + plane(np.arange(2 * ny - 1) / 2.0, np.arange(2 * nx - 1) / 2.0)
+    return out
+
+
+def _best_plane(a: FloatArray) -> Callable[[FloatArray, FloatArray], FloatArray]:
+    """Least-squares plane ``c + b_x j + b_y i`` of every 2-D slice of ``a`` over its finite
+    values, as a function of rows ``i`` and columns ``j`` (broadcast over the slices)."""
+    ny, nx = a.shape[-2:]
+    ok = np.isfinite(a)
+    z = np.where(ok, a, 0.0)
+    ii, jj = np.meshgrid(
+        np.arange(ny, dtype=np.float64), np.arange(nx, dtype=np.float64), indexing="ij"
+    )
+    n = ok.sum(axis=(-2, -1)).astype(np.float64)
+    safe = np.maximum(n, 1.0)
+    mi, mj = (ok * ii).sum(axis=(-2, -1)) / safe, (ok * jj).sum(axis=(-2, -1)) / safe
+    mz = z.sum(axis=(-2, -1)) / safe
+    di, dj = ii - mi[..., None, None], jj - mj[..., None, None]
+    sii, sjj, sij = (
+        (ok * di * di).sum(axis=(-2, -1)),
+        (ok * dj * dj).sum(axis=(-2, -1)),
+        (ok * di * dj).sum(axis=(-2, -1)),
+    )
+    siz, sjz = (ok * di * z).sum(axis=(-2, -1)), (ok * dj * z).sum(axis=(-2, -1))
+    det = sii * sjj - sij**2
+    good = det > 1e-12 * np.maximum(sii * sjj, 1e-300)
+    det = np.where(good, det, 1.0)
+    bi = np.where(good, (siz * sjj - sjz * sij) / det, 0.0)
+    bj = np.where(good, (sjz * sii - siz * sij) / det, 0.0)
+
+    def plane(i: FloatArray, j: FloatArray) -> FloatArray:
+        e = (...,) + (None, None)
+        out: FloatArray = mz[e] + bi[e] * (i[:, None] - mi[e]) + bj[e] * (j[None, :] - mj[e])
+        return out
+
+    return plane
+
+
+@functools.cache
+def slope_noise(nodes: int) -> float:
+    """Variance (per axis, in units of σ² / pixel²) of the slope of unit white noise looked up
+    as :class:`merge.bank.SurfaceBank` does: central differences, interpolated between ``nodes``
+    nodes per pixel (1: the pixels, bilinear; 2: :func:`upsample2`, then bilinear), averaged
+    over where in a pixel the look-up falls. Bilinear: 1/3 across, 2/3 along, 2/9 in all.
+    """
+    if nodes not in (1, 2):
+        raise ValueError(f"nodes per pixel must be 1 or 2, got {nodes}")
+    size, centre = 15, 7
+    impulses: FloatArray = np.zeros((size, 2, size))
+    impulses[np.arange(size), :, np.arange(size)] = 1.0  # one unit pixel per row pair
+    diffs: FloatArray = np.asarray(np.gradient(impulses, axis=-1), dtype=np.float64)
+    if nodes > 1:
+        impulses, diffs = upsample2(impulses), upsample2(diffs)
+    # look-ups at evenly spread places within the centre pixel, bilinear between nodes
+    u = (centre + (np.arange(64) + 0.5) / 64) * nodes
+    j0 = np.floor(u).astype(np.intp)
+    f = u - j0
+
+    def mean_square(w: FloatArray) -> float:
+        # w (pixels, 2, nodes): every pixel's weight on every node (twice, a 2-D array's rows);
+        # a look-up's weights, squared
+        at = (1.0 - f) * w[:, 0, j0] + f * w[:, 0, j0 + 1]
+        return float(np.mean(np.sum(at**2, axis=0)))
+
+    return mean_square(diffs) * mean_square(impulses)
+
+
+def _square(ndim: int) -> NDArray[np.bool_]:
+    """3 x 3 neighbourhood over the last two of ``ndim`` axes."""
+    out = np.zeros((1,) * (ndim - 2) + (3, 3), dtype=bool)
+    out[...] = True
+    return out
+
+
+def _either(mask: NDArray[np.bool_], *, axis: int) -> NDArray[np.bool_]:
+    """``mask[k] | mask[k + 1]`` along ``axis``."""
+    m = np.moveaxis(mask, axis, 0)
+    out: NDArray[np.bool_] = np.moveaxis(m[:-1] | m[1:], 0, axis)
+    return out
 
 
 def slopes(heights: FloatArray, pixel_size: tuple[float, float]) -> tuple[FloatArray, FloatArray]:
