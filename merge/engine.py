@@ -9,6 +9,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
+from merge.bank import SurfaceBank
 from merge.coarse import coarse_start
 from merge.config import MergeConfig
 from merge.gauge import anchor_to_nominal, nominal_points
@@ -167,6 +168,7 @@ def run(
         complete = bool(start.xy_complete[linked].all())
     timings["start"] = time.perf_counter() - clock
     iterations, converged, history = 0, True, []
+    raw: SurfaceBank | None = None  # the refinement's surfaces, reused by the assessment
     if cfg.method in ("default", "paper") and len(pairs):
         # pairs at the estimated places, with a margin for what the refinement may still move
         near = overlapping_pairs(_moved_boxes(boxes, transforms), margin=4.0 * cell)
@@ -187,7 +189,7 @@ def run(
                 progress=progress,
                 cancel=cancel,
             )
-            transforms = fit.transforms
+            transforms, raw = fit.transforms, fit.bank
             iterations, converged, history = fit.iterations, fit.converged, fit.history
         else:
             R0 = np.array([tr.R for tr in transforms])
@@ -208,7 +210,7 @@ def run(
             iterations, converged, history = paper.iterations, paper.converged, paper.history
     timings["solve"] = time.perf_counter() - clock - timings["start"]
     final_pairs = overlapping_pairs(_moved_boxes(boxes, transforms), margin=cell)
-    fits = assess(patches, final_pairs, transforms)
+    fits = assess(patches, final_pairs, transforms, bank=raw)
     reports = []
     for c, p in enumerate(patches):
         f = fits[c]

@@ -8,6 +8,9 @@ weighting them to distances along the normal (``1 / (1 + |slope|²)``) discarded
 the flanks, where XY is measured, hold (TGX1 over 18 draws: map/floor mean 1.43 -> 1.37;
 variations with 25-30 % overlaps, 2 nm noise, 1° rotations, square patches better by 5-11 %;
 the 1-D grating's XY 2.0 -> 2.1 nm, its map as before).
+All residuals of one source line share that line's offset; on the raw heights they are
+marginalised as a random effect (:mod:`merge.lines`), so line means are trusted no more than
+the offsets allow.
 Each patch has six unknowns, in pixel units: translation (3), spin about z times the patch
 radius, and the drift plane times the radius. The system is sparse: one 6 x 6 block per patch and
 per overlapping pair.
@@ -28,6 +31,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.linalg import spsolve
 
 from merge.bank import SurfaceBank
+from merge.lines import line_groups, marginalise_offsets, offset_ratio, whitened_scores
 from merge.parallel import each
 from merge.uncertainty import line_design, noise_share, psd_part
 
@@ -102,6 +106,7 @@ def build_normal_system(
     *,
     block_rows: int = BLOCK_ROWS,
     signal: bool = False,
+    lines: bool = True,
 ) -> NormalSystem:
     """The Gauss-Newton system over all correspondences, and per-patch statistics.
 
@@ -119,6 +124,9 @@ def build_normal_system(
         Rows per block; changes memory and speed, never the result.
     signal : bool, keyword-only
         Also compute ``signal_vals`` (for uncertainties, not for steps).
+    lines : bool, keyword-only
+        Marginalise the offsets of scan lines (:mod:`merge.lines`), their size measured on the
+        residuals.
     """
     n = len(bank.centre)
     src, dst, idx, starts = cand
@@ -155,6 +163,10 @@ def build_normal_system(
         return empty
     rscale = max(1.4826 * float(np.median(used)), noise)
     w = valid / (1.0 + (d / (3.0 * rscale)) ** 2)
+    # the residuals of one source line share its offset (merge.lines)
+    line = bank.line[idx]
+    groups = line_groups(starts, line)
+    rho = offset_ratio(r, w, valid, groups) if lines else np.inf
     # pass 2: per run, the source's information block and gradient
     k = len(starts) - 1
     Baa, ga = np.empty((k, 6, 6)), np.empty((k, 6))
@@ -167,16 +179,28 @@ def build_normal_system(
             bank, idx[lo:hi], dst[lo:hi], runs, state, grad[lo:hi], ok[lo:hi], arm[lo:hi]
         )
         Baa[first:last], ga[first:last] = segment_sums(J, w[lo:hi], r[lo:hi], runs)
+        g_lo, g_hi = np.searchsorted(groups, [lo, hi])
+        marginalise_offsets(
+            J,
+            w[lo:hi],
+            r[lo:hi],
+            runs,
+            groups[g_lo:g_hi] - lo,
+            rho,
+            Baa[first:last],
+            ga[first:last],
+        )
 
     each(information, blocks)
     a_seg, b_seg = src[starts[:-1]], dst[starts[:-1]]
     signal_blocks, design = None, 1.0
     if signal:
         pitch2 = 0.5 * (bank.dx[b_seg] ** -2 + bank.dy[b_seg] ** -2)
-        share = noise_share(w, arm, starts, bank.radius[a_seg], noise**2 * pitch2)
+        share = noise_share(
+            w, arm, starts, bank.radius[a_seg], bank.slope_noise * noise**2 * pitch2
+        )
         signal_blocks = psd_part(Baa - share)
-        rows_of = np.rint((bank.points[idx, 1] + bank.half[src, 1]) / bank.dy[src])
-        design = line_design(w * r, starts, rows_of.astype(np.intp))
+        design = line_design(whitened_scores(r, w, groups, rho), starts, line)
     count = np.bincount(src[ok], minlength=n) + np.bincount(dst[ok], minlength=n)
     # reported per patch as distances along the normal: how far the surfaces lie apart (a flank
     # misplaced by a nanometre is tens of nanometres off in height)

@@ -72,6 +72,9 @@ class Level:
 
 
 STALL = 1e-4
+#: Iterations in a row the cost must stall for: along a grating's stripes the patches creep
+#: (their few defects hold them loosely), and the cost may pause once on the way.
+STALLS = 2
 #: Expected in-patch Z drift (metres, centre to corner) of the drift-plane prior.
 DRIFT_PRIOR = 5e-9
 #: Share of the drift prior along the fast axis (x). A Z drift in time tilts a patch along its
@@ -111,12 +114,14 @@ class PatchFit:
 
 @dataclass(frozen=True)
 class RefineResult:
-    """``T_mosaic_patch`` per patch, iterations and the residual RMS of each."""
+    """``T_mosaic_patch`` per patch, iterations and the residual RMS of each; ``bank``, the
+    patches' raw heights as surfaces (for :func:`assess`, which needs the same)."""
 
     transforms: list[PatchTransform]
     iterations: int
     converged: bool
     history: list[float]
+    bank: SurfaceBank
 
 
 def refine(
@@ -176,12 +181,16 @@ def refine(
         moved = 0.0
         level_converged = False
         previous = np.inf
+        stalls = 0
         for _ in range(level.max_iter):
             if cancel is not None and cancel():
                 raise MergeCancelled("merge cancelled")
             if moved > 0.5 * margin:
                 cand, moved = bank.candidates(pairs, state.R, state.s, margin), 0.0
-            stats = build_normal_system(bank, cand, state, noise)
+            # scan lines as correlated noise (merge.lines) only on the raw heights: smoothing
+            # spreads every line's offset over its neighbours, and on the coarse levels the
+            # start's misfit along lines would pass for offsets
+            stats = build_normal_system(bank, cand, state, noise, lines=raw)
             priors = Priors(
                 plane=state.slope * bank.radius[:, None],
                 plane_sigma=plane_sigma,
@@ -203,9 +212,9 @@ def refine(
                 progress(iteration, stats.rms * scale)
             # converged when no patch moves, or when the cost no longer falls (the motion left
             # is then in directions the data do not constrain, e.g. XY over a flat overlap)
-            stalled = abs(previous - stats.rms) <= STALL * stats.rms
+            stalls = stalls + 1 if abs(previous - stats.rms) <= STALL * stats.rms else 0
             previous = stats.rms
-            if motion < level.tol or stalled:
+            if motion < level.tol or stalls >= STALLS:
                 level_converged = True
                 break
         if li == len(levels) - 1:
@@ -215,6 +224,7 @@ def refine(
         iterations=iteration,
         converged=converged,
         history=history,
+        bank=base,
     )
 
 
@@ -293,14 +303,20 @@ class _State(PatchState):
 
 
 def assess(
-    patches: Sequence[Patch], pairs: IntArray, transforms: Sequence[PatchTransform]
+    patches: Sequence[Patch],
+    pairs: IntArray,
+    transforms: Sequence[PatchTransform],
+    *,
+    bank: SurfaceBank | None = None,
 ) -> list[PatchFit]:
     """Per-patch quality of given transforms on the full-resolution heights (no update).
 
-    Used for every method, so their reports compare like with like.
+    Used for every method, so their reports compare like with like. ``bank``: the patches' raw
+    heights as surfaces, if already built (:attr:`RefineResult.bank`).
     """
     scale = float(np.median([min(p.pixel_size) for p in patches]))
-    bank = SurfaceBank(patches, scale, 0.0, 1)
+    if bank is None:
+        bank = SurfaceBank(patches, scale, 0.0, 1)
     state = _State.from_transforms(transforms, bank, scale)
     margin = 1.5 * float(max(bank.dx.max(), bank.dy.max()))
     cand = bank.candidates(
@@ -319,7 +335,7 @@ def assess(
             z_design=system.line_design,
         )
     pitch = np.column_stack([bank.dx, bank.dy])
-    local = _local_fits(system, n, noise, pitch)
+    local = _local_fits(system, n, noise, pitch, bank.slope_noise)
     # held by its neighbours, a patch is never placed better than its own overlaps allow (the
     # two take the noise's share out differently: per run there, per patch here)
     xy = np.maximum(xy, [local_xy for _, _, local_xy in local])
@@ -332,10 +348,11 @@ def assess(
 
 
 def _local_fits(
-    stats: NormalSystem, n: int, noise: float, pitch: FloatArray
+    stats: NormalSystem, n: int, noise: float, pitch: FloatArray, slope_noise: float
 ) -> list[tuple[int, float, float]]:
     """Per patch: residuals, their RMS and the XY standard deviation with every other patch
-    held (pixel units)."""
+    held (pixel units). ``slope_noise``: variance of a looked-up slope of unit white noise per
+    unit pitch (:func:`merge.heightfield.slope_noise`)."""
     out: list[tuple[int, float, float]] = []
     for c in range(n):
         k = stats.count[c]
@@ -346,12 +363,11 @@ def _local_fits(
         info = stats.diag[c] + 1e-9 * np.trace(stats.diag[c]) * np.eye(6)
         try:
             # information of its XY translation with its own other unknowns free, without the
-            # share that slopes of noise contribute: noise is not texture. A central difference
-            # of white noise has variance σ²/2; bilinear interpolation between independent
-            # differences keeps 4/9 of it on average, so (2/9) σ² per residual.
+            # share that slopes of noise contribute: noise is not texture (per residual
+            # slope_noise σ² / pitch², 2/9 for bilinear look-ups between central differences)
             xy_info = info[:2, :2] - info[:2, 2:] @ np.linalg.solve(info[2:, 2:], info[2:, :2])
             pitch2 = np.array([pitch[c, 0] ** -2, pitch[c, 1] ** -2])
-            xy_info = signal_information(xy_info, k * noise**2 * 2.0 / 9.0 * pitch2)
+            xy_info = signal_information(xy_info, k * noise**2 * slope_noise * pitch2)
             vals = np.linalg.eigvalsh(xy_info)
             # at the level of the regularisation above, a direction is not seen at all
             seen = vals.min() > LOCAL_FLOOR * max(float(vals.max()), 1e-300)

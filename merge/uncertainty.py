@@ -148,9 +148,9 @@ def noise_share(
 ) -> FloatArray:
     """Per run, the part of ``Σ w J J'`` (k, 6, 6) that slopes of white noise contribute.
 
-    The destination's slopes enter the Jacobian; their noise (per axis ``noise2`` (k,): a
-    central difference of white noise has variance σ²/2 per pitch², bilinear interpolation
-    between independent differences keeps 4/9 of it on average, so (2/9) σ² / pitch²) adds, in
+    The destination's slopes enter the Jacobian; their noise (per axis ``noise2`` (k,), the
+    variance of a looked-up slope: for bilinear look-ups between independent central
+    differences (2/9) σ² / pitch², see :func:`merge.heightfield.slope_noise`) adds, in
     expectation, ``noise2 · Σ w (u0 u0' + u1 u1')`` with ``u0 = (1, 0, 0, -a_y/ρ, 0, 0)`` and
     ``u1 = (0, 1, 0, a_x/ρ, 0, 0)`` (``a`` the lever arm, ``ρ`` (k,) the source's radius).
     Noise is not texture: this share claims precision a flat overlap does not have.
@@ -164,7 +164,7 @@ def noise_share(
     out[:, 0, 3] = out[:, 3, 0] = -sa[:, 1]
     out[:, 1, 3] = out[:, 3, 1] = sa[:, 0]
     out[:, 3, 3] = saa
-    scaled: FloatArray = out * (2.0 / 9.0) * noise2[:, None, None]
+    scaled: FloatArray = out * noise2[:, None, None]
     return scaled
 
 

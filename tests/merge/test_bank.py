@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from merge.bank import SurfaceBank
 from merge.patchset import Patch
@@ -15,8 +16,10 @@ def _plane_patch(pid: str, origin: tuple[float, float]) -> Patch:
     return Patch(id=pid, heights=heights, origin=origin, pixel_size=(10e-9, 10e-9))
 
 
-def test_lookup_is_exact_on_a_plane_and_refuses_points_outside() -> None:
-    bank = SurfaceBank([_plane_patch("a", (0.0, 0.0))], 10e-9, 0.0, 1)
+@pytest.mark.parametrize("smooth", [0.0, 2.0])
+def test_lookup_is_exact_on_a_plane_and_refuses_points_outside(smooth: float) -> None:
+    # raw heights (spline nodes at half pixels) and smoothed ones (bilinear between pixels)
+    bank = SurfaceBank([_plane_patch("a", (0.0, 0.0))], 10e-9, smooth, 1)
     rng = np.random.default_rng(0)
     half = bank.half[0]
     inside = rng.uniform(-half, half, size=(200, 2))
@@ -28,11 +31,39 @@ def test_lookup_is_exact_on_a_plane_and_refuses_points_outside() -> None:
     assert ok[:200].all() and not ok[200:].any()
     # local heights: relative to the patch median, pixel units
     expected = (
-        0.3 * (pts[:200, 0] + half[0]) - 0.2 * (pts[:200, 1] + half[1]) + 5.0 - bank.centre[0, 2]
+        0.3 * (pts[:200, 0] + bank.half[0, 0])
+        - 0.2 * (pts[:200, 1] + bank.half[0, 1])
+        + 5.0
+        - bank.centre[0, 2]
     )
     np.testing.assert_allclose(h[:200], expected, atol=1e-9)
     np.testing.assert_allclose(gx[:200], 0.3, atol=1e-9)
     np.testing.assert_allclose(gy[:200], -0.2, atol=1e-9)
+
+
+def test_raw_lookups_follow_roughness_between_pixels_better_than_bilinear() -> None:
+    # a surface with texture at the scale of two pixels, sampled on whole pixels and looked up
+    # halfway between them: bilinear shaves the roughness, the spline follows it
+    yy, xx = np.mgrid[0:40, 0:40].astype(np.float64)
+    wave = lambda x, y: np.sin(1.6 * x + 0.3) * np.cos(1.3 * y)  # noqa: E731
+    patch = Patch("a", wave(xx, yy) * 1e-9, (0.0, 0.0), (1e-9, 1e-9))
+    raw = SurfaceBank([patch], 1e-9, 0.0, 1)
+    rng = np.random.default_rng(1)
+    uv = rng.uniform(4.0, 35.0, size=(500, 2))
+    pts = np.column_stack([uv - raw.half[0], np.zeros(500)])
+    h, _, _, ok = raw.lookup(np.zeros(500, dtype=np.intp), pts)
+    truth = wave(uv[:, 0], uv[:, 1]) - raw.centre[0, 2]
+    spline_err = np.sqrt(np.mean((h[ok] - truth[ok]) ** 2))
+    # bilinear between the same pixels
+    i0, j0 = np.floor(uv[:, 1]).astype(int), np.floor(uv[:, 0]).astype(int)
+    fv, fu = uv[:, 1] - i0, uv[:, 0] - j0
+    z = patch.heights * 1e9 - raw.centre[0, 2]
+    bil = (1 - fv) * ((1 - fu) * z[i0, j0] + fu * z[i0, j0 + 1]) + fv * (
+        (1 - fu) * z[i0 + 1, j0] + fu * z[i0 + 1, j0 + 1]
+    )
+    bil_err = np.sqrt(np.mean((bil - truth) ** 2))
+    assert ok.all()
+    assert spline_err < 0.4 * bil_err
 
 
 def test_lookup_is_not_valid_next_to_a_hole() -> None:
