@@ -92,8 +92,11 @@ class SurfaceBank:
             self.half[c] = (0.5 * w, 0.5 * hh)
             self.radius[c] = float(np.hypot(0.5 * w, 0.5 * hh))
             hl = h - self.centre[c, 2]
-            gx, gy = slopes(h, (self.dx[c], self.dy[c]))
-            surface.append(np.stack([hl, gx, gy]))
+            if self.nodes > 1:
+                surface.append(hl)  # slopes come with the spline (_spline_nodes)
+            else:
+                gx, gy = slopes(h, (self.dx[c], self.dy[c]))
+                surface.append(np.stack([hl, gx, gy]))
             self.offset[c] = total
             total += int(self.node_nx[c] * self.node_ny[c])
             ii, jj = np.meshgrid(np.arange(0, ny, stride), np.arange(0, nx, stride), indexing="ij")
@@ -111,7 +114,7 @@ class SurfaceBank:
             )
             self.point_start[c + 1] = self.point_start[c] + len(ii)
         if self.nodes > 1:
-            surface = _upsampled(surface)
+            surface = _spline_nodes(surface, self.dx, self.dy)
         # (nodes, 3): height, dh/dx, dh/dy of every node, so one gather fetches all three (in C
         # order: a row's three values side by side, one cache line)
         self.surface = np.ascontiguousarray(
@@ -205,14 +208,34 @@ class SurfaceBank:
         )
 
 
-def _upsampled(arrays: list[FloatArray]) -> list[FloatArray]:
-    """:func:`merge.heightfield.upsample2` of every array, those of one shape in one call."""
-    out: list[FloatArray] = list(arrays)
+#: Arrays upsampled in one call: enough to spread the call's overhead, few enough that its
+#: temporaries stay a few megabytes (large ones cost page faults on every allocation).
+UPSAMPLE_BATCH = 16
+
+
+def _spline_nodes(heights: list[FloatArray], dx: FloatArray, dy: FloatArray) -> list[FloatArray]:
+    """Height, dh/dx and dh/dy (3, 2 ny - 1, 2 nx - 1) at the half-pixel nodes of every patch.
+
+    The heights through :func:`merge.heightfield.upsample2` (patches of one shape a batch per
+    call), with a pixel beyond the border; the slopes are central differences of the spline a
+    pixel either side, ``(S(x + 1) - S(x - 1)) / 2``: by linearity the spline through the
+    pixels' central differences, as the bilinear look-ups had them (at the border the one-sided
+    difference, which the continuation beyond it makes of a central one).
+    """
+    out: list[FloatArray] = list(heights)
     shapes: dict[tuple[int, ...], list[int]] = {}
-    for c, a in enumerate(arrays):
-        shapes.setdefault(a.shape, []).append(c)
+    for c, h in enumerate(heights):
+        shapes.setdefault(h.shape, []).append(c)
     for members in shapes.values():
-        fine = upsample2(np.stack([arrays[c] for c in members]))
-        for c, f in zip(members, fine, strict=True):
-            out[c] = f
+        for first in range(0, len(members), UPSAMPLE_BATCH):
+            batch = members[first : first + UPSAMPLE_BATCH]
+            fine = upsample2(np.stack([heights[c] for c in batch]), margin=1)
+            for c, f in zip(batch, fine, strict=True):
+                out[c] = np.stack(
+                    [
+                        f[2:-2, 2:-2],
+                        (f[2:-2, 4:] - f[2:-2, :-4]) / (2.0 * dx[c]),
+                        (f[4:, 2:-2] - f[:-4, 2:-2]) / (2.0 * dy[c]),
+                    ]
+                )
     return out

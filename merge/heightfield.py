@@ -44,18 +44,21 @@ def smooth_nan(
 SPLINE_PAD = 4
 
 
-def upsample2(values: FloatArray) -> FloatArray:
+def upsample2(values: FloatArray, *, margin: int = 0) -> FloatArray:
     """Cubic B-spline interpolation of ``values`` (..., ny, nx) at every half pixel.
 
-    Returns (..., 2 ny - 1, 2 nx - 1): node ``(2 i, 2 j)`` is pixel ``(i, j)``, the others lie
-    halfway between. Beyond the border the values continue point-symmetrically (``2 h_0 - h_k``,
-    which keeps slopes). Where the spline's support (the pixels within one of a node, both sides
-    of a half node) holds a NaN, the result is NaN; holes are filled with their nearest value
-    before the prefilter, so their influence ends there.
+    Returns (..., 2 (ny + 2 margin) - 1, 2 (nx + 2 margin) - 1): node ``(2 i, 2 j)`` is pixel
+    ``(i - margin, j - margin)``, the others lie halfway between; ``margin`` pixels beyond every
+    border are included. Beyond the border the values continue point-symmetrically
+    (``2 h_0 - h_k``, which keeps slopes). Where the spline's support (the pixels within one of
+    a node, both sides of a half node) holds a NaN, the result is NaN; holes are filled with
+    their nearest value before the prefilter, so their influence ends there.
     """
     a = np.asarray(values, dtype=np.float64)
     if a.ndim < 2 or min(a.shape[-2:]) < 2:
         raise ValueError(f"need at least 2 x 2 values, got shape {a.shape}")
+    if not 0 <= margin < SPLINE_PAD:
+        raise ValueError(f"margin must be 0 to {SPLINE_PAD - 1} pixels, got {margin}")
     # the best plane goes through exactly (only what departs from it meets the border guess)
     ny, nx = a.shape[-2:]
     plane = _best_plane(a)
@@ -74,26 +77,42 @@ def upsample2(values: FloatArray) -> FloatArray:
     c = np.pad(a, pad, mode="reflect", reflect_type="odd")
     for axis in (-1, -2):
         c = ndimage.spline_filter1d(c, order=3, axis=axis, mode="mirror")
-    p = SPLINE_PAD
+    p = SPLINE_PAD - margin
     for axis in (-1, -2):
-        c = np.moveaxis(c, axis, 0)
-        n = c.shape[0] - 2 * p
-        fine = np.empty((2 * n - 1, *c.shape[1:]))
-        fine[0::2] = (c[p - 1 : p + n - 1] + 4.0 * c[p : p + n] + c[p + 1 : p + n + 1]) / 6.0
-        fine[1::2] = (
-            c[p - 1 : p + n - 2]
-            + 23.0 * (c[p : p + n - 1] + c[p + 1 : p + n])
-            + c[p + 2 : p + n + 1]
-        ) / 48.0
-        c = np.moveaxis(fine, 0, axis)
+        n = c.shape[axis] - 2 * p
+        # the spline at a node: (1, 4, 1) / 6 of the coefficients; halfway: (1, 23, 23, 1) / 48
+        at = ndimage.correlate1d(c, _AT_NODE, axis=axis, mode="nearest")
+        half = ndimage.correlate1d(c, _HALFWAY, axis=axis, mode="nearest")
+        shape = list(c.shape)
+        shape[axis] = 2 * n - 1
+        fine = np.empty(shape)
+        _along(fine, axis, slice(0, None, 2))[...] = _along(at, axis, slice(p, p + n))
+        _along(fine, axis, slice(1, None, 2))[...] = _along(half, axis, slice(p + 1, p + n))
+        c = fine
     if bad.any():
         near = ndimage.binary_dilation(bad, structure=_square(a.ndim))
+        if margin:
+            near = np.pad(near, [(0, 0)] * (a.ndim - 2) + [(margin, margin)] * 2)
         fine_bad = np.zeros(c.shape, dtype=bool)
         fine_bad[..., 0::2, 0::2] = near
         fine_bad[..., 1::2, :] |= _either(fine_bad[..., 0::2, :], axis=-2)
         fine_bad[..., :, 1::2] |= _either(fine_bad[..., :, 0::2], axis=-1)
         c[fine_bad] = np.nan
-    out: FloatArray = c + plane(np.arange(2 * ny - 1) / 2.0, np.arange(2 * nx - 1) / 2.0)
+    rows = np.arange(2 * (ny + 2 * margin) - 1) / 2.0 - margin
+    cols = np.arange(2 * (nx + 2 * margin) - 1) / 2.0 - margin
+    out: FloatArray = c + plane(rows, cols)
+    return out
+
+
+_AT_NODE = np.array([1.0, 4.0, 1.0]) / 6.0
+_HALFWAY = np.array([1.0, 23.0, 23.0, 1.0]) / 48.0  # centred on its third tap: c[i-1] + 23 c[i] ...
+
+
+def _along(a: FloatArray, axis: int, index: slice) -> FloatArray:
+    """The view ``a[..., index, ...]`` with ``index`` on ``axis``."""
+    key: list[slice] = [slice(None)] * a.ndim
+    key[axis] = index
+    out: FloatArray = a[tuple(key)]
     return out
 
 
@@ -102,6 +121,17 @@ def _best_plane(a: FloatArray) -> Callable[[FloatArray, FloatArray], FloatArray]
     values, as a function of rows ``i`` and columns ``j`` (broadcast over the slices)."""
     ny, nx = a.shape[-2:]
     ok = np.isfinite(a)
+    if ok.all():
+        # a full grid: rows and columns are orthogonal, each slope from its axis's means
+        di, dj = np.arange(ny) - 0.5 * (ny - 1), np.arange(nx) - 0.5 * (nx - 1)
+        ci, cj = np.full(a.shape[:-2], 0.5 * (ny - 1)), np.full(a.shape[:-2], 0.5 * (nx - 1))
+        return _plane_function(
+            a.mean(axis=(-2, -1)),
+            a.mean(axis=-1) @ di / (di @ di),
+            a.mean(axis=-2) @ dj / (dj @ dj),
+            ci,
+            cj,
+        )
     z = np.where(ok, a, 0.0)
     ii, jj = np.meshgrid(
         np.arange(ny, dtype=np.float64), np.arange(nx, dtype=np.float64), indexing="ij"
@@ -122,6 +152,13 @@ def _best_plane(a: FloatArray) -> Callable[[FloatArray, FloatArray], FloatArray]
     det = np.where(good, det, 1.0)
     bi = np.where(good, (siz * sjj - sjz * sij) / det, 0.0)
     bj = np.where(good, (sjz * sii - siz * sij) / det, 0.0)
+    return _plane_function(mz, bi, bj, mi, mj)
+
+
+def _plane_function(
+    mz: FloatArray, bi: FloatArray, bj: FloatArray, mi: FloatArray, mj: FloatArray
+) -> Callable[[FloatArray, FloatArray], FloatArray]:
+    """``(i, j) -> mz + bi (i - mi) + bj (j - mj)`` per slice (all arrays of the slices' shape)."""
 
     def plane(i: FloatArray, j: FloatArray) -> FloatArray:
         e = (...,) + (None, None)

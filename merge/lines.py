@@ -36,6 +36,8 @@ IntArray = NDArray[np.intp]
 MIN_GROUP = 5
 #: Median of the chi-squared distribution with one degree of freedom.
 MEDIAN_CHI2_1 = 0.454936
+#: Groups the median of the offset variance is taken over, at most.
+MEDIAN_GROUPS = 8192
 #: Bisections of the offset variance (on its logarithm, over 30 orders of magnitude).
 BISECTIONS = 26
 
@@ -78,6 +80,9 @@ def offset_ratio(r: FloatArray, w: FloatArray, valid: FloatArray, first: IntArra
     # the groups' means: m² / (τ² + σ² / Σw) is χ²(1), whose median is MEDIAN_CHI2_1; a median
     # is not moved by the few groups a misfit or a defect puts far out
     m2, v = (sr / sw) ** 2, within / sw
+    if len(m2) > MEDIAN_GROUPS:  # evenly spread over the mosaic: a median needs no more
+        pick = np.linspace(0, len(m2) - 1, MEDIAN_GROUPS).astype(np.intp)
+        m2, v = m2[pick], v[pick]
     if np.median(m2 / v) <= MEDIAN_CHI2_1:
         return float("inf")
     # bisection on log τ² (the median falls as τ² grows), to a few parts per million

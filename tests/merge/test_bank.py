@@ -41,6 +41,25 @@ def test_lookup_is_exact_on_a_plane_and_refuses_points_outside(smooth: float) ->
     np.testing.assert_allclose(gy[:200], -0.2, atol=1e-9)
 
 
+def test_raw_slopes_at_the_pixels_are_their_central_differences() -> None:
+    # the spline's slopes reduce to what the bilinear look-ups had at the pixels (one-sided at
+    # the border), so only what lies between pixels changes
+    rng = np.random.default_rng(3)
+    heights = rng.normal(0.0, 1e-9, (12, 16)).cumsum(axis=1)
+    patch = Patch("a", heights, (0.0, 0.0), (1e-9, 1e-9))
+    bank = SurfaceBank([patch], 1e-9, 0.0, 1)
+    yy, xx = np.mgrid[0:12, 0:16]
+    pts = np.column_stack(
+        [xx.ravel() - bank.half[0, 0], yy.ravel() - bank.half[0, 1], 0 * xx.ravel()]
+    )
+    h, gx, gy, ok = bank.lookup(np.zeros(len(pts), dtype=np.intp), pts.astype(np.float64))
+    ey, ex = np.gradient(heights * 1e9)
+    assert ok.all()
+    np.testing.assert_allclose(h, (heights * 1e9 - bank.centre[0, 2]).ravel(), atol=1e-9)
+    np.testing.assert_allclose(gx, ex.ravel(), atol=1e-9)
+    np.testing.assert_allclose(gy, ey.ravel(), atol=1e-9)
+
+
 def test_raw_lookups_follow_roughness_between_pixels_better_than_bilinear() -> None:
     # a surface with texture at the scale of two pixels, sampled on whole pixels and looked up
     # halfway between them: bilinear shaves the roughness, the spline follows it

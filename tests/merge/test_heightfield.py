@@ -71,6 +71,17 @@ def test_upsampling_keeps_the_pixels_and_a_plane_everywhere() -> None:
     np.testing.assert_allclose(fine, 2.5 * xx - 1.5 * yy + 7.0, atol=1e-9)
 
 
+def test_upsampling_with_a_margin_continues_beyond_the_border() -> None:
+    h = _plane((9, 12))
+    fine = upsample2(h, margin=1)
+    assert fine.shape == (21, 27)
+    np.testing.assert_allclose(fine[2:-2, 2:-2], upsample2(h), atol=1e-12)
+    yy, xx = np.mgrid[0:21, 0:27] / 2.0 - 1.0  # pixels -1 to n: a plane goes on
+    np.testing.assert_allclose(fine, 2.5 * xx - 1.5 * yy + 7.0, atol=1e-9)
+    with pytest.raises(ValueError, match="margin"):
+        upsample2(h, margin=4)
+
+
 def test_upsampling_follows_a_cubic_between_pixels() -> None:
     # a cubic B-spline interpolant reproduces cubics away from the border; bilinear misses the
     # curvature by f (1 - f) h'' / 2 at the half pixel
