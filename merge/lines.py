@@ -123,16 +123,3 @@ def marginalise_offsets(
     fj = sj * f[:, None]
     B -= np.add.reduceat(np.einsum("gi,gj->gij", fj, sj), run_first, axis=0)
     g -= np.add.reduceat(fj * sr[:, None], run_first, axis=0)
-
-
-def whitened_scores(r: FloatArray, w: FloatArray, first: IntArray, rho: float) -> FloatArray:
-    """Per row, its share of the Z score ``w r`` once its group's offset is marginalised:
-    ``w r - w (Σ w r) / (Σ w + ρ)`` (the group's sum shrinks by ``ρ / (Σ w + ρ)``). What is
-    left correlated along lines is what the model of :func:`offset_ratio` did not catch."""
-    score = w * r
-    if not np.isfinite(rho) or len(first) == 0:
-        return score
-    shrink = np.add.reduceat(score, first) / (np.add.reduceat(w, first) + rho)
-    sizes = np.diff(np.append(first, len(r)))
-    out: FloatArray = score - w * np.repeat(shrink, sizes)
-    return out

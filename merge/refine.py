@@ -73,7 +73,9 @@ class Level:
 
 STALL = 1e-4
 #: Iterations in a row the cost must stall for: along a grating's stripes the patches creep
-#: (their few defects hold them loosely), and the cost may pause once on the way.
+#: (their few defects hold them loosely), and the cost may pause once on the way (grid draws
+#: 0, 3, 5, 25, 30: map/floor 1.10, 1.50, 1.13, 1.18, 1.38 with one -> 1.04, 1.09, 1.14, 1.09,
+#: 1.10 with two; TGX1 as before, one iteration more).
 STALLS = 2
 #: Expected in-patch Z drift (metres, centre to corner) of the drift-plane prior.
 DRIFT_PRIOR = 5e-9
