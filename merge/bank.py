@@ -88,7 +88,10 @@ class SurfaceBank:
             ny, nx = h.shape
             w, hh = (nx - 1) * self.dx[c], (ny - 1) * self.dy[c]
             cx, cy = self.x0[c] + 0.5 * w, self.y0[c] + 0.5 * hh
-            self.centre[c] = (cx, cy, float(np.nanmedian(h)))
+            # the frame's height is the raw heights' median whatever the smoothing, so one
+            # placement means the same on every level (a smoothed median moved up to 0.8 px on
+            # TGX1's two-level faces: every level began with patches jumped in Z)
+            self.centre[c] = (cx, cy, float(np.nanmedian(p.heights)) / scale)
             self.half[c] = (0.5 * w, 0.5 * hh)
             self.radius[c] = float(np.hypot(0.5 * w, 0.5 * hh))
             hl = h - self.centre[c, 2]

@@ -60,6 +60,16 @@ def test_raw_slopes_at_the_pixels_are_their_central_differences() -> None:
     np.testing.assert_allclose(gy, ey.ravel(), atol=1e-9)
 
 
+def test_every_level_places_a_patch_in_the_same_frame() -> None:
+    # a two-level face (a grating's top and bottom): smoothing moves its median, which must not
+    # move the frame a placement refers to, or every level begins with patches jumped in Z
+    yy, xx = np.mgrid[0:20, 0:30].astype(np.float64)
+    heights = np.where(xx + 0.3 * yy < 15.0, 0.0, 100e-9) + 1e-9 * np.sin(xx * yy)
+    patch = Patch("a", heights, (0.0, 0.0), (10e-9, 10e-9))
+    raw, smooth = SurfaceBank([patch], 10e-9, 0.0, 1), SurfaceBank([patch], 10e-9, 2.0, 2)
+    np.testing.assert_array_equal(smooth.centre, raw.centre)
+
+
 def test_raw_lookups_follow_roughness_between_pixels_better_than_bilinear() -> None:
     # a surface with texture at the scale of two pixels, sampled on whole pixels and looked up
     # halfway between them: bilinear shaves the roughness, the spline follows it
