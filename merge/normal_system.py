@@ -163,10 +163,10 @@ def build_normal_system(
         return empty
     rscale = max(1.4826 * float(np.median(used)), noise)
     w = valid / (1.0 + (d / (3.0 * rscale)) ** 2)
-    # the residuals of one source line share its offset (merge.lines)
+    # the residuals of one source line share its offset (merge.lines); no groups, no offsets
     line = bank.line[idx]
-    groups = line_groups(starts, line)
-    rho = offset_ratio(r, w, valid, groups) if lines else np.inf
+    groups = line_groups(starts, line) if lines else np.empty(0, dtype=np.intp)
+    rho = offset_ratio(r, w, valid, groups)
     # pass 2: per run, the source's information block and gradient
     k = len(starts) - 1
     Baa, ga = np.empty((k, 6, 6)), np.empty((k, 6))
