@@ -9,6 +9,7 @@ all patches end to end) feed the residuals of :mod:`merge.normal_system`.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import Literal
 
 import numpy as np
 from numpy.typing import NDArray
@@ -20,13 +21,21 @@ FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
 
 
-#: Smoothing (pixels) from which a patch is continued point-symmetrically beyond its border
-#: (see :func:`merge.heightfield.smooth_nan`). Patches overlap along their borders, and the
-#: widest level is what brings in patches the start left unmeasured along a grating's stripes:
-#: there the bias of repeating the border value dominates (grid-real draws 21-30, median XY
-#: 2.7 -> 2.0 nm; draw 21 13.3 -> 1.2, 25 21.5 -> 1.9). At one pixel the doubled border noise
-#: dominates (TGX1 with 2 nm noise: XY 1.8-2.0 -> 2.1-2.3 nm), so narrower levels repeat it.
-MIRROR_FROM = 1.5
+#: How the smoothed levels continue a patch beyond its border (see
+#: :func:`merge.heightfield.smooth_nan`): point-symmetrically, which keeps slopes. Patches
+#: overlap along their borders, so a bias there is a bias of every pair: repeating the border
+#: value bends a slope that crosses it by a good fraction of slope x sigma, and a level so
+#: smoothed ended up to half a pixel off what the raw level finds (TGX1: a stretch of 2e-3 for
+#: the raw level to undo). Where the widest level brings in patches the start left unmeasured
+#: along a grating's stripes that bias dominates (grid-real draws 21-30, median XY 2.7 -> 2.0
+#: nm at two pixels; at one pixel too, draws 0-5 and 21-30, median 3.56 -> 2.25 nm, draw 25
+#: 5.8 -> 2.2); TGX1, MoS2 and the folded surfaces as before. The continuation doubles the
+#: border pixel's noise: TGX1 with 2 nm noise, draws 0-3, XY 1.87, 1.32, 1.40, 1.92 -> 1.81,
+#: 1.36, 1.47, 2.21 nm, where the raw level stops (its cost stalls) short of its minimum (1.82,
+#: 1.36, 1.46, 1.94 nm, which both reach when iterated on). A local plane fitted at the border
+#: instead did worse on the grating (2.44 nm, draw 25 7.0): its one-sided window feels the
+#: stripes' curvature.
+SMOOTH_BORDER: Literal["repeat", "mirror"] = "mirror"
 
 
 class SurfaceBank:
@@ -84,7 +93,7 @@ class SurfaceBank:
         for c, p in enumerate(patches):
             h = p.heights / scale
             if smooth > 0:
-                h = smooth_nan(h, smooth, border="mirror" if smooth >= MIRROR_FROM else "repeat")
+                h = smooth_nan(h, smooth, border=SMOOTH_BORDER)
             ny, nx = h.shape
             w, hh = (nx - 1) * self.dx[c], (ny - 1) * self.dy[c]
             cx, cy = self.x0[c] + 0.5 * w, self.y0[c] + 0.5 * hh

@@ -16,9 +16,10 @@ def _plane_patch(pid: str, origin: tuple[float, float]) -> Patch:
     return Patch(id=pid, heights=heights, origin=origin, pixel_size=(10e-9, 10e-9))
 
 
-@pytest.mark.parametrize("smooth", [0.0, 2.0])
+@pytest.mark.parametrize("smooth", [0.0, 1.0, 2.0])
 def test_lookup_is_exact_on_a_plane_and_refuses_points_outside(smooth: float) -> None:
-    # raw heights (spline nodes at half pixels) and smoothed ones (bilinear between pixels)
+    # raw heights (spline nodes at half pixels) and smoothed ones (bilinear between pixels),
+    # every level up to the border: there the patches overlap
     bank = SurfaceBank([_plane_patch("a", (0.0, 0.0))], 10e-9, smooth, 1)
     rng = np.random.default_rng(0)
     half = bank.half[0]
