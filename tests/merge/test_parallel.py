@@ -33,7 +33,8 @@ def test_threads_are_kept_between_calls_and_renewed_in_a_forked_child() -> None:
     before = {t.ident for t in threading.enumerate() if t.name.startswith("merge")}
     each(lambda _: None, [0, 1])
     after = {t.ident for t in threading.enumerate() if t.name.startswith("merge")}
-    assert before and before == after
+    # the same threads (the pool starts them as work comes, up to WORKERS)
+    assert before and before <= after and len(after) <= WORKERS
     pid = os.fork()
     if pid == 0:  # the child: the parent's pool would wait forever on threads it does not have
         import signal
