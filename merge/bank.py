@@ -21,21 +21,7 @@ FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
 
 
-#: How the smoothed levels continue a patch beyond its border (see
-#: :func:`merge.heightfield.smooth_nan`): point-symmetrically, which keeps slopes. Patches
-#: overlap along their borders, so a bias there is a bias of every pair: repeating the border
-#: value bends a slope that crosses it by a good fraction of slope x sigma, and a level so
-#: smoothed ended up to half a pixel off what the raw level finds (TGX1: a stretch of 2e-3 for
-#: the raw level to undo). Where the widest level brings in patches the start left unmeasured
-#: along a grating's stripes that bias dominates (grid-real draws 21-30, median XY 2.7 -> 2.0
-#: nm at two pixels; at one pixel too, draws 0-5 and 21-30, median 3.56 -> 2.25 nm, draw 25
-#: 5.8 -> 2.2); TGX1, MoS2 and the folded surfaces as before. The continuation doubles the
-#: border pixel's noise: TGX1 with 2 nm noise, draws 0-3, XY 1.87, 1.32, 1.40, 1.92 -> 1.81,
-#: 1.36, 1.47, 2.21 nm, where the raw level stops (its cost stalls) short of its minimum (1.82,
-#: 1.36, 1.46, 1.94 nm, which both reach when iterated on). A local plane fitted at the border
-#: instead did worse on the grating (2.44 nm, draw 25 7.0): its one-sided window feels the
-#: stripes' curvature.
-SMOOTH_BORDER: Literal["repeat", "mirror"] = "mirror"
+Border = Literal["repeat", "mirror"]
 
 
 class SurfaceBank:
@@ -50,6 +36,10 @@ class SurfaceBank:
         Gaussian smoothing of the heights, pixels (0: raw).
     stride : int
         Every ``stride``-th pixel of a patch along both axes is one of its points.
+    border : {"mirror", "repeat"}, keyword-only
+        How smoothing continues the heights beyond a patch's border
+        (:func:`merge.heightfield.smooth_nan`): point-symmetrically (keeps slopes, doubles the
+        border pixel's noise) or by repeating the border value (bends slopes that cross it).
 
     Look-ups are bilinear between nodes. Smoothed heights are smooth at the pixel scale, so the
     nodes are the pixels. Raw heights are not: between two pixels a bilinear look-up shaves off
@@ -69,7 +59,15 @@ class SurfaceBank:
     #: Nodes per pixel of the look-ups on raw heights.
     RAW_NODES = 2
 
-    def __init__(self, patches: Sequence[Patch], scale: float, smooth: float, stride: int) -> None:
+    def __init__(
+        self,
+        patches: Sequence[Patch],
+        scale: float,
+        smooth: float,
+        stride: int,
+        *,
+        border: Border = "mirror",
+    ) -> None:
         n = len(patches)
         self.dx = np.array([p.pixel_size[0] / scale for p in patches])
         self.dy = np.array([p.pixel_size[1] / scale for p in patches])
@@ -93,7 +91,7 @@ class SurfaceBank:
         for c, p in enumerate(patches):
             h = p.heights / scale
             if smooth > 0:
-                h = smooth_nan(h, smooth, border=SMOOTH_BORDER)
+                h = smooth_nan(h, smooth, border=border)
             ny, nx = h.shape
             w, hh = (nx - 1) * self.dx[c], (ny - 1) * self.dy[c]
             cx, cy = self.x0[c] + 0.5 * w, self.y0[c] + 0.5 * hh

@@ -42,7 +42,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from merge.bank import SurfaceBank
+from merge.bank import Border, SurfaceBank
 from merge.errors import MergeCancelled
 from merge.noise import estimate_noise
 from merge.normal_system import (
@@ -90,6 +90,19 @@ SPIN_PRIOR = np.radians(2.0)
 #: An XY direction with less than this fraction of a patch's larger own XY information is one
 #: its overlaps do not see.
 LOCAL_FLOOR = 1e-6
+#: Smoothing (pixels) from which the first level continues patches point-symmetrically beyond
+#: their borders; the later levels always do (see :class:`merge.bank.SurfaceBank`). Patches
+#: overlap along their borders, so a bias there is a bias of every pair: repeating the border
+#: value bends a slope that crosses it by a good fraction of slope x sigma. Where the widest
+#: level brings in patches the start left unmeasured along a grating's stripes that bias
+#: dominates (grid-real draws 21-30, median XY 2.7 -> 2.0 nm); the one-pixel level after it,
+#: too (draws 0-5 and 21-30, median 3.56 -> 2.25 nm, draw 25 5.8 -> 2.2; TGX1, MoS2, folded as
+#: before). But the first level's drift planes are free (their spread sets the prior of the
+#: next, :func:`_plane_sigma`), and at one pixel the continuation's doubled border noise tilts
+#: them: 20 x 20 folded patches, x planes spread 0.03 -> 0.10 px, Z 0.77 -> 2.32 nm, as the raw
+#: level stops before it has flattened them. A plane fitted locally at the border instead did
+#: worse on the grating (2.44 nm, draw 25 7.0): its one-sided window feels the stripes' curvature.
+MIRROR_FROM = 1.5
 DEFAULT_LEVELS = (
     Level(smooth=2.0, stride=2, max_iter=6, tol=0.05),
     Level(1.0, 2, 10, 0.05),
@@ -175,7 +188,10 @@ def refine(
     plane_sigma = np.full(2, drift_prior / scale)  # the first level: as loose along both axes
     for li, level in enumerate(levels):
         raw = level.smooth == 0 and level.stride == 1
-        bank = base if raw else SurfaceBank(patches, scale, level.smooth, level.stride)
+        border: Border = "mirror" if li > 0 or level.smooth >= MIRROR_FROM else "repeat"
+        bank = (
+            base if raw else SurfaceBank(patches, scale, level.smooth, level.stride, border=border)
+        )
         if li == 1:
             plane_sigma = _plane_sigma(state.slope * bank.radius[:, None], drift_prior / scale)
         margin = 1.5 * float(max(bank.dx.max(), bank.dy.max()))
