@@ -9,19 +9,15 @@ all patches end to end) feed the residuals of :mod:`merge.normal_system`.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Literal
 
 import numpy as np
 from numpy.typing import NDArray
 
-from merge.heightfield import slope_noise, slopes, smooth_nan, upsample2
+from merge.heightfield import Border, slope_noise, slopes, smooth_nan, upsample2
 from merge.patchset import Patch
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
-
-
-Border = Literal["repeat", "mirror"]
 
 
 class SurfaceBank:

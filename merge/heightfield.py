@@ -13,9 +13,11 @@ from scipy import ndimage
 FloatArray = NDArray[np.float64]
 
 
-def smooth_nan(
-    heights: FloatArray, sigma: float, *, border: Literal["repeat", "mirror"] = "repeat"
-) -> FloatArray:
+#: How smoothing continues heights beyond a patch's border (see :func:`smooth_nan`).
+Border = Literal["repeat", "mirror"]
+
+
+def smooth_nan(heights: FloatArray, sigma: float, *, border: Border = "repeat") -> FloatArray:
     """Gaussian smoothing (``sigma`` in pixels) that ignores NaN and keeps them NaN.
 
     ``border`` says how the heights continue beyond the patch. ``"repeat"`` repeats the border

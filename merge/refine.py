@@ -42,8 +42,9 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from merge.bank import Border, SurfaceBank
+from merge.bank import SurfaceBank
 from merge.errors import MergeCancelled
+from merge.heightfield import Border
 from merge.noise import estimate_noise
 from merge.normal_system import (
     NormalSystem,
