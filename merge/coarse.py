@@ -43,8 +43,11 @@ from merge.tilts import levelled_one_by_one, patch_tilts, untilted
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
 
-#: NCC below this says nothing reliable about XY.
+#: NCC from which a peak counts whatever the rest of its map looks like.
 MIN_SCORE = 0.3
+#: Below MIN_SCORE, a peak counts if it stands this many robust spreads above the best that
+#: chance gives in its search window (:attr:`merge.ncc.CorrelationPeak.excess`).
+SIGNIFICANCE = 3.0
 #: NCC given up at the search radius to break ties toward the expected shift (see find_peak).
 SHIFT_PRIOR = 0.05
 #: Correlation peaks within this NCC of the best are equally likely (a grating's period apart):
@@ -79,8 +82,10 @@ MIN_OVERLAP_CELLS = 3
 MIN_OVERLAP_FRACTION = 0.1
 #: A patch whose heights, less their own plane, vary less than this many noise sigmas carries
 #: no XY texture. Just above 1 (pure noise): a fine roughness at about a pixel's scale raises
-#: the noise estimate too, so texture that correlates well can score as low as 1.4.
-MIN_TEXTURE = 1.2
+#: the noise estimate as much as the texture, so 1.5 nm of it under 2 nm of noise scores only
+#: 1.10-1.26 (a gate at 1.2 left the grating's flat face 40-85 nm off at 2 nm noise). What
+#: passes here and has nothing to correlate is caught by its peak's significance.
+MIN_TEXTURE = 1.05
 
 
 @dataclass(frozen=True)
@@ -255,7 +260,9 @@ def coarse_start(
     def accept(i: int, peak: CorrelationPeak | None) -> None:
         a, b = pairs[i]
         xy_w[i] = 0.0
-        if peak is None or peak.at_border or peak.score < MIN_SCORE:
+        if peak is None or peak.at_border:
+            return
+        if peak.score < MIN_SCORE and peak.excess < SIGNIFICANCE:
             return
         score[i] = peak.score
         e = expected(i)

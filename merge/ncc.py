@@ -28,6 +28,8 @@ class CorrelationPeak:
     score : NCC at the peak, in [-1, 1].
     overlap : number of pixels both images hold at the peak.
     at_border : the peak lies on the border of the search window (a weak result).
+    excess : how far the peak stands above the highest score chance gives in the window, in
+        robust spreads of the window's scores (see :func:`find_peak`).
     """
 
     shift: tuple[float, float]
@@ -35,6 +37,7 @@ class CorrelationPeak:
     score: float
     overlap: int
     at_border: bool
+    excess: float
 
 
 def masked_ncc(
@@ -265,7 +268,24 @@ def find_peak(
         score=float(ncc[iy, ix]),
         overlap=int(count[iy, ix]),
         at_border=border,
+        excess=_excess(float(ncc[iy, ix]), ncc[ok]),
     )
+
+
+def _excess(score: float, window: FloatArray) -> float:
+    """How many robust spreads of the ``window``'s scores ``score`` stands above the highest of
+    as many independent chance scores (``sqrt(2 ln m)`` spreads above their median).
+
+    Where the surfaces share no texture, every score is chance: about normal, with a spread of
+    one over the square root of the overlap's independent pixels, so the best of ``m`` shifts
+    lies near ``sqrt(2 ln m)`` spreads. A true peak on texture as fine as the noise scores low
+    (a nanometre of roughness under two of noise: ~0.3) but far above that. Median and spread
+    are robust, so the true peak and its lobe barely move them.
+    """
+    med = float(np.median(window))
+    spread = 1.4826 * float(np.median(np.abs(window - med)))
+    chance = np.sqrt(2.0 * np.log(max(window.size, 2)))
+    return float((score - med) / max(spread, 1e-12) - chance)
 
 
 def _alike(score: FloatArray, best: tuple[int, int], other: tuple[int, int], margin: float) -> bool:

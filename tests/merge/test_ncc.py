@@ -77,6 +77,22 @@ def test_a_unique_peak_wins_however_far_from_the_expected_shift() -> None:
     assert peak.integer_shift == (6, -9)
 
 
+@pytest.mark.parametrize("seed", [0, 1, 2, 3])
+def test_a_weak_true_peak_stands_out_of_chance_and_a_chance_peak_does_not(seed: int) -> None:
+    # texture as fine as a pixel under twice its noise: the true peak scores only ~0.2, but
+    # chance scores over ~3000 pixels spread by ~0.02
+    rng = np.random.default_rng(seed)
+    common = rng.normal(size=(70, 70))
+    a = common[5:65, 5:65] + 2.0 * rng.normal(size=(60, 60))
+    b = common[8:68, 3:63] + 2.0 * rng.normal(size=(60, 60))
+    peak = best_shift(a, b, radius=(8, 8), min_overlap=400)
+    assert peak is not None and peak.integer_shift == (-3, 2)
+    assert peak.score < 0.3 and peak.excess > 3.0
+    other = rng.normal(size=(60, 60))
+    chance = best_shift(a, other, radius=(8, 8), min_overlap=400)
+    assert chance is not None and chance.excess < 3.0
+
+
 def _ridge(bumps: dict[int, float], seed: int) -> tuple[np.ndarray, np.ndarray]:
     """An NCC map with a ridge along x through dy = 0 (a straight edge) at 0.7, noise of 0.02
     along it, and bumps ``{dx: height}`` above the ridge."""
