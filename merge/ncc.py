@@ -8,7 +8,7 @@ the score.
 from __future__ import annotations
 
 from collections.abc import Iterator, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
@@ -17,6 +17,7 @@ from scipy import fft, ndimage
 from merge.parallel import WORKERS
 
 FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.intp]
 
 
 @dataclass(frozen=True)
@@ -29,7 +30,7 @@ class CorrelationPeak:
     overlap : number of pixels both images hold at the peak.
     at_border : the peak lies on the border of the search window (a weak result).
     excess : how far the peak stands above the highest score chance gives in the window, in
-        robust spreads of the window's scores (see :func:`find_peak`).
+        robust spreads of the window's scores (see :func:`_excess`; computed when asked for).
     """
 
     shift: tuple[float, float]
@@ -37,7 +38,11 @@ class CorrelationPeak:
     score: float
     overlap: int
     at_border: bool
-    excess: float
+    window: FloatArray = field(repr=False, compare=False)  # the searched scores
+
+    @property
+    def excess(self) -> float:
+        return _excess(self.score, self.window)
 
 
 def masked_ncc(
@@ -70,60 +75,112 @@ def masked_ncc(
     b = b.reshape((1,) * (4 - b.ndim) + b.shape) if b.ndim < 4 else b
     if a.ndim != 4 or b.ndim != 4 or a.shape[:2] != b.shape[:2]:
         raise ValueError("masked_ncc needs two images (or stacks with the same channel count)")
-    nch = a.shape[1]
-    w = np.ones(nch) if weights is None else np.asarray(weights, dtype=np.float64)
-    if w.shape != (nch,) or (w < 0).any() or w.sum() <= 0:
-        raise ValueError("weights must be one non-negative number per channel")
-    w = w / w.sum()
-    ma: NDArray[np.bool_] = np.all(np.isfinite(a), axis=1)
-    mb: NDArray[np.bool_] = np.all(np.isfinite(b), axis=1)
-    ha, wa = a.shape[-2:]
-    hb, wb = b.shape[-2:]
-    shape = (fft.next_fast_len(ha + hb - 1, real=True), fft.next_fast_len(wa + wb - 1, real=True))
-    rows = np.r_[shape[0] - (ha - 1) : shape[0], 0:hb]
-    cols = np.r_[shape[1] - (wa - 1) : shape[1], 0:wb]
-
-    # Single precision halves the memory traffic of this, the start's costliest step: inputs
-    # are standardised, so sums stay far from float32's limits, and the scores need ~1e-4 at
-    # most (the refinement, in double precision, measures the sub-pixel shift).
-    def F(x: NDArray[np.float64] | NDArray[np.bool_]) -> NDArray[np.complex64]:
-        x32 = x.astype(np.float32)
-        out: NDArray[np.complex64] = fft.rfft2(x32, shape, axes=(-2, -1), workers=WORKERS)
-        return out
-
-    def corr(x: NDArray[np.complex64], y: NDArray[np.complex64]) -> NDArray[np.float32]:
-        # reorder so index (ha - 1, wa - 1) is the zero shift, shifts from -(ha-1) to hb-1
-        full = fft.irfft2(np.conj(x) * y, shape, axes=(-2, -1), workers=WORKERS)
-        out: NDArray[np.float32] = full[..., rows[:, None], cols[None, :]]
-        return out
-
-    fma, fmb = F(ma), F(mb)
-    n = np.rint(corr(fma, fmb))
-    total = np.zeros(n.shape)
-    for ch in range(nch):
-        if w[ch] == 0:
-            continue
-        ca, cb = a[:, ch], b[:, ch]
-        # standardise so that sums of squares do not cancel catastrophically
-        a0 = np.where(ma, ca - _masked_mean(ca, ma), 0.0)
-        b0 = np.where(mb, cb - _masked_mean(cb, mb), 0.0)
-        scale = np.maximum(_rms(a0), _rms(b0))
-        a0, b0 = a0 / scale, b0 / scale
-        fa, fb = F(a0), F(b0)
-        sa, sb = corr(fa, fmb), corr(fma, fb)
-        saa, sbb, sab = corr(F(a0 * a0), fmb), corr(fma, F(b0 * b0)), corr(fa, fb)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            num = sab - sa * sb / n
-            va = saa - sa**2 / n
-            vb = sbb - sb**2 / n
-            den = np.sqrt(np.clip(va, 0, None) * np.clip(vb, 0, None))
-            # an overlap whose variance is within float32's rounding of zero is flat: no score
-            total += w[ch] * np.where((n > 0) & (den > 1e-5 * n), num / den, np.nan)
-    ncc = np.clip(total, -1.0, 1.0)
-    count = n.astype(np.float64)
+    w = _channel_weights(weights, a.shape[1])
+    lattice = _Lattice.of(a.shape[-2:], b.shape[-2:])
+    ncc, count = lattice.ncc(lattice.spectra(a, first=True), lattice.spectra(b, first=False), w)
     if single:
-        return ncc[0], count[0], (ha - 1, wa - 1)
-    return ncc, count, (ha - 1, wa - 1)
+        return ncc[0], count[0], lattice.zero
+    return ncc, count, lattice.zero
+
+
+def _channel_weights(weights: Sequence[float] | None, channels: int) -> FloatArray:
+    w = np.ones(channels) if weights is None else np.asarray(weights, dtype=np.float64)
+    if w.shape != (channels,) or (w < 0).any() or w.sum() <= 0:
+        raise ValueError("weights must be one non-negative number per channel")
+    out: FloatArray = w / w.sum()
+    return out
+
+
+@dataclass(frozen=True)
+class _Spectra:
+    """Fourier transforms of a batch of channel stacks on one padded lattice: their masks
+    (batch, H, W'), and per channel the standardised values and their squares (batch, C, H, W').
+    An image's spectra serve every pair it is in."""
+
+    mask: NDArray[np.complex64]
+    values: NDArray[np.complex64]
+    squares: NDArray[np.complex64]
+
+    def take(self, index: IntArray) -> _Spectra:
+        return _Spectra(self.mask[index], self.values[index], self.squares[index])
+
+
+@dataclass(frozen=True)
+class _Lattice:
+    """The padded FFT lattice of image pairs of shapes ``a`` and ``b`` (Padfield's method)."""
+
+    a: tuple[int, int]
+    b: tuple[int, int]
+    shape: tuple[int, int]
+
+    @classmethod
+    def of(cls, a: tuple[int, ...], b: tuple[int, ...]) -> _Lattice:
+        ha, wa = int(a[-2]), int(a[-1])
+        hb, wb = int(b[-2]), int(b[-1])
+        shape = (
+            fft.next_fast_len(ha + hb - 1, real=True),
+            fft.next_fast_len(wa + wb - 1, real=True),
+        )
+        return cls((ha, wa), (hb, wb), shape)
+
+    @property
+    def zero(self) -> tuple[int, int]:
+        return self.a[0] - 1, self.a[1] - 1
+
+    def _fft(self, x: NDArray[np.float64] | NDArray[np.bool_]) -> NDArray[np.complex64]:
+        # Single precision halves the memory traffic of this, the start's costliest step:
+        # inputs are standardised, so sums stay far from float32's limits, and the scores need
+        # ~1e-4 at most (the refinement, in double precision, measures the sub-pixel shift).
+        out: NDArray[np.complex64] = fft.rfft2(
+            x.astype(np.float32), self.shape, axes=(-2, -1), workers=WORKERS
+        )
+        return out
+
+    def spectra(self, x: FloatArray, *, first: bool) -> _Spectra:
+        """Spectra of channel stacks ``x`` (batch, C, h, w), NaN for missing pixels, as the
+        ``first`` (``a``) or second image of their pairs.
+
+        Each channel is standardised on its own (its mean off, divided by its RMS) so that sums
+        of squares do not cancel catastrophically; the NCC ignores both. First images are
+        transformed upside down and back to front: their products with the second images'
+        spectra are then convolutions that hold every shift in order, the most negative first
+        (a correlation would wrap the negative shifts round to the end).
+        """
+        if first:
+            x = x[..., ::-1, ::-1]
+        mask: NDArray[np.bool_] = np.all(np.isfinite(x), axis=1)
+        x0 = np.where(mask[:, None], x - _masked_mean(x, mask[:, None]), 0.0)
+        x0 = x0 / _rms(x0)
+        return _Spectra(self._fft(mask), self._fft(x0), self._fft(x0 * x0))
+
+    def _corr(self, x: NDArray[np.complex64], y: NDArray[np.complex64]) -> NDArray[np.float32]:
+        # index (ha - 1, wa - 1) is the zero shift, shifts run from -(ha-1) to hb-1
+        (ha, wa), (hb, wb) = self.a, self.b
+        full = fft.irfft2(x * y, self.shape, axes=(-2, -1), workers=WORKERS)
+        out: NDArray[np.float32] = full[..., : ha + hb - 1, : wa + wb - 1]
+        return out
+
+    def ncc(self, fa: _Spectra, fb: _Spectra, w: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """NCC (averaged over channels with weights ``w``) and overlap count of every pair
+        ``(fa[k], fb[k])`` for every shift."""
+        n = np.rint(self._corr(fa.mask, fb.mask))
+        total = np.zeros(n.shape)
+        for ch in range(len(w)):
+            if w[ch] == 0:
+                continue
+            a1, b1 = fa.values[:, ch], fb.values[:, ch]
+            sa, sb = self._corr(a1, fb.mask), self._corr(fa.mask, b1)
+            saa = self._corr(fa.squares[:, ch], fb.mask)
+            sbb = self._corr(fa.mask, fb.squares[:, ch])
+            sab = self._corr(a1, b1)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                num = sab - sa * sb / n
+                va = saa - sa**2 / n
+                vb = sbb - sb**2 / n
+                den = np.sqrt(np.clip(va, 0, None) * np.clip(vb, 0, None))
+                # an overlap whose variance is within float32's rounding of zero is flat
+                total += w[ch] * np.where((n > 0) & (den > 1e-5 * n), num / den, np.nan)
+        return np.clip(total, -1.0, 1.0), n.astype(np.float64)
 
 
 def pair_maps(
@@ -136,22 +193,33 @@ def pair_maps(
 ) -> Iterator[tuple[int, FloatArray, FloatArray, tuple[int, int]]]:
     """:func:`masked_ncc` of the pairs ``which`` (rows of ``pairs``, indices into ``images``).
 
-    Pairs of equal shapes go through one set of FFTs, up to ``batch`` at a time. Yields
-    ``(row, ncc, count, zero)`` per pair.
+    ``images`` are (h, w) or (channels, h, w) arrays. Pairs of equal shapes share one FFT
+    lattice, every image on it is transformed once, and their NCC maps are computed up to
+    ``batch`` pairs at a time. Yields ``(row, ncc, count, zero)`` per pair.
     """
+    stacks = [np.asarray(x, dtype=np.float64) for x in images]
+    stacks = [x[None] if x.ndim == 2 else x for x in stacks]
+    if any(x.ndim != 3 or x.shape[0] != stacks[0].shape[0] for x in stacks):
+        raise ValueError("pair_maps needs images or stacks with the same channel count")
+    w = _channel_weights(weights, stacks[0].shape[0])
     groups: dict[tuple[tuple[int, ...], tuple[int, ...]], list[int]] = {}
     for i in which:
-        groups.setdefault((images[pairs[i, 0]].shape, images[pairs[i, 1]].shape), []).append(i)
-    for members in groups.values():
+        groups.setdefault((stacks[pairs[i, 0]].shape, stacks[pairs[i, 1]].shape), []).append(i)
+    for (shape_a, shape_b), members in groups.items():
+        lattice = _Lattice.of(shape_a, shape_b)
+        rows = pairs[members]
+        # every image once per side it takes in this group
+        side_a, at_a = np.unique(rows[:, 0], return_inverse=True)
+        side_b, at_b = np.unique(rows[:, 1], return_inverse=True)
+        spectra_a = lattice.spectra(np.stack([stacks[c] for c in side_a.tolist()]), first=True)
+        spectra_b = lattice.spectra(np.stack([stacks[c] for c in side_b.tolist()]), first=False)
         for lo in range(0, len(members), batch):
-            chunk = members[lo : lo + batch]
-            ncc, count, zero = masked_ncc(
-                np.stack([images[pairs[i, 0]] for i in chunk]),
-                np.stack([images[pairs[i, 1]] for i in chunk]),
-                weights=weights,
+            chunk = slice(lo, lo + batch)
+            ncc, count = lattice.ncc(
+                spectra_a.take(at_a.ravel()[chunk]), spectra_b.take(at_b.ravel()[chunk]), w
             )
-            for j, i in enumerate(chunk):
-                yield i, ncc[j], count[j], zero
+            for j, i in enumerate(members[chunk]):
+                yield i, ncc[j], count[j], lattice.zero
 
 
 def _masked_mean(x: FloatArray, mask: NDArray[np.bool_]) -> FloatArray:
@@ -268,7 +336,7 @@ def find_peak(
         score=float(ncc[iy, ix]),
         overlap=int(count[iy, ix]),
         at_border=border,
-        excess=_excess(float(ncc[iy, ix]), ncc[ok]),
+        window=ncc[ok],
     )
 
 

@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 from scipy.ndimage import gaussian_filter
 
-from merge.ncc import best_shift, find_peak, masked_ncc
+from merge.ncc import best_shift, find_peak, masked_ncc, pair_maps
 
 
 def texture(seed: int, shape: tuple[int, int] = (60, 60)) -> np.ndarray:
@@ -45,6 +45,26 @@ def test_channels_are_averaged() -> None:
     assert count[zero] == 900
     with pytest.raises(ValueError, match="channel"):
         masked_ncc(np.stack([a, a]), a[None])
+
+
+def test_pair_maps_score_every_pair_as_alone() -> None:
+    # images of two shapes, holes, channels of very different scales: each image transformed
+    # once for all its pairs gives every pair's map as masked_ncc gives it alone
+    big = texture(5, (90, 90))
+    images = []
+    for k, (h, w) in enumerate([(30, 40), (30, 40), (24, 40), (30, 40)]):
+        y, x = 3 * k, 2 * k
+        stack = np.stack([100.0 * big[y : y + h, x : x + w], big[x : x + h, y : y + w] - 5.0])
+        stack[:, k : k + 4, 10:20] = np.nan
+        images.append(stack)
+    pairs = np.array([[0, 1], [1, 2], [2, 3], [0, 3], [3, 1], [2, 0]])
+    weights = [0.7, 0.3]
+    for i, ncc, count, zero in pair_maps(images, pairs, range(len(pairs)), weights=weights):
+        alone, alone_count, alone_zero = masked_ncc(*(images[c] for c in pairs[i]), weights=weights)
+        used = alone_count >= 16
+        assert zero == alone_zero
+        np.testing.assert_array_equal(count, alone_count)
+        np.testing.assert_allclose(ncc[used], alone[used], atol=1e-4)
 
 
 def _grating(shift: int, noise_seed: int) -> np.ndarray:
