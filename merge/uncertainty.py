@@ -37,6 +37,12 @@ PASSES = 4
 #: Of the variances above the unseen level, those above this fraction of the largest are the
 #: unseen translations themselves; the rest are shares the gauge spread from them.
 SHARE = 0.25
+#: Systems up to this many unknowns are solved dense. The marginal covariances need as many
+#: right-hand sides as translations (half the unknowns); LAPACK solves them as one
+#: matrix-matrix problem, a sparse LU one column at a time: for 400 patches (2406 unknowns)
+#: 0.47 s against 1.40 s. Dense memory and time grow as the square and cube of the size, so
+#: larger systems stay sparse (4000 unknowns: a 128 MB matrix).
+DENSE_MAX = 4000
 
 
 def gauge_modes(s: FloatArray, radius: FloatArray, weight: FloatArray) -> FloatArray:
@@ -100,7 +106,7 @@ def translation_covariances(
             [[A + _diagonal(ridge + pin.ravel()), csc_matrix(gauge)], [csc_matrix(gauge.T), None]],
             format="csc",
         )
-        X = splu(K).solve(rhs)[:size]
+        X = _solve(K, rhs)[:size]
         block = X[picks].reshape(n, 3, n, 3)[np.arange(n), :, np.arange(n), :]  # (n, 3, 3)
         var = np.column_stack(
             [np.repeat(np.linalg.eigvalsh(block[:, :2, :2])[:, 1:], 2, axis=1), block[:, 2, 2]]
@@ -115,6 +121,15 @@ def translation_covariances(
     xy[held[:, :2].any(axis=1)] = np.diag([np.inf, np.inf])
     z[held[:, 2]] = np.inf
     return xy, z
+
+
+def _solve(K: csc_matrix, rhs: FloatArray) -> FloatArray:
+    """``K⁻¹ rhs``: dense up to :data:`DENSE_MAX` unknowns, sparse LU beyond."""
+    if K.shape[0] <= DENSE_MAX:
+        out: FloatArray = np.linalg.solve(K.toarray(), rhs)
+        return out
+    sparse: FloatArray = splu(K).solve(rhs)
+    return sparse
 
 
 def translation_sigmas(

@@ -1,7 +1,8 @@
 import numpy as np
+import pytest
 
 from backend.synthetic import patch_errors
-from merge import run
+from merge import run, uncertainty
 from merge.uncertainty import gauge_modes, translation_covariances
 from tests.conftest import Synthetic
 
@@ -23,6 +24,14 @@ def _chain(n: int, link: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray
     return rows, cols, A[rows, cols]
 
 
+@pytest.fixture(params=["dense", "sparse"])
+def solver(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Both ways of solving for the covariances (dense LAPACK, sparse LU)."""
+    if request.param == "sparse":
+        monkeypatch.setattr(uncertainty, "DENSE_MAX", 0)
+
+
+@pytest.mark.usefixtures("solver")
 def test_a_chain_is_as_uncertain_as_its_weakest_links() -> None:
     n = 5
     link = np.array([4.0, 4.0, 0.01, 4.0])  # one weak link in the middle
@@ -52,6 +61,7 @@ def test_a_direction_no_data_see_is_infinite() -> None:
     assert np.isfinite(z).all()
 
 
+@pytest.mark.usefixtures("solver")
 def test_a_patch_no_data_see_leaves_the_others_alone() -> None:
     # the fifth patch is tied to nothing: its translation is unseen, and the gauge (mean motion
     # zero) must not spread its huge variance over the four that are measured
