@@ -178,7 +178,7 @@ class _Lattice:
                 va = saa - sa**2 / n
                 vb = sbb - sb**2 / n
                 den = np.sqrt(np.clip(va, 0, None) * np.clip(vb, 0, None))
-                # an overlap whose variance is within float32's rounding of zero is flat
+                # an overlap whose variance is within float32's rounding of zero is flat: no score
                 total += w[ch] * np.where((n > 0) & (den > 1e-5 * n), num / den, np.nan)
         return np.clip(total, -1.0, 1.0), n.astype(np.float64)
 
@@ -347,7 +347,7 @@ def _excess(score: float, window: FloatArray) -> float:
     Where the surfaces share no texture, every score is chance: about normal, with a spread of
     one over the square root of the overlap's independent pixels, so the best of ``m`` shifts
     lies near ``sqrt(2 ln m)`` spreads. A true peak on texture as fine as the noise scores low
-    (a nanometre of roughness under two of noise: ~0.3) but far above that. Median and spread
+    (1.5 nm of roughness under 2 nm of noise: ~0.35) but far above that. Median and spread
     are robust, so the true peak and its lobe barely move them.
     """
     med = float(np.median(window))
