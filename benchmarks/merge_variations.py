@@ -10,8 +10,8 @@ fit with three stage sigmas to spare).
 Per draw: map error over the floor (the true transforms through the same renderer),
 registration error XY and Z, patches reported XY-unconstrained, and *silent* patches: reported
 XY-constrained yet off by more than 10 nm and three of their own XY sigmas (the failure an
-operator cannot see). The default method
-runs in-process (the CLI's wall time is ``merge_bench.py``'s business).
+operator cannot see). The default method runs in-process (the CLI's wall time is
+``merge_bench.py``'s business).
 
 Prints a table per draw and a summary per surface, and writes JSON (``--json``, default
 ``benchmarks/results/merge_variations.json``).
@@ -51,13 +51,11 @@ def variation(k: int) -> Case:
     overlap = (float(rng.uniform(0.25, 0.5)), float(rng.uniform(0.25, 0.5)))
     factor = float(rng.choice([0.75, 1.0, 1.5]))
     pixels = (round(base.pixels[0] * factor), round(base.pixels[1] * factor))
-    # the real images' cases scale the drift's lengths to their larger patches
-    scale = base.drift.stage_sigma / DriftModel.typical().stage_sigma
     drift = DriftModel(
-        stage_sigma=scale * float(rng.uniform(30e-9, 80e-9)),
+        stage_sigma=float(rng.uniform(30e-9, 80e-9)),
         rotation_sigma_deg=float(rng.uniform(0.2, 0.5)),
-        z_step_mean=scale * float(rng.uniform(15e-9, 40e-9)),
-        z_step_sigma=scale * float(rng.uniform(10e-9, 30e-9)),
+        z_step_mean=float(rng.uniform(15e-9, 40e-9)),
+        z_step_sigma=float(rng.uniform(10e-9, 30e-9)),
         noise=float(rng.uniform(0.5e-9, 2e-9)),
     )
     case = dataclasses.replace(
