@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import os
+import signal
+import threading
+
 import pytest
 
 from merge.parallel import WORKERS, each
@@ -24,9 +28,6 @@ def test_an_error_in_a_block_reaches_the_caller() -> None:
 
 
 def test_threads_are_kept_between_calls_and_renewed_in_a_forked_child() -> None:
-    import os
-    import threading
-
     if WORKERS < 2 or not hasattr(os, "fork"):
         pytest.skip("needs two cores and fork")
     each(lambda _: None, [0, 1])
@@ -37,8 +38,6 @@ def test_threads_are_kept_between_calls_and_renewed_in_a_forked_child() -> None:
     assert before and before <= after and len(after) <= WORKERS
     pid = os.fork()
     if pid == 0:  # the child: the parent's pool would wait forever on threads it does not have
-        import signal
-
         signal.alarm(20)  # so a regression fails instead of hanging
         seen: list[int] = []
         each(seen.append, list(range(10)))
