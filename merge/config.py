@@ -22,6 +22,10 @@ class MergeConfig:
     max_iter : iteration cap; default 40 for "default", 200 for "paper".
     max_shift : largest XY error of a patch relative to its neighbour that the coarse start
         searches, metres; default half the smaller side of the smallest patch.
+    coarse_cell : cell the coarse start correlates the patches on, metres; default a whole
+        multiple of the finest pixel pitch that leaves about 32 cells along the smaller patch
+        side. Finer keeps finer texture, at a cost: where fine roughness is all an overlap holds
+        (a grating's flat faces at a few nanometres per pixel), about three pixels' worth.
     init : "auto" runs the robust coarse start (Z offsets and XY by correlation); "nominal"
         starts from the nominal placement.
     pixel_size : mosaic pixel pitch (dx, dy), metres; default the finest patch pitch.
@@ -32,6 +36,7 @@ class MergeConfig:
     cell: float | None = None
     max_iter: int | None = None
     max_shift: float | None = None
+    coarse_cell: float | None = None
     init: Literal["auto", "nominal"] = "auto"
     pixel_size: tuple[float, float] | None = None
     feather: float = 0.15
@@ -47,6 +52,12 @@ class MergeConfig:
             math.isfinite(self.max_shift) and self.max_shift > 0
         ):
             raise ValueError(f"max_shift must be a positive length in metres, got {self.max_shift}")
+        if self.coarse_cell is not None and not (
+            math.isfinite(self.coarse_cell) and self.coarse_cell > 0
+        ):
+            raise ValueError(
+                f"coarse_cell must be a positive length in metres, got {self.coarse_cell}"
+            )
         if self.init not in ("auto", "nominal"):
             raise ValueError(f"init must be 'auto' or 'nominal', got {self.init!r}")
         if self.pixel_size is not None and (
@@ -64,6 +75,7 @@ class MergeConfig:
             "cell": self.cell,
             "max_iter": self.max_iter,
             "max_shift": self.max_shift,
+            "coarse_cell": self.coarse_cell,
             "init": self.init,
             "pixel_size": list(self.pixel_size) if self.pixel_size else None,
             "feather": self.feather,

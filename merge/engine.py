@@ -156,7 +156,7 @@ def run(
         start = coarse_start(
             patches,
             pairs,
-            cell=coarse_cell(patch_set, cell),
+            cell=cfg.coarse_cell or coarse_cell(patch_set, cell),
             max_shift=max_shift,
             estimate_xy=cfg.method != "zlevel",
         )

@@ -63,6 +63,7 @@ def start_merge(
             cell=p.cell,
             max_iter=p.max_iter,
             max_shift=p.max_shift,
+            coarse_cell=p.coarse_cell,
             init=p.init or "auto",
             pixel_size=p.pixel_size,
             feather=0.15 if p.feather is None else p.feather,

@@ -77,6 +77,7 @@ class MergeParams(Strict):
     cell: PositiveMetres | None = None
     max_iter: int | None = Field(default=None, ge=1, le=1000)
     max_shift: PositiveMetres | None = None
+    coarse_cell: PositiveMetres | None = None
     init: Literal["auto", "nominal"] | None = None
     pixel_size: tuple[PositiveMetres, PositiveMetres] | None = None
     feather: FiniteFloat | None = Field(default=None, ge=0, le=0.5)

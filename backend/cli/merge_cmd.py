@@ -33,6 +33,12 @@ def add_parser(sub: Any) -> None:
     )
     p.add_argument("--max-iter", type=int, help="iteration cap")
     p.add_argument("--max-shift", type=float, help="largest stage error searched, metres")
+    p.add_argument(
+        "--coarse-cell",
+        type=float,
+        help="cell of the coarse start's correlation, metres (default: ~32 cells per patch side; "
+        "finer keeps fine texture, e.g. a grating's flat faces at a few nm per pixel)",
+    )
     p.add_argument("--pixel", type=float_pair, help="mosaic pixel size dx[,dy], metres")
     p.add_argument("--no-preview", action="store_true", help="do not write preview.png")
     p.add_argument("--quiet", action="store_true", help="no progress display")
@@ -49,6 +55,7 @@ def run(args: argparse.Namespace) -> int:
             cell=args.cell,
             max_iter=args.max_iter,
             max_shift=args.max_shift,
+            coarse_cell=args.coarse_cell,
             pixel_size=args.pixel,
         )
         patch_set = merge.read_patch_set(args.manifest, readers=height_readers())

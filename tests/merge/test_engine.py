@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 import dataclasses
+from typing import Any
 
 import numpy as np
 import pytest
 
 from hardware.sim.surfaces import Chessboard
 from hardware.sim.synth import SynthPatch
-from merge import MergeCancelled, MergeConfig, Patch, PatchSet, PatchTransform, run
+from merge import MergeCancelled, MergeConfig, Patch, PatchSet, PatchTransform, engine, run
 from merge.kabsch import weighted_rigid_transform
 from tests.conftest import Synthetic, make_synthetic
 
@@ -29,6 +30,23 @@ def test_default_method_recovers_the_truth(small_mosaic: Synthetic) -> None:
     assert all(p.xy_constrained and p.correspondences > 0 for p in result.patches)
     assert all(p.residual_rms < 3e-9 for p in result.patches)
     assert np.isfinite(result.mosaic.heights).mean() > 0.9
+
+
+def test_an_explicit_coarse_cell_is_the_one_the_start_correlates_on(
+    small_mosaic: Synthetic, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    cells: list[float] = []
+    real = engine.coarse_start
+
+    def spy(*args: Any, **kwargs: Any) -> Any:
+        cells.append(kwargs["cell"])
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(engine, "coarse_start", spy)
+    pitch = min(small_mosaic.patch_set.patches[0].pixel_size)
+    result = run(small_mosaic.patch_set, MergeConfig(coarse_cell=1.5 * pitch))
+    assert cells == [1.5 * pitch]
+    assert small_mosaic.registration_error(result.transforms)[0] < 1.5e-9
 
 
 def test_z_levelling_removes_the_staircase_but_not_xy(small_mosaic: Synthetic) -> None:
@@ -98,6 +116,7 @@ def test_config_is_validated() -> None:
         {"cell": -1.0},
         {"max_iter": 0},
         {"max_shift": float("nan")},
+        {"coarse_cell": 0.0},
         {"init": "guess"},
         {"pixel_size": (1e-8, 0.0)},
         {"feather": 2.0},

@@ -66,6 +66,7 @@ def test_merge_writes_the_result_and_a_summary(
         ["merge", "/no/such/manifest.json", "--out", "{tmp}"],
         ["merge", "{patches}/manifest.json", "--out", "{tmp}", "--cell", "-1"],
         ["merge", "{patches}/manifest.json", "--out", "{tmp}", "--max-iter", "0"],
+        ["merge", "{patches}/manifest.json", "--out", "{tmp}", "--coarse-cell", "0"],
         ["synth", "--out", "{tmp}", "--rows", "1", "--cols", "1"],
         ["synth", "--out", "{tmp}", "--overlap", "1.5"],
         ["synth", "--out", "{tmp}", "--surface", "image"],
