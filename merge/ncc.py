@@ -31,6 +31,9 @@ class CorrelationPeak:
     at_border : the peak lies on the border of the search window (a weak result).
     excess : how far the peak stands above the highest score chance gives in the window, in
         robust spreads of the window's scores (see :func:`_excess`; computed when asked for).
+    ridge : (dy, dx) integer offsets, from the peak, of the peaks on its own ridge that are as
+        likely (see :func:`find_peak`'s ``ambiguity``): along them the shift is not measured,
+        whatever texture the overlap shows there. Empty when the peak stands out.
     """
 
     shift: tuple[float, float]
@@ -39,6 +42,7 @@ class CorrelationPeak:
     overlap: int
     at_border: bool
     window: FloatArray = field(repr=False, compare=False)  # the searched scores
+    ridge: tuple[tuple[int, int], ...] = ()
 
     @property
     def excess(self) -> float:
@@ -305,6 +309,7 @@ def find_peak(
         score = score - prior * d2
     flat_best = np.unravel_index(int(np.argmax(score)), score.shape)
     iy, ix = int(flat_best[0]), int(flat_best[1])
+    ridge: list[tuple[int, int]] = []
     if ambiguity > 0:
         best = score[iy, ix]
         local = (score == ndimage.maximum_filter(score, size=3, mode="constant", cval=-np.inf)) & (
@@ -317,6 +322,11 @@ def find_peak(
                 if _alike(score, (iy, ix), (int(cy[k]), int(cx[k])), ambiguity):
                     iy, ix = int(cy[k]), int(cx[k])
                     break
+            # the chosen peak's alike neighbours on its own ridge: no valley between them, and
+            # the peak does not rise above the path to them (bumps of noise along a stripe)
+            for y, x in zip(cy.tolist(), cx.tolist(), strict=True):
+                if (y, x) != (iy, ix) and _on_one_ridge(score, (iy, ix), (y, x), ambiguity):
+                    ridge.append((y - iy, x - ix))
     sub = [0.0, 0.0]
     border = False
     for axis, (i, n_axis) in enumerate(((iy, ncc.shape[0]), (ix, ncc.shape[1]))):
@@ -337,6 +347,7 @@ def find_peak(
         overlap=int(count[iy, ix]),
         at_border=border,
         window=ncc[ok],
+        ridge=tuple(ridge),
     )
 
 
@@ -356,6 +367,14 @@ def _excess(score: float, window: FloatArray) -> float:
     return float((score - med) / max(spread, 1e-12) - chance)
 
 
+def _path_low(score: FloatArray, a: tuple[int, int], b: tuple[int, int]) -> float:
+    """The lowest ``score`` on the straight path from ``a`` to ``b``."""
+    steps = max(abs(b[0] - a[0]), abs(b[1] - a[1]), 1) + 1
+    rows = np.rint(np.linspace(a[0], b[0], steps)).astype(np.intp)
+    cols = np.rint(np.linspace(a[1], b[1], steps)).astype(np.intp)
+    return float(score[rows, cols].min())
+
+
 def _alike(score: FloatArray, best: tuple[int, int], other: tuple[int, int], margin: float) -> bool:
     """Whether peak ``other`` of ``score`` is as likely as the ``best``, both within ``margin``.
 
@@ -364,9 +383,15 @@ def _alike(score: FloatArray, best: tuple[int, int], other: tuple[int, int], mar
     if the best does not rise above the path by more than ``margin`` (bumps of noise along a
     stripe), not when it does (texture pins the shift along an edge).
     """
-    steps = max(abs(other[0] - best[0]), abs(other[1] - best[1]), 1) + 1
-    rows = np.rint(np.linspace(best[0], other[0], steps)).astype(np.intp)
-    cols = np.rint(np.linspace(best[1], other[1], steps)).astype(np.intp)
-    low = float(score[rows, cols].min())
+    low = _path_low(score, best, other)
     separated = low < score[other] - margin
     return bool(separated or score[best] - low <= margin)
+
+
+def _on_one_ridge(
+    score: FloatArray, peak: tuple[int, int], other: tuple[int, int], margin: float
+) -> bool:
+    """Whether ``other`` lies on ``peak``'s ridge, as likely: no valley deeper than ``margin``
+    between them and ``peak`` not rising above the path by more (see :func:`_alike`)."""
+    low = _path_low(score, peak, other)
+    return bool(low >= score[other] - margin and score[peak] - low <= margin)

@@ -1,15 +1,24 @@
 import dataclasses
 
 import numpy as np
+import pytest
+from scipy.ndimage import gaussian_filter
 
 from backend.synthetic import patch_set_from_synth
 from hardware.sim.drift import DriftModel
 from hardware.sim.surfaces import Chessboard, FoldedSurface
 from hardware.sim.synth import synthesize
-from merge.coarse import CoarseStart, _drop_odd_scores, _patches_in_doubt, coarse_start
+from merge.coarse import (
+    CoarseStart,
+    _drop_odd_scores,
+    _patches_in_doubt,
+    along_ridge_removed,
+    coarse_start,
+)
 from merge.engine import coarse_cell, default_cell
+from merge.lattice import coherence
 from merge.overlap import overlapping_pairs
-from merge.patchset import Patch
+from merge.patchset import Patch, PatchSet
 from merge.uncertainty import signal_information
 from tests.conftest import Synthetic
 
@@ -100,6 +109,61 @@ def test_noise_and_drift_ramps_are_not_texture() -> None:
     start = coarse_start(patches, pairs, cell=2e-8, max_shift=3e-7)
     assert not start.xy_measured.any()
     assert np.abs(start.translation[:, :2]).max() == 0.0
+
+
+def test_a_ridge_takes_away_the_information_along_it() -> None:
+    info = np.array([[4.0, 1.0], [1.0, 3.0]])
+    np.testing.assert_array_equal(along_ridge_removed(info, ()), info)
+    # alike peaks at (dy, dx) = (3, 3) and (-5, -4): a ridge along about x = y
+    out = along_ridge_removed(info, [(3, 3), (-5, -4)])
+    along = np.array([1.0, 1.0]) / np.sqrt(2.0)
+    assert along @ out @ along < 0.02 * np.trace(info)
+    across = np.array([1.0, -1.0]) / np.sqrt(2.0)
+    assert across @ out @ across > 0.9 * (across @ info @ across)
+    # alike peaks all around: a plateau, nothing measured
+    np.testing.assert_array_equal(along_ridge_removed(info, [(0, 3), (3, 0)]), np.zeros((2, 2)))
+
+
+def test_the_coarse_cell_is_as_fine_as_the_budget_allows() -> None:
+    def patch_set(count: int, pixels: int, pitch: float, stripes: bool = False) -> PatchSet:
+        rng = np.random.default_rng(0)
+        x = np.arange(pixels) * pitch
+        return PatchSet(
+            [
+                Patch(
+                    id=f"p{k}",
+                    heights=1e-7 * np.sin(2 * np.pi * (x[None, :] + x[:, None]) / 3e-7)
+                    if stripes
+                    else rng.normal(0, 1e-9, (pixels, pixels)),
+                    origin=(k * pixels * pitch, 0.0),
+                    pixel_size=(pitch, pitch),
+                    order=k,
+                )
+                for k in range(count)
+            ]
+        )
+
+    # 16 patches of 1 µm at 5 nm: 640 000 pixels, three to a cell (15 nm) fit the budget
+    assert coarse_cell(patch_set(16, 200, 5e-9), 5e-9) == pytest.approx(15e-9)
+    # but stripes keep the 32-cell lattice (30 nm)
+    assert coarse_cell(patch_set(16, 200, 5e-9, stripes=True), 5e-9) == pytest.approx(30e-9)
+    # 400 patches of 64 x 64: no finer than 32 cells a side, as before
+    assert coarse_cell(patch_set(400, 64, 2e-8), 2e-8) == pytest.approx(4e-8)
+    # small sets: the pixel itself, whatever the 32-cell rule allows
+    assert coarse_cell(patch_set(4, 128, 1e-8), 1e-8) == pytest.approx(1e-8)
+
+
+def test_coherence_tells_stripes_from_roughness() -> None:
+    rng = np.random.default_rng(1)
+    yy, xx = np.mgrid[0:60, 0:60].astype(float)
+    stripes = np.sin(2 * np.pi * (xx + yy) / 15.0) + 0.05 * rng.normal(size=xx.shape)
+    assert coherence(stripes) > 0.95
+    rough = gaussian_filter(rng.normal(size=xx.shape), 1.5)
+    assert coherence(rough) < 0.3
+    # a tilt is not structure, and nothing is nothing
+    assert coherence(0.3 * xx + 0.1 * yy) == 0.0
+    stripes[:, :20] = np.nan
+    assert coherence(stripes) > 0.95
 
 
 def test_noise_is_not_counted_as_texture() -> None:

@@ -141,3 +141,16 @@ def test_along_a_bare_ridge_the_expected_shift_wins(seed: int) -> None:
     ncc, count = _ridge({8: 0.03}, seed)
     peak = find_peak(ncc, count, (10, 20), radius=(12, 12), ambiguity=0.1)
     assert peak is not None and peak.integer_shift[0] == 0 and abs(peak.integer_shift[1]) <= 3
+    # and the peak says so: its alike neighbours lie along the ridge (x), none across it
+    assert peak.ridge and all(dy == 0 and dx != 0 for dy, dx in peak.ridge)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_a_peak_that_stands_out_of_its_ridge_has_no_alike_neighbours(seed: int) -> None:
+    ncc, count = _ridge({0: 0.06, 8: 0.16}, seed)
+    peak = find_peak(ncc, count, (10, 20), radius=(12, 12), ambiguity=0.1)
+    assert peak is not None and peak.ridge == ()
+    # nor does a peak a period apart from an alike one: a valley separates them
+    a, b = _grating(3, 1), _grating(0, 2)
+    periodic = best_shift(a, b, expected=(0.0, 0.0), min_overlap=200, ambiguity=0.1)
+    assert periodic is not None and periodic.ridge == ()
