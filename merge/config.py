@@ -22,10 +22,9 @@ class MergeConfig:
     max_iter : iteration cap; default 40 for "default", 200 for "paper".
     max_shift : largest XY error of a patch relative to its neighbour that the coarse start
         searches, metres; default half the smaller side of the smallest patch.
-    coarse_cell : cell the coarse start correlates the patches on, metres; default a whole
-        multiple of the finest pixel pitch that leaves about 32 cells along the smaller patch
-        side. Finer keeps finer texture, at a cost: where fine roughness is all an overlap holds
-        (a grating's flat faces at a few nanometres per pixel), about three pixels' worth.
+    coarse_cell : cell the coarse start correlates the patches on, metres; default
+        :func:`merge.engine.coarse_cell` (a whole multiple of the finest pixel pitch, as fine
+        as a budget of cells allows). Finer keeps finer texture, at a cost.
     init : "auto" runs the robust coarse start (Z offsets and XY by correlation); "nominal"
         starts from the nominal placement.
     pixel_size : mosaic pixel pitch (dx, dy), metres; default the finest patch pitch.
