@@ -118,7 +118,8 @@ def coarse_cell(patch_set: PatchSet, cell: float) -> float:
     cells than :data:`COARSE_BUDGET` at a smaller one, to that: texture finer than the cell is
     lost to the start. On a grating's flat faces the only texture is a roughness of ~25 nm;
     cut into 1 µm patches of 200 pixels, 32 cells (31 nm) left the overlaps there to chance
-    peaks (TGX1, 2 draws of 3 off by 57-64 nm; at 15 nm, 0.2-0.5 nm). Not on a
+    peaks (bench case tgx1-1um: 5 draws of 8 within 1.5 x the floor, 2 of 10 more off by tens
+    of nanometres; at 15 nm 8 of 8 and 10 of 10). Not on a
     one-dimensional sample (:data:`ONE_DIMENSIONAL`): along a grating's stripes finer cells
     resolve noise and defects, whose peaks a stripe-width apart are as likely (the real
     grating, 2 draws of 16 off by 10-90 nm at its pixel pitch).

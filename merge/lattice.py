@@ -75,18 +75,25 @@ def fill_empty_lines(grid: GridSample) -> GridSample:
     return dataclasses.replace(grid, heights=h)
 
 
+def _about_plane(heights: FloatArray) -> FloatArray | None:
+    """``heights`` less their own least-squares plane (NaN stays NaN); None below 4 values."""
+    rows, cols = np.nonzero(np.isfinite(heights))
+    if len(rows) < 4:
+        return None
+    A = np.column_stack([np.ones(len(rows)), cols, rows]).astype(np.float64)
+    a, bx, by = np.linalg.lstsq(A, heights[rows, cols], rcond=None)[0]
+    yy, xx = np.indices(heights.shape)
+    out: FloatArray = heights - (a + bx * xx + by * yy)
+    return out
+
+
 def texture(heights: FloatArray) -> float:
     """Standard deviation of ``heights`` about their own least-squares plane (NaN-aware).
 
     The plane goes: an in-patch drift ramp on a featureless patch is not texture to correlate.
     """
-    rows, cols = np.nonzero(np.isfinite(heights))
-    if len(rows) < 4:
-        return 0.0
-    A = np.column_stack([np.ones(len(rows)), cols, rows]).astype(np.float64)
-    z = heights[rows, cols]
-    resid = z - A @ np.linalg.lstsq(A, z, rcond=None)[0]
-    return float(np.std(resid))
+    resid = _about_plane(heights)
+    return 0.0 if resid is None else float(np.nanstd(resid))
 
 
 def coherence(heights: FloatArray) -> float:
@@ -95,14 +102,8 @@ def coherence(heights: FloatArray) -> float:
     least-squares plane (NaN-aware). Near 1 on a grating's stripes or one straight edge, near 0
     on roughness; 0 without texture.
     """
-    rows, cols = np.nonzero(np.isfinite(heights))
-    if len(rows) < 4:
-        return 0.0
-    A = np.column_stack([np.ones(len(rows)), cols, rows]).astype(np.float64)
-    a, bx, by = np.linalg.lstsq(A, heights[rows, cols], rcond=None)[0]
-    yy, xx = np.indices(heights.shape)
-    resid = heights - (a + bx * xx + by * yy)
-    if not np.nanstd(resid) > 1e-9 * np.nanstd(heights):  # a plane, to rounding
+    resid = _about_plane(heights)
+    if resid is None or not np.nanstd(resid) > 1e-9 * np.nanstd(heights):  # a plane, to rounding
         return 0.0
     gy, gx = np.gradient(resid)
     J = np.array(

@@ -2,7 +2,6 @@ import dataclasses
 
 import numpy as np
 import pytest
-from scipy.ndimage import gaussian_filter
 
 from backend.synthetic import patch_set_from_synth
 from hardware.sim.drift import DriftModel
@@ -16,7 +15,6 @@ from merge.coarse import (
     coarse_start,
 )
 from merge.engine import coarse_cell, default_cell
-from merge.lattice import coherence
 from merge.overlap import overlapping_pairs
 from merge.patchset import Patch, PatchSet
 from merge.uncertainty import signal_information
@@ -151,19 +149,6 @@ def test_the_coarse_cell_is_as_fine_as_the_budget_allows() -> None:
     assert coarse_cell(patch_set(400, 64, 2e-8), 2e-8) == pytest.approx(4e-8)
     # small sets: the pixel itself, whatever the 32-cell rule allows
     assert coarse_cell(patch_set(4, 128, 1e-8), 1e-8) == pytest.approx(1e-8)
-
-
-def test_coherence_tells_stripes_from_roughness() -> None:
-    rng = np.random.default_rng(1)
-    yy, xx = np.mgrid[0:60, 0:60].astype(float)
-    stripes = np.sin(2 * np.pi * (xx + yy) / 15.0) + 0.05 * rng.normal(size=xx.shape)
-    assert coherence(stripes) > 0.95
-    rough = gaussian_filter(rng.normal(size=xx.shape), 1.5)
-    assert coherence(rough) < 0.3
-    # a tilt is not structure, and nothing is nothing
-    assert coherence(0.3 * xx + 0.1 * yy) == 0.0
-    stripes[:, :20] = np.nan
-    assert coherence(stripes) > 0.95
 
 
 def test_noise_is_not_counted_as_texture() -> None:

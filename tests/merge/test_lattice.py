@@ -5,9 +5,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy.ndimage import gaussian_filter
 
 from merge.downsample import GridSample
 from merge.lattice import (
+    coherence,
     correlated_channels,
     fill_empty_lines,
     overlap_information,
@@ -89,3 +91,16 @@ def test_the_z_difference_is_the_median_over_the_overlap_at_the_shift() -> None:
     b[3, 4] = 1e9  # an outlier the median ignores
     assert overlap_z_difference(a, b, (1, 2)) == (7.0, 9)
     assert overlap_z_difference(a, b, (4, 0)) == (pytest.approx(np.nan, nan_ok=True), 0)
+
+
+def test_coherence_tells_stripes_from_roughness() -> None:
+    rng = np.random.default_rng(1)
+    yy, xx = np.mgrid[0:60, 0:60].astype(float)
+    stripes = np.sin(2 * np.pi * (xx + yy) / 15.0) + 0.05 * rng.normal(size=xx.shape)
+    assert coherence(stripes) > 0.95
+    rough = gaussian_filter(rng.normal(size=xx.shape), 1.5)
+    assert coherence(rough) < 0.3
+    # a tilt is not structure, and nothing is nothing
+    assert coherence(0.3 * xx + 0.1 * yy) == 0.0
+    stripes[:, :20] = np.nan
+    assert coherence(stripes) > 0.95
