@@ -52,13 +52,18 @@ def test_a_subset_and_another_method(scanned: tuple[Server, int]) -> None:
     server, rid = scanned
     r = server.post(
         f"/api/runs/{rid}/merges",
-        {"method": "zlevel", "patches": [0, 1, 2], "parameters": {"feather": 0.1}},
+        {
+            "method": "zlevel",
+            "patches": [0, 1, 2],
+            "parameters": {"feather": 0.1, "coarse_cell": 3e-8},
+        },
     )
     assert r.status_code == 202, r.text
     done = server.wait_merge(r.json()["id"])
     assert done["state"] == "done" and done["patches"] == [0, 1, 2]
     doc = server.client.get(done["mosaic_json"]).json()
     assert doc["method"] == "zlevel" and len(doc["patches"]) == 3
+    assert doc["parameters"]["coarse_cell"] == 3e-8
 
 
 @pytest.mark.parametrize(
@@ -67,6 +72,7 @@ def test_a_subset_and_another_method(scanned: tuple[Server, int]) -> None:
         ({"method": "magic"}, 422, "method"),
         ({"parameters": {"max_iter": 0}}, 422, "max_iter"),
         ({"parameters": {"cell": -1}}, 422, "cell"),
+        ({"parameters": {"coarse_cell": 0}}, 422, "coarse_cell"),
         ({"parameters": {"colour": "red"}}, 422, "colour"),
         ({"patches": [0, 99]}, 409, "not stored"),
         ({"patches": [4]}, 409, "at least 2"),
