@@ -73,6 +73,14 @@ class Level:
 
 
 STALL = 1e-4
+#: The raw level stops once a step changes no height by more than this fraction of the noise
+#: (through the RMS slope for XY and spin): what is left would add a few thousandths of the
+#: noise to the map error in quadrature, and a pixel-based tolerance alone is arbitrary in
+#: physical units (1e-3 px is 20 pm at 20 nm pixels, 2 pm at 2 nm, where an iteration over
+#: 9 patches of 512 x 512 costs a second). Bench draws, against none: iterations -19 % (the
+#: variations -24 %), every map/floor within 0.01 or better (grid draws 5, 7: 1.17, 1.15 ->
+#: 1.08, 1.10); at 0.2 the grating's XY starts to suffer (draw 3: 2.7 -> 4.5 nm).
+HEIGHT_TOL = 0.1
 #: Iterations in a row the cost must stall for: along a grating's stripes the patches creep
 #: (their few defects hold them loosely), and the cost may pause once on the way (grid draws
 #: 0, 3, 5, 25, 30: map/floor 1.10, 1.50, 1.13, 1.18, 1.38 with one -> 1.04, 1.09, 1.14, 1.09,
@@ -206,6 +214,8 @@ def refine(
         level_converged = False
         previous = np.inf
         stalls = 0
+        # on the raw heights a step that moves no height by HEIGHT_TOL of the noise is the last
+        slope = _slope_rms(bank) if raw else np.inf
         for _ in range(level.max_iter):
             if cancel is not None and cancel():
                 raise MergeCancelled("merge cancelled")
@@ -238,7 +248,9 @@ def refine(
             # is then in directions the data do not constrain, e.g. XY over a flat overlap)
             stalls = stalls + 1 if abs(previous - stats.rms) <= STALL * stats.rms else 0
             previous = stats.rms
-            if motion < level.tol or stalls >= STALLS:
+            if motion < level.tol or stalls >= STALLS or _height_effect(delta, slope) < (
+                HEIGHT_TOL * noise
+            ):
                 level_converged = True
                 break
         if li == len(levels) - 1:
@@ -250,6 +262,24 @@ def refine(
         history=history,
         bank=base,
     )
+
+
+def _slope_rms(bank: SurfaceBank) -> float:
+    """RMS of the surfaces' slopes over all their nodes (dimensionless)."""
+    g = bank.surface[:, 1:]
+    ok = np.isfinite(g).all(axis=1)
+    return float(np.sqrt(np.mean(g[ok] ** 2) * 2.0)) if ok.any() else 0.0
+
+
+def _height_effect(delta: FloatArray, slope: float) -> float:
+    """The largest height change (pixel units) a step ``delta`` (n, 6) makes anywhere, on
+    surfaces of RMS ``slope``: its Z and drift plane directly, its XY and spin through the
+    slopes."""
+    if not np.isfinite(slope) or len(delta) == 0:
+        return np.inf
+    xy = np.hypot(delta[:, 0], delta[:, 1]) + np.abs(delta[:, 3])
+    z = np.abs(delta[:, 2]) + np.hypot(delta[:, 4], delta[:, 5])
+    return float((z + slope * xy).max())
 
 
 def _plane_sigma(plane: FloatArray, drift_prior: float) -> FloatArray:

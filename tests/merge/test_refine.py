@@ -1,4 +1,4 @@
-"""The refinement: its coarse-to-fine schedule on a real scan, its drift-plane prior."""
+"""The refinement: its coarse-to-fine schedule on a real scan, drift-plane prior, stopping."""
 
 from __future__ import annotations
 
@@ -9,9 +9,9 @@ from backend.synthetic import patch_set_from_synth, registration_error
 from hardware.sim.drift import DriftModel
 from hardware.sim.surfaces import ImageSurface
 from hardware.sim.synth import synthesize
-from merge import run
-from merge.refine import FAST_DRIFT_SHARE, _plane_sigma
-from tests.conftest import SHARED_DATA
+from merge import engine, refine, run
+from merge.refine import FAST_DRIFT_SHARE, _height_effect, _plane_sigma
+from tests.conftest import SHARED_DATA, Synthetic
 
 GRID = SHARED_DATA / "grid.npy"
 
@@ -48,3 +48,28 @@ def test_the_drift_prior_is_physics_unless_the_tilts_spread_wider() -> None:
     levelled = rng.normal(0.0, [40.0, 3.0], (50, 2))  # tilts along the lines too: not a drift
     sigma = _plane_sigma(levelled, 5.0)
     assert sigma[0] == pytest.approx(40.0, rel=0.25) and sigma[1] == 5.0
+
+
+def test_a_step_moves_heights_directly_in_z_and_through_the_slopes_in_xy() -> None:
+    delta = np.zeros((2, 6))
+    delta[0, :2] = [0.3, 0.4]  # 0.5 px of XY on slopes of RMS 0.2: 0.1 px of height
+    delta[1, 2] = 0.05  # Z
+    delta[1, 4:] = [0.03, 0.04]  # the drift plane, at the patch radius
+    assert _height_effect(delta, 0.2) == pytest.approx(0.1)
+    assert _height_effect(delta, 0.0) == pytest.approx(0.1)  # 0.05 + 0.05 of patch 1
+    assert _height_effect(delta, np.inf) == np.inf  # not the raw level: never by this rule
+
+
+def test_the_raw_level_stops_once_steps_move_no_height_by_a_tenth_of_the_noise(
+    small_mosaic: Synthetic, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    ps = small_mosaic.patch_set
+    default = engine.run(ps)
+    monkeypatch.setattr(refine, "HEIGHT_TOL", 0.0)
+    polished = engine.run(ps)
+    assert default.iterations < polished.iterations
+    e_default = small_mosaic.registration_error(default.transforms)
+    e_polished = small_mosaic.registration_error(polished.transforms)
+    # what the extra iterations buy is far below the noise (1 nm) in either direction
+    assert abs(e_default[0] - e_polished[0]) < 0.05e-9
+    assert abs(e_default[1] - e_polished[1]) < 0.05e-9
