@@ -248,9 +248,8 @@ def refine(
             # is then in directions the data do not constrain, e.g. XY over a flat overlap)
             stalls = stalls + 1 if abs(previous - stats.rms) <= STALL * stats.rms else 0
             previous = stats.rms
-            if motion < level.tol or stalls >= STALLS or _height_effect(delta, slope) < (
-                HEIGHT_TOL * noise
-            ):
+            settled = _height_effect(delta, slope) < HEIGHT_TOL * noise
+            if motion < level.tol or stalls >= STALLS or settled:
                 level_converged = True
                 break
         if li == len(levels) - 1:
