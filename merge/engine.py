@@ -186,6 +186,7 @@ def run(
     ]
     transforms = [PatchTransform() for _ in range(n)]
     complete = False
+    measured_both = np.zeros(n, dtype=bool)  # patches whose XY the start measured both ways
     if cfg.method != "nominal" and cfg.init == "auto" and len(pairs):
         start = coarse_start(
             patches,
@@ -199,7 +200,8 @@ def run(
             PatchTransform(t=tc, slope=-tilt, centre=np.array(p.center))
             for tc, tilt, p in zip(start.translation, start.tilt, patches, strict=True)
         ]
-        complete = bool(start.xy_complete[linked].all())
+        measured_both = start.xy_complete | ~linked
+        complete = bool(measured_both.all())
     timings["start"] = time.perf_counter() - clock
     iterations, converged, history = 0, True, []
     raw: SurfaceBank | None = None  # the refinement's surfaces, reused by the assessment
@@ -222,6 +224,7 @@ def run(
                 shift_prior=SHIFT_PRIOR_FRACTION * max_shift,
                 progress=progress,
                 cancel=cancel,
+                first_free=None if complete else ~measured_both,
             )
             transforms, raw = fit.transforms, fit.bank
             iterations, converged, history = fit.iterations, fit.converged, fit.history

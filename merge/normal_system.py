@@ -393,11 +393,14 @@ class Priors:
     spin_sigma: FloatArray  # (n,)
 
 
-def solve_system(system: NormalSystem, priors: Priors) -> FloatArray:
+def solve_system(
+    system: NormalSystem, priors: Priors, *, held: NDArray[np.bool_] | None = None
+) -> FloatArray:
     """Damped solution of the system: ``(n, 6)`` updates (translation, scaled spin and plane).
 
     A prior ``|value / sigma|²`` enters with the weight the data have per unit residual
-    (``1 / residual scale²``), so it is a proper posterior, not a tuning knob.
+    (``1 / residual scale²``), so it is a proper posterior, not a tuning knob. Patches ``held``
+    (n,) bool do not move (their updates ~1e-9 of what their data alone would give).
     """
     n = len(system.g)
     rows, cols, vals = system.rows, system.cols, system.vals
@@ -417,6 +420,8 @@ def solve_system(system: NormalSystem, priors: Priors) -> FloatArray:
             k = r2 / np.asarray(sigma, dtype=np.float64) ** 2
             lam[:, cols_] += k
             g[:, cols_] -= k * value
+    if held is not None:
+        lam[held] += 1e9 * (float(dvals.max(initial=0.0)) + 1.0)
     idx = np.arange(6 * n)
     M = coo_matrix(
         (

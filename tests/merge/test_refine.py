@@ -10,7 +10,9 @@ from hardware.sim.drift import DriftModel
 from hardware.sim.surfaces import ImageSurface
 from hardware.sim.synth import synthesize
 from merge import engine, refine, run
+from merge.overlap import overlapping_pairs
 from merge.refine import FAST_DRIFT_SHARE, _height_effect, _plane_sigma
+from merge.transforms import PatchTransform
 from tests.conftest import SHARED_DATA, Synthetic
 
 GRID = SHARED_DATA / "grid.npy"
@@ -73,3 +75,15 @@ def test_the_raw_level_stops_once_steps_move_no_height_by_a_tenth_of_the_noise(
     # what the extra iterations buy is far below the noise (1 nm) in either direction
     assert abs(e_default[0] - e_polished[0]) < 0.05e-9
     assert abs(e_default[1] - e_polished[1]) < 0.05e-9
+
+
+def test_the_first_level_moves_only_the_free_patches(small_mosaic: Synthetic) -> None:
+    patches = small_mosaic.patch_set.patches
+    pairs = overlapping_pairs(np.array([p.footprint for p in patches]), margin=1e-7)
+    start = [PatchTransform() for _ in patches]  # nominal: every patch is off by its stage error
+    free = np.zeros(len(patches), dtype=bool)
+    free[2] = True
+    fit = refine.refine(patches, pairs, start, levels=refine.DEFAULT_LEVELS[:1], first_free=free)
+    moved = [float(np.abs(tr.t - s.t).max()) for tr, s in zip(fit.transforms, start, strict=True)]
+    assert moved[2] > 5e-9
+    assert max(m for m, f in zip(moved, free, strict=True) if not f) < 1e-12
