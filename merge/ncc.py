@@ -367,12 +367,17 @@ def _excess(score: float, window: FloatArray) -> float:
     return float((score - med) / max(spread, 1e-12) - chance)
 
 
-def _path_low(score: FloatArray, a: tuple[int, int], b: tuple[int, int]) -> float:
-    """The lowest ``score`` on the straight path from ``a`` to ``b``."""
+def _between(
+    score: FloatArray, a: tuple[int, int], b: tuple[int, int], margin: float
+) -> tuple[bool, bool]:
+    """Along the straight path from peak ``a`` to peak ``b`` of ``score``: whether a valley
+    deeper than ``margin`` below ``b`` separates them, and whether ``a`` rises above the path's
+    lowest score by no more than ``margin`` (does not stand out of it)."""
     steps = max(abs(b[0] - a[0]), abs(b[1] - a[1]), 1) + 1
     rows = np.rint(np.linspace(a[0], b[0], steps)).astype(np.intp)
     cols = np.rint(np.linspace(a[1], b[1], steps)).astype(np.intp)
-    return float(score[rows, cols].min())
+    low = float(score[rows, cols].min())
+    return bool(low < score[b] - margin), bool(score[a] - low <= margin)
 
 
 def _alike(score: FloatArray, best: tuple[int, int], other: tuple[int, int], margin: float) -> bool:
@@ -383,9 +388,8 @@ def _alike(score: FloatArray, best: tuple[int, int], other: tuple[int, int], mar
     if the best does not rise above the path by more than ``margin`` (bumps of noise along a
     stripe), not when it does (texture pins the shift along an edge).
     """
-    low = _path_low(score, best, other)
-    separated = low < score[other] - margin
-    return bool(separated or score[best] - low <= margin)
+    separated, level = _between(score, best, other, margin)
+    return separated or level
 
 
 def _on_one_ridge(
@@ -393,5 +397,5 @@ def _on_one_ridge(
 ) -> bool:
     """Whether ``other`` lies on ``peak``'s ridge, as likely: no valley deeper than ``margin``
     between them and ``peak`` not rising above the path by more (see :func:`_alike`)."""
-    low = _path_low(score, peak, other)
-    return bool(low >= score[other] - margin and score[peak] - low <= margin)
+    separated, level = _between(score, peak, other, margin)
+    return not separated and level
