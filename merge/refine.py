@@ -83,7 +83,10 @@ STALL = 1e-4
 #: physical units (1e-3 px is 20 pm at 20 nm pixels, 2 pm at 2 nm, where an iteration over
 #: 9 patches of 512 x 512 costs a second). Bench draws, against none: iterations -19 % (the
 #: variations -24 %), every map/floor within 0.01 or better (grid draws 5, 7: 1.17, 1.15 ->
-#: 1.08, 1.10); at 0.2 the grating's XY starts to suffer (draw 3: 2.7 -> 4.5 nm).
+#: 1.08, 1.10); at 0.2 the grating's XY starts to suffer (draw 3: 2.7 -> 4.5 nm). What the
+#: steps still to come would move (:func:`_remaining`) counts, not the last step alone: where
+#: every step is a fifth of the one before, the step after one of 0.15 is not needed (50 TGX1
+#: patches: 9 -> 8 iterations; 100 variations -4 %, map/floor within 0.02 either way).
 HEIGHT_TOL = 0.1
 #: Iterations in a row the cost must stall for: along a grating's stripes the patches creep
 #: (their few defects hold them loosely), and the cost may pause once on the way (grid draws
@@ -225,8 +228,10 @@ def refine(
         level_converged = False
         previous = np.inf
         stalls = 0
-        # on the raw heights a step that moves no height by HEIGHT_TOL of the noise is the last
+        # on the raw heights, once the steps still to come move no height by HEIGHT_TOL of the
+        # noise the level is done
         slope = _slope_rms(bank) if raw else np.inf
+        effect = np.inf
         for _ in range(level.max_iter):
             if cancel is not None and cancel():
                 raise MergeCancelled("merge cancelled")
@@ -260,7 +265,8 @@ def refine(
             # is then in directions the data do not constrain, e.g. XY over a flat overlap)
             stalls = stalls + 1 if abs(previous - stats.rms) <= STALL * stats.rms else 0
             previous = stats.rms
-            settled = _height_effect(delta, slope) < HEIGHT_TOL * noise
+            effect, last_effect = _height_effect(delta, slope), effect
+            settled = _remaining(effect, last_effect) < HEIGHT_TOL * noise
             if motion < level.tol or stalls >= STALLS or settled:
                 level_converged = True
                 break
@@ -291,6 +297,20 @@ def _height_effect(delta: FloatArray, slope: float) -> float:
     xy = np.hypot(delta[:, 0], delta[:, 1]) + np.abs(delta[:, 3])
     z = np.abs(delta[:, 2]) + np.hypot(delta[:, 4], delta[:, 5])
     return float((z + slope * xy).max())
+
+
+def _remaining(effect: float, last: float) -> float:
+    """How far the steps still to come will move (same units as ``effect``, the last step's
+    effect; ``last`` the one before).
+
+    Gauss-Newton near its solution converges linearly: every step the previous one times about
+    the same ratio, so what remains is the last step times ``ratio / (1 - ratio)``. Counted no
+    smaller than the last step itself (a ratio over a half, or no ratio yet, says little more).
+    """
+    if not (np.isfinite(last) and last > 0):
+        return effect
+    ratio = effect / last
+    return effect * min(1.0, ratio / (1.0 - ratio)) if ratio < 1.0 else effect
 
 
 def _plane_sigma(plane: FloatArray, drift_prior: float) -> FloatArray:

@@ -11,7 +11,7 @@ from hardware.sim.surfaces import ImageSurface
 from hardware.sim.synth import synthesize
 from merge import engine, refine, run
 from merge.overlap import overlapping_pairs
-from merge.refine import FAST_DRIFT_SHARE, _height_effect, _plane_sigma
+from merge.refine import FAST_DRIFT_SHARE, _height_effect, _plane_sigma, _remaining
 from merge.transforms import PatchTransform
 from tests.conftest import SHARED_DATA, Synthetic
 
@@ -60,6 +60,16 @@ def test_a_step_moves_heights_directly_in_z_and_through_the_slopes_in_xy() -> No
     assert _height_effect(delta, 0.2) == pytest.approx(0.1)
     assert _height_effect(delta, 0.0) == pytest.approx(0.1)  # 0.05 + 0.05 of patch 1
     assert _height_effect(delta, np.inf) == np.inf  # not the raw level: never by this rule
+
+
+def test_what_remains_of_a_geometric_convergence_is_its_tail() -> None:
+    # steps shrinking by 5 each: 1, 0.2, 0.04, ... leave 0.05 after the second
+    assert _remaining(0.2, 1.0) == pytest.approx(0.05)
+    # slow convergence (ratio over a half) or a first step: no less than the last step
+    assert _remaining(0.8, 1.0) == 0.8
+    assert _remaining(0.2, np.inf) == 0.2
+    assert _remaining(1.5, 1.0) == 1.5  # growing: no tail to sum
+    assert _remaining(np.inf, np.inf) == np.inf  # coarse levels: never by this rule
 
 
 def test_the_raw_level_stops_once_steps_move_no_height_by_a_tenth_of_the_noise(
