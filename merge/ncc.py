@@ -295,10 +295,15 @@ def find_peak(
     """
     ky = np.arange(ncc.shape[0]) - zero[0]
     kx = np.arange(ncc.shape[1]) - zero[1]
-    ok = np.isfinite(ncc) & (count >= min_overlap)
     if radius is not None:
-        ok &= (np.abs(ky - expected[0]) <= radius[0])[:, None]
-        ok &= (np.abs(kx - expected[1]) <= radius[1])[None, :]
+        # the search window's bounding box: all that follows is local to it
+        rows = np.flatnonzero(np.abs(ky - expected[0]) <= radius[0])
+        cols = np.flatnonzero(np.abs(kx - expected[1]) <= radius[1])
+        if rows.size == 0 or cols.size == 0:
+            return None
+        box = (slice(rows[0], rows[-1] + 1), slice(cols[0], cols[-1] + 1))
+        ncc, count, ky, kx = ncc[box], count[box], ky[box[0]], kx[box[1]]
+    ok = np.isfinite(ncc) & (count >= min_overlap)
     if not ok.any():
         return None
     score = np.where(ok, ncc, -np.inf)
@@ -374,8 +379,9 @@ def _between(
     deeper than ``margin`` below ``b`` separates them, and whether ``a`` rises above the path's
     lowest score by no more than ``margin`` (does not stand out of it)."""
     steps = max(abs(b[0] - a[0]), abs(b[1] - a[1]), 1) + 1
-    rows = np.rint(np.linspace(a[0], b[0], steps)).astype(np.intp)
-    cols = np.rint(np.linspace(a[1], b[1], steps)).astype(np.intp)
+    # halves rounded up, not to even: the path is then the same wherever the map starts
+    rows = np.floor(np.linspace(a[0], b[0], steps) + 0.5).astype(np.intp)
+    cols = np.floor(np.linspace(a[1], b[1], steps) + 0.5).astype(np.intp)
     low = float(score[rows, cols].min())
     return bool(low < score[b] - margin), bool(score[a] - low <= margin)
 

@@ -154,3 +154,21 @@ def test_a_peak_that_stands_out_of_its_ridge_has_no_alike_neighbours(seed: int) 
     a, b = _grating(3, 1), _grating(0, 2)
     periodic = best_shift(a, b, expected=(0.0, 0.0), min_overlap=200, ambiguity=0.1)
     assert periodic is not None and periodic.ridge == ()
+
+
+@pytest.mark.parametrize("pad", [(1, 0), (0, 1), (1, 1), (2, 3)])
+def test_the_peak_does_not_depend_on_where_the_map_starts(pad: tuple[int, int]) -> None:
+    # two alike peaks a knight's move apart: the straight path between them passes half-way
+    # between two cells, one on the ridge that joins them and one in a valley
+    ncc = np.full((21, 21), 0.2)
+    ncc[10, 10], ncc[11, 12] = 0.8, 0.75
+    ncc[10, 11], ncc[11, 11] = 0.74, 0.5
+    peak = find_peak(ncc, np.full(ncc.shape, 500.0), (10, 10), ambiguity=0.1)
+    assert peak is not None and peak.integer_shift == (0, 0)
+    # the same map with rows and columns of lower scores before and after it
+    py, px = pad
+    wide = np.random.default_rng(0).uniform(-1.0, 0.1, (21 + 2 * py, 21 + 2 * px))
+    wide[py : py + 21, px : px + 21] = ncc
+    other = find_peak(wide, np.full(wide.shape, 500.0), (10 + py, 10 + px), ambiguity=0.1)
+    assert other is not None
+    assert (other.shift, other.ridge, other.score) == (peak.shift, peak.ridge, peak.score)
