@@ -55,8 +55,11 @@ SHIFT_PRIOR = 0.05
 AMBIGUITY = 0.1
 #: Best precision of a correlation peak, cells.
 PRECISION = 0.1
-#: Information along an edge below this fraction of that across it counts as none.
+#: Information along an edge below this fraction of that across it counts as none...
 APERTURE = 0.01
+#: ...unless the texture along it (roughness beside a step) carries this many times the slope
+#: energy of the noise: a tenth more or less noise than estimated cannot fake it.
+TEXTURE = 1.0
 #: Alike peaks on a peak's own ridge whose offsets spread across the ridge by more than this
 #: fraction (of their second moments) make a plateau: no direction measured.
 PLATEAU = 0.1
@@ -302,6 +305,7 @@ def coarse_start(
             s_pair,
             precision=PRECISION,
             aperture=APERTURE,
+            texture=TEXTURE,
         )
         xy_w[i] = along_ridge_removed(info, peak.ridge) / cell**2
 

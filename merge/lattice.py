@@ -148,13 +148,17 @@ def overlap_information(
     *,
     precision: float,
     aperture: float,
+    texture: float = np.inf,
 ) -> FloatArray:
     """XY information (per cell², 2 x 2, order x, y) of a shift: structure tensor of the overlap.
 
     ``sigma`` is the noise of the difference of the two images, metres. Capped at
     ``1 / precision²`` (cells): a correlation peak on a lattice is never better than about a
     tenth of a cell (discretisation, interpolation bias), however sharp the edges. A direction
-    with less than ``aperture`` of the larger information is not measured at all.
+    with less than ``aperture`` of the larger information is not measured at all, unless its
+    own texture is plain: at least ``texture`` times the slope energy the noise brings along
+    it, and ``aperture`` of the capped information (a precision of ``precision / sqrt(aperture)``
+    cells, a cell by default).
     """
     where = _overlap(a.shape, b.shape, shift)
     if where is None or where[0].stop - where[0].start < 2 or where[1].stop - where[1].start < 2:
@@ -169,8 +173,13 @@ def overlap_information(
     info = signal_information(tensor, gx.size * sigma**2 / 2.0) / (2.0 * sigma**2)
     # A direction with a tiny share of the information is not measured at all: pairs whose
     # nearly parallel edges are combined would otherwise amplify their errors along the edges.
+    # But roughness on the faces beside a step measures the shift along the step, though the
+    # step holds a hundred times more information across it: that texture, well above the
+    # noise, counts (the noise's own share, gx.size σ²/2 per direction, is n / 4 here).
     vals, vecs = np.linalg.eigh(info)
-    vals = np.where(vals >= aperture * vals.max(), np.minimum(vals, precision**-2), 0.0)
+    cap = precision**-2
+    plain = (vals >= texture * gx.size / 4.0) & (np.minimum(vals, cap) >= aperture * cap)
+    vals = np.where((vals >= aperture * vals.max()) | plain, np.minimum(vals, cap), 0.0)
     out: FloatArray = (vecs * vals) @ vecs.T
     return out
 

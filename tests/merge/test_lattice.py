@@ -84,6 +84,25 @@ def test_a_straight_edge_informs_across_it_only_and_texture_in_both_directions()
     assert not overlap_information(rough, rough, (29, 0), 1e-9, precision=0.1, aperture=0.01).any()
 
 
+def test_roughness_beside_a_step_measures_along_it_and_noise_does_not() -> None:
+    rng = np.random.default_rng(2)
+    cols = np.arange(40.0)
+    step = np.tile(500e-9 * np.tanh((cols - 20.0) / 2.0), (30, 1))  # a step along y
+    rough = step + gaussian_filter(rng.normal(0.0, 4e-9, step.shape), 1.0)  # ~1.5 nm
+    kw = {"precision": 0.1, "aperture": 0.01}
+    noisy = rough + rng.normal(0.0, 0.5e-9, step.shape)
+    # the step holds far more than a hundred times the roughness's information...
+    vals = np.linalg.eigvalsh(overlap_information(noisy, noisy, (0, 5), 0.5e-9, **kw))
+    assert abs(vals[0]) < 1e-9
+    # ...yet the roughness measures the shift along it, well within a cell
+    vals = np.linalg.eigvalsh(overlap_information(noisy, noisy, (0, 5), 0.5e-9, texture=1.0, **kw))
+    assert vals[0] >= 1.0 and vals[1] == pytest.approx(100.0)
+    # a bare step under noise a fifth larger than estimated has no texture along it
+    bare = step + rng.normal(0.0, 1.2e-9, step.shape)
+    vals = np.linalg.eigvalsh(overlap_information(bare, bare, (0, 5), 1e-9, texture=1.0, **kw))
+    assert abs(vals[0]) < 1e-9
+
+
 def test_the_z_difference_is_the_median_over_the_overlap_at_the_shift() -> None:
     a = np.arange(20.0).reshape(4, 5)
     b = np.full((4, 5), np.nan)
