@@ -158,7 +158,7 @@ def overlap_information(
     with less than ``aperture`` of the larger information is not measured at all, unless its
     own texture is plain: at least ``texture`` times the slope energy the noise brings along
     it, and ``aperture`` of the capped information (a precision of ``precision / sqrt(aperture)``
-    cells, a cell by default).
+    cells: a cell with the start's 0.1 and 0.01).
     """
     where = _overlap(a.shape, b.shape, shift)
     if where is None or where[0].stop - where[0].start < 2 or where[1].stop - where[1].start < 2:

@@ -304,8 +304,9 @@ def _remaining(effect: float, last: float) -> float:
     effect; ``last`` the one before).
 
     Gauss-Newton near its solution converges linearly: every step the previous one times about
-    the same ratio, so what remains is the last step times ``ratio / (1 - ratio)``. Counted no
-    smaller than the last step itself (a ratio over a half, or no ratio yet, says little more).
+    the same ratio, so what remains is the last step times ``ratio / (1 - ratio)``, counted as
+    no more than the last step itself: with a ratio over a half (or none yet), the tail is
+    slow to trust and the last step alone decides, as it did before this rule.
     """
     if not (np.isfinite(last) and last > 0):
         return effect
