@@ -2,13 +2,16 @@
 
 Each shift is scored only on the pixels both images hold there, with means and variances taken
 over that overlap: so a Z offset between the images, NaN holes and partial overlap do not bias
-the score.
+the score. Sums over the overlaps are correlations with the masks, done by FFT; between images
+without holes every overlap is a rectangle, and summed-area tables give those sums instead,
+leaving one transform per channel (the cross term) where the masks took five.
 """
 
 from __future__ import annotations
 
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -81,7 +84,10 @@ def masked_ncc(
         raise ValueError("masked_ncc needs two images (or stacks with the same channel count)")
     w = _channel_weights(weights, a.shape[1])
     lattice = _Lattice.of(a.shape[-2:], b.shape[-2:])
-    ncc, count = lattice.ncc(lattice.spectra(a, first=True), lattice.spectra(b, first=False), w)
+    dense = bool(np.isfinite(a).all() and np.isfinite(b).all())
+    ncc, count = lattice.ncc(
+        lattice.spectra(a, first=True, dense=dense), lattice.spectra(b, first=False, dense=dense), w
+    )
     if single:
         return ncc[0], count[0], lattice.zero
     return ncc, count, lattice.zero
@@ -97,16 +103,52 @@ def _channel_weights(weights: Sequence[float] | None, channels: int) -> FloatArr
 
 @dataclass(frozen=True)
 class _Spectra:
-    """Fourier transforms of a batch of channel stacks on one padded lattice: their masks
-    (batch, H, W'), and per channel the standardised values and their squares (batch, C, H, W').
-    An image's spectra serve every pair it is in."""
+    """Fourier transforms of a batch of channel stacks on one padded lattice: per channel the
+    standardised values (batch, C, H, W'), and either the masks (batch, H, W') and the values'
+    squares (batch, C, H, W') or, for images without missing pixels, summed-area tables of the
+    values and their squares (batch, C, h + 1, w + 1): over a full image every overlap is a
+    rectangle, and its sums are four look-ups instead of four transforms. An image's spectra
+    serve every pair it is in."""
 
-    mask: NDArray[np.complex64]
     values: NDArray[np.complex64]
-    squares: NDArray[np.complex64]
+    mask: NDArray[np.complex64] | None = None
+    squares: NDArray[np.complex64] | None = None
+    sums: FloatArray | None = None
+    sums2: FloatArray | None = None
+
+    @property
+    def dense(self) -> bool:
+        return self.sums is not None
 
     def take(self, index: IntArray) -> _Spectra:
-        return _Spectra(self.mask[index], self.values[index], self.squares[index])
+        def pick(x: NDArray[Any] | None) -> NDArray[Any] | None:
+            return None if x is None else x[index]
+
+        return _Spectra(
+            self.values[index],
+            pick(self.mask),
+            pick(self.squares),
+            pick(self.sums),
+            pick(self.sums2),
+        )
+
+
+def _summed_area(x: FloatArray) -> FloatArray:
+    """Summed-area table (..., h + 1, w + 1) of ``x`` (..., h, w): ``[i, j]`` sums ``x[:i, :j]``."""
+    out = np.zeros((*x.shape[:-2], x.shape[-2] + 1, x.shape[-1] + 1))
+    out[..., 1:, 1:] = x.cumsum(axis=-2).cumsum(axis=-1)
+    return out
+
+
+def _box(
+    table: FloatArray, rows: tuple[IntArray, IntArray], cols: tuple[IntArray, IntArray]
+) -> FloatArray:
+    """Sums of rectangles ``rows[0][k]:rows[1][k]`` x ``cols[0][l]:cols[1][l]`` from a summed-area
+    table (..., h + 1, w + 1): (..., len(rows[0]), len(cols[0])). Rows, then columns, one
+    difference of two whole-axis gathers each."""
+    strips = np.take(table, rows[1], axis=-2) - np.take(table, rows[0], axis=-2)
+    out: FloatArray = np.take(strips, cols[1], axis=-1) - np.take(strips, cols[0], axis=-1)
+    return out
 
 
 @dataclass(frozen=True)
@@ -140,9 +182,11 @@ class _Lattice:
         )
         return out
 
-    def spectra(self, x: FloatArray, *, first: bool) -> _Spectra:
+    def spectra(self, x: FloatArray, *, first: bool, dense: bool = False) -> _Spectra:
         """Spectra of channel stacks ``x`` (batch, C, h, w), NaN for missing pixels, as the
-        ``first`` (``a``) or second image of their pairs.
+        ``first`` (``a``) or second image of their pairs; ``dense`` (every pixel of every
+        image present, on both sides of the pairs) keeps summed-area tables instead of
+        transforming masks and squares.
 
         Each channel is standardised on its own (its mean off, divided by its RMS) so that sums
         of squares do not cancel catastrophically; the NCC ignores both. First images are
@@ -150,12 +194,30 @@ class _Lattice:
         spectra are then convolutions that hold every shift in order, the most negative first
         (a correlation would wrap the negative shifts round to the end).
         """
-        if first:
-            x = x[..., ::-1, ::-1]
         mask: NDArray[np.bool_] = np.all(np.isfinite(x), axis=1)
         x0 = np.where(mask[:, None], x - _masked_mean(x, mask[:, None]), 0.0)
         x0 = x0 / _rms(x0)
-        return _Spectra(self._fft(mask), self._fft(x0), self._fft(x0 * x0))
+        if dense:
+            if not mask.all():
+                raise ValueError("dense spectra need images without missing pixels")
+            return _Spectra(
+                self._fft(x0[..., ::-1, ::-1] if first else x0),
+                sums=_summed_area(x0),
+                sums2=_summed_area(x0 * x0),
+            )
+        if first:
+            x0, mask = x0[..., ::-1, ::-1], mask[..., ::-1, ::-1]
+        return _Spectra(self._fft(x0), self._fft(mask), self._fft(x0 * x0))
+
+    def _overlaps(self) -> tuple[tuple[IntArray, IntArray], ...]:
+        """Per shift along each axis, the overlap's bounds in ``a`` and in ``b``: rows of a, rows
+        of b, columns of a, columns of b, each as (start, stop) arrays over the shifts."""
+        out: list[tuple[IntArray, IntArray]] = []
+        for na, nb in zip(self.a, self.b, strict=True):
+            d = np.arange(na + nb - 1) - (na - 1)  # b[y + d] meets a[y]
+            lo, hi = np.maximum(0, -d), np.minimum(na, nb - d)
+            out += [(lo, hi), (lo + d, hi + d)]
+        return tuple(out)
 
     def _corr(self, x: NDArray[np.complex64], y: NDArray[np.complex64]) -> NDArray[np.float32]:
         # index (ha - 1, wa - 1) is the zero shift, shifts run from -(ha-1) to hb-1
@@ -167,15 +229,31 @@ class _Lattice:
     def ncc(self, fa: _Spectra, fb: _Spectra, w: FloatArray) -> tuple[FloatArray, FloatArray]:
         """NCC (averaged over channels with weights ``w``) and overlap count of every pair
         ``(fa[k], fb[k])`` for every shift."""
-        n = np.rint(self._corr(fa.mask, fb.mask))
+        dense = fa.dense and fb.dense
+        if dense:
+            rows_a, rows_b, cols_a, cols_b = self._overlaps()
+            size = (rows_a[1] - rows_a[0])[:, None] * (cols_a[1] - cols_a[0])[None, :]
+            n = np.broadcast_to(size.astype(np.float64), (len(fa.values), *size.shape))
+        else:
+            n = np.rint(self._corr(_need(fa.mask), _need(fb.mask)))
         total = np.zeros(n.shape)
         for ch in range(len(w)):
             if w[ch] == 0:
                 continue
             a1, b1 = fa.values[:, ch], fb.values[:, ch]
-            sa, sb = self._corr(a1, fb.mask), self._corr(fa.mask, b1)
-            saa = self._corr(fa.squares[:, ch], fb.mask)
-            sbb = self._corr(fa.mask, fb.squares[:, ch])
+            sa: NDArray[np.floating[Any]]  # float64 sums or float32 transforms
+            sb: NDArray[np.floating[Any]]
+            saa: NDArray[np.floating[Any]]
+            sbb: NDArray[np.floating[Any]]
+            if dense:
+                sa = _box(_need(fa.sums)[:, ch], rows_a, cols_a)
+                saa = _box(_need(fa.sums2)[:, ch], rows_a, cols_a)
+                sb = _box(_need(fb.sums)[:, ch], rows_b, cols_b)
+                sbb = _box(_need(fb.sums2)[:, ch], rows_b, cols_b)
+            else:
+                sa, sb = self._corr(a1, _need(fb.mask)), self._corr(_need(fa.mask), b1)
+                saa = self._corr(_need(fa.squares)[:, ch], _need(fb.mask))
+                sbb = self._corr(_need(fa.mask), _need(fb.squares)[:, ch])
             sab = self._corr(a1, b1)
             with np.errstate(invalid="ignore", divide="ignore"):
                 num = sab - sa * sb / n
@@ -185,6 +263,12 @@ class _Lattice:
                 # an overlap whose variance is within float32's rounding of zero is flat: no score
                 total += w[ch] * np.where((n > 0) & (den > 1e-5 * n), num / den, np.nan)
         return np.clip(total, -1.0, 1.0), n.astype(np.float64)
+
+
+def _need(x: NDArray[Any] | None) -> NDArray[Any]:
+    if x is None:  # spectra of the other kind: an error of this module, not of its input
+        raise RuntimeError("dense and masked spectra mixed in one NCC")
+    return x
 
 
 def pair_maps(
@@ -215,8 +299,11 @@ def pair_maps(
         # every image once per side it takes in this group
         side_a, at_a = np.unique(rows[:, 0], return_inverse=True)
         side_b, at_b = np.unique(rows[:, 1], return_inverse=True)
-        spectra_a = lattice.spectra(np.stack([stacks[c] for c in side_a.tolist()]), first=True)
-        spectra_b = lattice.spectra(np.stack([stacks[c] for c in side_b.tolist()]), first=False)
+        images_a = np.stack([stacks[c] for c in side_a.tolist()])
+        images_b = np.stack([stacks[c] for c in side_b.tolist()])
+        dense = bool(np.isfinite(images_a).all() and np.isfinite(images_b).all())
+        spectra_a = lattice.spectra(images_a, first=True, dense=dense)
+        spectra_b = lattice.spectra(images_b, first=False, dense=dense)
         for lo in range(0, len(members), batch):
             chunk = slice(lo, lo + batch)
             ncc, count = lattice.ncc(

@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 from scipy.ndimage import gaussian_filter
 
-from merge.ncc import best_shift, find_peak, masked_ncc, pair_maps
+from merge.ncc import _Lattice, best_shift, find_peak, masked_ncc, pair_maps
 
 
 def texture(seed: int, shape: tuple[int, int] = (60, 60)) -> np.ndarray:
@@ -65,6 +65,29 @@ def test_pair_maps_score_every_pair_as_alone() -> None:
         assert zero == alone_zero
         np.testing.assert_array_equal(count, alone_count)
         np.testing.assert_allclose(ncc[used], alone[used], atol=1e-4)
+
+
+def test_full_images_score_by_summed_areas_as_by_masks() -> None:
+    # no missing pixel: overlap sums come from summed-area tables, not from transforms; every
+    # shift of two images of different shapes scores as the masked path scores it
+    big = texture(8, (90, 90))
+    a = np.stack([big[10:40, 5:45], 50.0 * big[40:70, 20:60] + 3.0])[None]
+    b = np.stack([big[14:40, 9:42], 50.0 * big[44:70, 24:57] + 3.0])[None]
+    lattice, w = _Lattice.of(a.shape, b.shape), np.array([0.6, 0.4])
+    dense, dense_count = lattice.ncc(
+        lattice.spectra(a, first=True, dense=True), lattice.spectra(b, first=False, dense=True), w
+    )
+    masked, masked_count = lattice.ncc(
+        lattice.spectra(a, first=True), lattice.spectra(b, first=False), w
+    )
+    np.testing.assert_array_equal(dense_count, masked_count)
+    used = dense_count >= 16
+    np.testing.assert_allclose(dense[used], masked[used], atol=1e-4)
+    # and the true shift wins: b[y + dy, x + dx] = a[y, x] with (dy, dx) = (-4, -4)
+    k = np.unravel_index(np.nanargmax(np.where(used, dense, np.nan)), dense.shape)
+    assert (k[1] - lattice.zero[0], k[2] - lattice.zero[1]) == (-4, -4)
+    with pytest.raises(ValueError, match="missing pixels"):
+        lattice.spectra(np.where(a > 1.0, np.nan, a), first=True, dense=True)
 
 
 def _grating(shift: int, noise_seed: int) -> np.ndarray:
