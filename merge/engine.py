@@ -17,7 +17,6 @@ from merge.downsample import grid_downsample
 from merge.gauge import anchor_to_nominal, nominal_points
 from merge.lattice import coherence, fill_empty_lines
 from merge.overlap import overlapping_pairs
-from merge.paper import paper_gpa_icp
 from merge.patchset import PatchSet
 from merge.refine import DEFAULT_LEVELS, Level, assess, refine
 from merge.render import Mosaic, render_mosaic
@@ -231,6 +230,8 @@ def run(
         else:
             R0 = np.array([tr.R for tr in transforms])
             t0 = np.array([tr.t for tr in transforms])
+            from merge.paper import paper_gpa_icp  # its kd-trees' import only when asked for
+
             paper = paper_gpa_icp(
                 patches,
                 near,

@@ -1,14 +1,15 @@
 """Which patches can overlap: a neighbour graph from nominal footprints.
 
-A kd-tree over footprint centres finds candidate pairs within reach, so building the graph costs
-O(n log n) and its size grows linearly with the number of patches on a grid.
+Footprint centres sorted along the axis they spread most along give every patch its candidates
+within reach by a binary search (a sweep), so building the graph costs O(n log n) plus the
+candidates, whose number grows linearly with the patches on a grid: those of a few columns (or
+rows).
 """
 
 from __future__ import annotations
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.spatial import cKDTree
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
@@ -38,10 +39,11 @@ def overlapping_pairs(boxes: FloatArray, *, margin: float = 0.0) -> IntArray:
     centres = 0.5 * (b[:, :2] + b[:, 2:])
     half = 0.5 * (b[:, 2:] - b[:, :2])
     reach = 2.0 * float(np.hypot(half[:, 0], half[:, 1]).max()) + 2.0 * margin
-    cand = cKDTree(centres).query_pairs(reach * (1.0 + 1e-9), output_type="ndarray")
-    if len(cand) == 0:
+    axis = int(np.argmax(np.ptp(centres, axis=0)))
+    a, c = _within_reach(centres[:, axis], reach * (1.0 + 1e-9))
+    if len(a) == 0:
         return np.empty((0, 2), dtype=np.intp)
-    a, c = cand[:, 0], cand[:, 1]
+    cand = np.column_stack([a, c])
     lo = np.maximum(b[a, :2], b[c, :2]) - margin
     hi = np.minimum(b[a, 2:], b[c, 2:]) + margin
     keep = np.all(hi > lo, axis=1)
@@ -49,3 +51,16 @@ def overlapping_pairs(boxes: FloatArray, *, margin: float = 0.0) -> IntArray:
     order = np.lexsort((pairs[:, 1], pairs[:, 0]))
     out: IntArray = pairs[order].astype(np.intp)
     return out
+
+
+def _within_reach(x: FloatArray, reach: float) -> tuple[IntArray, IntArray]:
+    """Every pair ``(a[k], c[k])``, ``a != c``, once, whose ``x`` (n,) differ by at most
+    ``reach``."""
+    order = np.argsort(x, kind="stable")
+    xs = x[order]
+    n = len(xs)
+    count = np.searchsorted(xs, xs + reach, side="right") - np.arange(n) - 1
+    first = np.repeat(np.arange(n), count)
+    # the k-th partner of a patch is the k-th after it in x order
+    step = np.arange(int(count.sum())) - np.repeat(np.cumsum(count) - count, count)
+    return order[first], order[first + 1 + step]
