@@ -61,6 +61,6 @@ def _within_reach(x: FloatArray, reach: float) -> tuple[IntArray, IntArray]:
     n = len(xs)
     count = np.searchsorted(xs, xs + reach, side="right") - np.arange(n) - 1
     first = np.repeat(np.arange(n), count)
-    # the k-th partner of a patch is the k-th after it in x order
+    # the k-th partner of a patch is the k-th after it in sorted order
     step = np.arange(int(count.sum())) - np.repeat(np.cumsum(count) - count, count)
     return order[first], order[first + 1 + step]

@@ -65,7 +65,7 @@ def test_a_step_moves_heights_directly_in_z_and_through_the_slopes_in_xy() -> No
 def test_what_remains_of_a_geometric_convergence_is_its_tail() -> None:
     # steps shrinking by 5 each: 1, 0.2, 0.04, ... leave 0.05 after the second
     assert _remaining(0.2, 1.0) == pytest.approx(0.05)
-    # slow convergence (ratio over a half) or a first step: no less than the last step
+    # slow convergence (ratio over a half) or a first step: the last step alone
     assert _remaining(0.8, 1.0) == 0.8
     assert _remaining(0.2, np.inf) == 0.2
     assert _remaining(1.5, 1.0) == 1.5  # growing: no tail to sum
