@@ -33,10 +33,11 @@ from merge.lattice import (
     remove_common_plane,
     texture,
 )
-from merge.ncc import CorrelationPeak, find_peak, masked_ncc, pair_maps
+from merge.ncc import masked_ncc, pair_maps
 from merge.network import solve_pair_differences
 from merge.noise import estimate_noise
 from merge.patchset import Patch
+from merge.peaks import CorrelationPeak, find_peak
 from merge.placement import PairMap, place_patch
 from merge.tilts import levelled_one_by_one, patch_tilts, untilted
 
@@ -46,7 +47,7 @@ IntArray = NDArray[np.intp]
 #: NCC from which a peak counts whatever the rest of its map looks like.
 MIN_SCORE = 0.3
 #: Below MIN_SCORE, a peak counts if it stands this many robust spreads above the best that
-#: chance gives in its search window (:attr:`merge.ncc.CorrelationPeak.excess`).
+#: chance gives in its search window (:attr:`merge.peaks.CorrelationPeak.excess`).
 SIGNIFICANCE = 3.0
 #: NCC given up at the search radius to break ties toward the expected shift (see find_peak).
 SHIFT_PRIOR = 0.05

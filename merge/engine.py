@@ -18,7 +18,8 @@ from merge.gauge import anchor_to_nominal, nominal_points
 from merge.lattice import coherence, fill_empty_lines
 from merge.overlap import overlapping_pairs
 from merge.patchset import PatchSet
-from merge.refine import DEFAULT_LEVELS, Level, assess, refine
+from merge.quality import assess
+from merge.refine import DEFAULT_LEVELS, Level, refine
 from merge.render import Mosaic, render_mosaic
 from merge.transforms import PatchTransform
 

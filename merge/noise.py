@@ -1,6 +1,8 @@
-"""Robust estimate of the white height noise of a scan."""
+"""Robust estimate of the white height noise of a scan, and of a patch set."""
 
 from __future__ import annotations
+
+from collections.abc import Iterable
 
 import numpy as np
 from numpy.typing import NDArray
@@ -29,3 +31,10 @@ def estimate_noise(heights: FloatArray) -> float:
     if d2.size == 0:
         return float("nan")
     return float(np.median(np.abs(d2)) * _SECOND_DIFF_MAD_TO_SIGMA)
+
+
+def patch_noise(heights: Iterable[FloatArray], scale: float) -> float:
+    """Median of :func:`estimate_noise` over patches' ``heights`` (metres), in units of
+    ``scale`` (metres, the typical pixel); a thousandth of it where nothing could be estimated."""
+    noise = float(np.nanmedian([estimate_noise(h) for h in heights])) / scale
+    return noise if np.isfinite(noise) and noise > 0 else 1e-3

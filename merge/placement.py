@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from merge.ncc import find_peak
+from merge.peaks import find_peak
 
 FloatArray = NDArray[np.float64]
 
@@ -116,7 +116,7 @@ def place_patch(
     radius : float, keyword-only
         Largest distance from ``centre`` searched along each axis, cells.
     prior, ambiguity : float, keyword-only
-        As for :func:`merge.ncc.find_peak`, in NCC units: the ranking map is ``tanh`` of the
+        As for :func:`merge.peaks.find_peak`, in NCC units: the ranking map is ``tanh`` of the
         pooled mean ``z``, scaled down by ``sqrt`` of the pooled overlap where that is less than
         :data:`SATURATION` of the largest in the window.
     min_score : float, keyword-only

@@ -34,8 +34,8 @@ zero, and the patch points move on average by zero from their nominal places (:m
 so the mosaic cannot drift away from the stage frame.
 
 Pieces: :mod:`merge.bank` holds the patches as surfaces, :mod:`merge.normal_system` builds and
-solves the Gauss-Newton system; this module holds the schedule, the state of every patch and the
-per-patch quality report.
+solves the Gauss-Newton system, :mod:`merge.state` holds the placement of every patch and its
+gauge, :mod:`merge.quality` the per-patch quality report; this module holds the schedule.
 """
 
 from __future__ import annotations
@@ -49,17 +49,11 @@ from numpy.typing import NDArray
 from merge.bank import SurfaceBank
 from merge.errors import MergeCancelled
 from merge.heightfield import Border
-from merge.noise import estimate_noise
-from merge.normal_system import (
-    NormalSystem,
-    PatchState,
-    Priors,
-    build_normal_system,
-    solve_system,
-)
+from merge.noise import patch_noise
+from merge.normal_system import NormalSystem, Priors, build_normal_system, solve_system
 from merge.patchset import Patch
-from merge.transforms import PatchTransform, orthonormalize, rotation_from_vector
-from merge.uncertainty import gauge_modes, signal_information, translation_sigmas
+from merge.state import MosaicState
+from merge.transforms import PatchTransform
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
@@ -103,9 +97,6 @@ DRIFT_PRIOR = 5e-9
 FAST_DRIFT_SHARE = 0.1
 #: Standard deviation (radians) of the prior on a patch's rotation about z.
 SPIN_PRIOR = np.radians(2.0)
-#: An XY direction with less than this fraction of a patch's larger own XY information is one
-#: its overlaps do not see.
-LOCAL_FLOOR = 1e-6
 #: Smoothing (pixels) from which the first level continues patches point-symmetrically beyond
 #: their borders; the later levels always do (see :class:`merge.bank.SurfaceBank`). Patches
 #: overlap along their borders, so a bias there is a bias of every pair: repeating the border
@@ -132,26 +123,9 @@ DEFAULT_LEVELS = (
 
 
 @dataclass(frozen=True)
-class PatchFit:
-    """Per-patch quality of a fit (metres, counts).
-
-    ``xy_sigma`` (its larger axis) and ``z_sigma``: standard deviations of the translation,
-    marginal over the whole mosaic with the gauge fixed (:mod:`merge.uncertainty`): how well the
-    patch is placed. ``xy_sigma_local``: the same with every other patch held: whether its own
-    overlaps constrain XY at all.
-    """
-
-    correspondences: int
-    residual_rms: float
-    xy_sigma: float
-    z_sigma: float
-    xy_sigma_local: float
-
-
-@dataclass(frozen=True)
 class RefineResult:
     """``T_mosaic_patch`` per patch, iterations and the residual RMS of each; ``bank``, the
-    patches' raw heights as surfaces (for :func:`assess`, which needs the same)."""
+    patches' raw heights as surfaces (for :func:`merge.quality.assess`, which needs the same)."""
 
     transforms: list[PatchTransform]
     iterations: int
@@ -202,13 +176,13 @@ def refine(
     """
     pairs = np.asarray(pairs, dtype=np.intp).reshape(-1, 2)
     scale = float(np.median([min(p.pixel_size) for p in patches]))
-    noise = _noise(patches, scale)
+    noise = patch_noise((p.heights for p in patches), scale)
     history: list[float] = []
     iteration = 0
     converged = False
     stats: NormalSystem | None = None
     base = SurfaceBank(patches, scale, 0.0, 1)
-    state = _State.from_transforms(start, base, scale)
+    state = MosaicState.from_transforms(start, base, scale)
     start_s = state.s.copy()
     plane_sigma = np.full(2, drift_prior / scale)  # the first level: as loose along both axes
     for li, level in enumerate(levels):
@@ -326,139 +300,4 @@ def _plane_sigma(plane: FloatArray, drift_prior: float) -> FloatArray:
     physics = np.array([FAST_DRIFT_SHARE, 1.0]) * drift_prior
     spread = np.sqrt(np.mean(plane**2, axis=0)) if len(plane) else np.zeros(2)
     out: FloatArray = np.where(spread > drift_prior, spread, physics)
-    return out
-
-
-def _noise(patches: Sequence[Patch], scale: float) -> float:
-    noise = float(np.nanmedian([estimate_noise(p.heights) for p in patches])) / scale
-    return noise if np.isfinite(noise) and noise > 0 else 1e-3
-
-
-class _State(PatchState):
-    """The placement of every patch (:class:`PatchState`), and how a step and the gauge move it."""
-
-    @classmethod
-    def from_transforms(
-        cls, start: Sequence[PatchTransform], bank: SurfaceBank, scale: float
-    ) -> _State:
-        n = len(start)
-        R = np.array([tr.R for tr in start])
-        slope = np.array([tr.slope for tr in start])
-        s = np.empty((n, 3))
-        for c, tr in enumerate(start):
-            centre = bank.centre[c] * scale
-            # the drift plane is re-centred on the patch centre (a change of its constant only)
-            s[c] = (R[c] @ centre + tr.t) / scale
-            s[c, 2] += float((centre[:2] - tr.centre) @ tr.slope) / scale
-        return cls(R, s, slope)
-
-    def to_transforms(self, bank: SurfaceBank, scale: float) -> list[PatchTransform]:
-        out = []
-        for c in range(len(self.R)):
-            centre = bank.centre[c] * scale
-            t = self.s[c] * scale - self.R[c] @ centre
-            out.append(PatchTransform(self.R[c], t, self.slope[c], centre[:2]))
-        return out
-
-    def spin(self) -> FloatArray:
-        """Rotation angle about z of every patch, radians."""
-        out: FloatArray = np.arctan2(self.R[:, 1, 0], self.R[:, 0, 0])
-        return out
-
-    def update(self, delta: FloatArray, radius: FloatArray) -> None:
-        spin = np.zeros((len(delta), 3))
-        spin[:, 2] = delta[:, 3] / radius
-        self.R = orthonormalize(np.einsum("cij,cjk->cik", rotation_from_vector(spin), self.R))
-        self.s = self.s + delta[:, :3]
-        self.slope = self.slope + delta[:, 4:] / radius[:, None]
-
-    def fix_gauge(self, centre: FloatArray, point_start: IntArray) -> None:
-        """Remove the common motion (module notes): mean spin, mean plane, mean displacement."""
-        weight = np.diff(point_start).astype(np.float64)
-        weight = weight / weight.sum()
-        pivot = weight @ self.s
-        spin = np.zeros(3)
-        spin[2] = -float(weight @ self.spin())
-        G = rotation_from_vector(spin)
-        self.R = np.einsum("ij,cjk->cik", G, self.R)
-        self.s = (self.s - pivot) @ G.T + pivot
-        plane = weight @ self.slope
-        self.slope = self.slope - plane
-        self.s[:, 2] -= (self.s[:, :2] - pivot[:2]) @ plane
-        self.s = self.s - weight @ (self.s - centre)
-
-
-def assess(
-    patches: Sequence[Patch],
-    pairs: IntArray,
-    transforms: Sequence[PatchTransform],
-    *,
-    bank: SurfaceBank | None = None,
-) -> list[PatchFit]:
-    """Per-patch quality of given transforms on the full-resolution heights (no update).
-
-    Used for every method, so their reports compare like with like. ``bank``: the patches' raw
-    heights as surfaces, if already built (:attr:`RefineResult.bank`).
-    """
-    scale = float(np.median([min(p.pixel_size) for p in patches]))
-    if bank is None:
-        bank = SurfaceBank(patches, scale, 0.0, 1)
-    state = _State.from_transforms(transforms, bank, scale)
-    margin = 1.5 * float(max(bank.dx.max(), bank.dy.max()))
-    cand = bank.candidates(
-        np.asarray(pairs, dtype=np.intp).reshape(-1, 2), state.R, state.s, margin
-    )
-    noise = _noise(patches, scale)
-    system = build_normal_system(bank, cand, state, noise, signal=True)
-    n = len(patches)
-    xy, z = np.full(n, np.inf), np.full(n, np.inf)
-    if system.signal_vals is not None and len(system.rows):
-        gauge = gauge_modes(state.s, bank.radius, np.diff(bank.point_start).astype(np.float64))
-        xy, z = translation_sigmas(
-            (system.rows, system.cols, system.signal_vals),
-            gauge,
-            rms=system.rms,
-            z_design=system.line_design,
-        )
-    pitch = np.column_stack([bank.dx, bank.dy])
-    local = _local_fits(system, n, noise, pitch, bank.slope_noise)
-    # held by its neighbours, a patch is never placed better than its own overlaps allow (the
-    # two take the noise's share out differently: per run there, per patch here)
-    xy = np.maximum(xy, [local_xy for _, _, local_xy in local])
-    return [
-        PatchFit(k, rms * scale, float(xy[c] * scale), float(z[c] * scale), local_xy * scale)
-        if k
-        else PatchFit(0, float("nan"), float("inf"), float("inf"), float("inf"))
-        for c, (k, rms, local_xy) in enumerate(local)
-    ]
-
-
-def _local_fits(
-    stats: NormalSystem, n: int, noise: float, pitch: FloatArray, slope_noise: float
-) -> list[tuple[int, float, float]]:
-    """Per patch: residuals, their RMS and the XY standard deviation with every other patch
-    held (pixel units). ``slope_noise``: variance of a looked-up slope of unit white noise per
-    unit pitch (:func:`merge.heightfield.slope_noise`)."""
-    out: list[tuple[int, float, float]] = []
-    for c in range(n):
-        k = stats.count[c]
-        if k == 0:
-            out.append((0, float("nan"), float("inf")))
-            continue
-        rms = float(np.sqrt(stats.sq[c] / k))
-        info = stats.diag[c] + 1e-9 * np.trace(stats.diag[c]) * np.eye(6)
-        try:
-            # information of its XY translation with its own other unknowns free, without the
-            # share that slopes of noise contribute: noise is not texture (per residual
-            # slope_noise σ² / pitch², 2/9 for bilinear look-ups between central differences)
-            xy_info = info[:2, :2] - info[:2, 2:] @ np.linalg.solve(info[2:, 2:], info[2:, :2])
-            pitch2 = np.array([pitch[c, 0] ** -2, pitch[c, 1] ** -2])
-            xy_info = signal_information(xy_info, k * noise**2 * slope_noise * pitch2)
-            vals = np.linalg.eigvalsh(xy_info)
-            # at the level of the regularisation above, a direction is not seen at all
-            seen = vals.min() > LOCAL_FLOOR * max(float(vals.max()), 1e-300)
-            xy = float(rms / np.sqrt(vals.min())) if seen else float("inf")
-        except np.linalg.LinAlgError:
-            xy = float("inf")
-        out.append((int(k), rms, xy))
     return out

@@ -29,8 +29,9 @@ from numpy.typing import NDArray
 
 from merge.downsample import GridSample
 from merge.heightfield import smooth_nan
-from merge.ncc import find_peak, pair_maps
+from merge.ncc import pair_maps
 from merge.network import solve_pair_differences
+from merge.peaks import find_peak
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
