@@ -20,7 +20,7 @@ from merge.normal_system import NormalSystem, build_normal_system
 from merge.patchset import Patch
 from merge.state import MosaicState
 from merge.transforms import PatchTransform
-from merge.uncertainty import gauge_modes, signal_information, translation_sigmas
+from merge.uncertainty import gauge_modes, signal_information, tied_groups, translation_sigmas
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
@@ -72,7 +72,9 @@ def assess(
     n = len(patches)
     xy, z = np.full(n, np.inf), np.full(n, np.inf)
     if system.signal_vals is not None and len(system.rows):
-        gauge = gauge_modes(state.s, bank.radius, np.diff(bank.point_start).astype(np.float64))
+        weight = np.diff(bank.point_start).astype(np.float64)
+        groups = tied_groups(system.rows, system.cols, n)
+        gauge = gauge_modes(state.s, bank.radius, weight, groups)
         xy, z = translation_sigmas(
             (system.rows, system.cols, system.signal_vals),
             gauge,

@@ -5,8 +5,9 @@ That is the local question (do its overlaps constrain XY at all?), but not the p
 uncertainty: a block of patches tied to the rest by overlaps with little texture (a grating's
 flat faces, say) can move together, every patch in it well held by its neighbours, and a
 report built from the own blocks would claim tenths of a nanometre for a block that is off by
-several. The marginal covariance — every other unknown free, the gauge (the mosaic's common
-motion, which no data see) fixed — counts such collective modes.
+several. The marginal covariance — every other unknown free, the gauge (the common motion of
+every group of patches the overlaps tie together, which no data see) fixed — counts such
+collective modes. A patch that overlaps nothing is its own group, held whole.
 
 It is the top-left block of the inverse of the bordered matrix ``[[A, G], [G', 0]]``, with ``A``
 the information of all unknowns and ``G`` the common motions; one sparse LU serves the columns
@@ -45,22 +46,51 @@ SHARE = 0.25
 DENSE_MAX = 4000
 
 
-def gauge_modes(s: FloatArray, radius: FloatArray, weight: FloatArray) -> FloatArray:
-    """The common motions of all patches, ``(6 n, 6)``, in the unknowns of the refinement.
+def tied_groups(rows: IntArray, cols: IntArray, n: int) -> IntArray:
+    """Label (n,) of every patch: which group of patches the information ties together.
 
-    Translation x, y, z; a spin about z and a Z plane (a tilt of the heights), both about the
-    weighted centre of the patches. ``s`` (n, 3) patch positions, ``radius`` (n,) the scale of
-    each patch's spin and plane unknowns, ``weight`` (n,) the pivot's weights (pixel units).
+    ``rows, cols``: the nonzero entries of the information matrix (6 unknowns per patch).
+    Patches that overlap no other (and groups that overlap no other group) have common
+    motions of their own that no data see: each group needs a gauge of its own.
+    """
+    from scipy.sparse.csgraph import connected_components
+
+    a, b = np.asarray(rows) // 6, np.asarray(cols) // 6
+    graph = coo_matrix((np.ones(len(a)), (a, b)), shape=(n, n))
+    labels: IntArray = connected_components(graph, directed=False)[1].astype(np.intp)
+    return labels
+
+
+def gauge_modes(
+    s: FloatArray, radius: FloatArray, weight: FloatArray, groups: IntArray | None = None
+) -> FloatArray:
+    """The common motions of every group of patches, ``(6 n, 6 g)``, in the unknowns of the
+    refinement (``g`` groups of two patches or more; all patches one group by default).
+
+    Per group: translation x, y, z; a spin about z and a Z plane (a tilt of the heights), both
+    about the weighted centre of its patches. ``s`` (n, 3) patch positions, ``radius`` (n,) the
+    scale of each patch's spin and plane unknowns, ``weight`` (n,) the pivot's weights (pixel
+    units), ``groups`` (n,) labels from :func:`tied_groups`. A patch alone in its group has no
+    mode: nothing ties it, and :func:`translation_covariances` holds all its unknowns.
     """
     n = len(s)
-    pivot = (weight / weight.sum()) @ s[:, :2]
-    dx, dy = s[:, 0] - pivot[0], s[:, 1] - pivot[1]
-    G = np.zeros((n, 6, 6))
-    G[:, 0, 0] = G[:, 1, 1] = G[:, 2, 2] = 1.0
-    G[:, 0, 3], G[:, 1, 3], G[:, 3, 3] = -dy, dx, radius  # spin
-    G[:, 2, 4], G[:, 4, 4] = dx, radius  # plane along x
-    G[:, 2, 5], G[:, 5, 5] = dy, radius  # plane along y
-    out: FloatArray = G.reshape(6 * n, 6)
+    groups = np.zeros(n, dtype=np.intp) if groups is None else np.asarray(groups)
+    columns = []
+    for label in np.unique(groups):
+        member = groups == label
+        if member.sum() < 2:
+            continue
+        w = weight[member]
+        pivot = (w / w.sum()) @ s[member, :2]
+        dx, dy = s[:, 0] - pivot[0], s[:, 1] - pivot[1]
+        G = np.zeros((n, 6, 6))
+        G[:, 0, 0] = G[:, 1, 1] = G[:, 2, 2] = 1.0
+        G[:, 0, 3], G[:, 1, 3], G[:, 3, 3] = -dy, dx, radius  # spin
+        G[:, 2, 4], G[:, 4, 4] = dx, radius  # plane along x
+        G[:, 2, 5], G[:, 5, 5] = dy, radius  # plane along y
+        G[~member] = 0.0
+        columns.append(G.reshape(6 * n, 6))
+    out: FloatArray = np.hstack(columns) if columns else np.zeros((6 * n, 0))
     # like units: each mode scaled to unit length
     norms: FloatArray = np.linalg.norm(out, axis=0)
     return out / np.where(norms > 0, norms, 1.0)
@@ -94,7 +124,10 @@ def translation_covariances(
     picks = (6 * np.arange(n)[:, None] + np.arange(3)).ravel()
     rhs = np.zeros((size + gauge.shape[1], len(picks)))
     rhs[picks, np.arange(len(picks))] = 1.0
-    held = np.zeros((n, 3), dtype=bool)
+    # a patch tied to no other (no gauge mode moves it) is held whole, spin and plane too: left
+    # free, they would take up a share of the gauge (a mean spin of zero) from the others
+    alone = np.asarray(~np.abs(gauge).reshape(n, 6, -1).any(axis=(1, 2)), dtype=bool)
+    held = np.repeat(alone[:, None], 3, axis=1)
     # A translation no data see has a variance of about 1 / ridge, and the gauge (the mean
     # motion is zero) would spread a share of it over every other patch: such translations
     # are held and solved again, until no new one appears (a block that floats as a whole
@@ -102,6 +135,7 @@ def translation_covariances(
     for _ in range(PASSES):
         pin = np.zeros((n, 6))
         pin[:, :3] = np.where(held, PIN * top, 0.0)
+        pin[alone, 3:] = PIN * top
         K = bmat(
             [[A + _diagonal(ridge + pin.ravel()), csc_matrix(gauge)], [csc_matrix(gauge.T), None]],
             format="csc",

@@ -88,6 +88,11 @@ def test_a_patch_that_overlaps_nothing_stays_nominal(small_mosaic: Synthetic) ->
     assert not report.overlaps
     assert any("'far' overlaps no other patch" in w for w in result.warnings)
     assert np.abs(report.transform.t[:2]).max() < 1e-6  # only the gauge's common shift
+    assert report.xy_sigma == report.z_sigma == float("inf")
+    # and it takes nothing from the others: they are placed as well as without it (its own
+    # spin and plane, free, used to take up the mosaic's gauge and leave theirs unseen)
+    others = [p for p in result.patches if p.id != "far"]
+    assert all(p.xy_constrained and p.xy_sigma < 1e-9 and p.z_sigma < 1e-9 for p in others)
 
 
 def test_flat_overlaps_constrain_z_but_not_xy() -> None:

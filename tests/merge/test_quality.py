@@ -7,7 +7,7 @@ import pytest
 
 from hardware.sim.drift import DriftModel
 from hardware.sim.surfaces import FoldedSurface
-from merge import PatchSet, PatchTransform
+from merge import Patch, PatchSet, PatchTransform
 from merge.overlap import overlapping_pairs
 from merge.quality import PatchFit, assess
 from tests.conftest import Synthetic, make_synthetic
@@ -53,3 +53,30 @@ def test_a_misplaced_patch_shows_in_its_residuals(still: Synthetic) -> None:
     fits = _assess(still.patch_set, transforms)
     others = np.median([f.residual_rms for k, f in enumerate(fits) if k != 2])
     assert fits[2].residual_rms > 2.0 * others
+
+
+def test_flat_overlaps_leave_xy_unseen_and_a_lone_patch_unmeasured() -> None:
+    rng = np.random.default_rng(0)
+    # white noise only, the patches a fraction of a pixel apart (as stage errors put them)
+    corners = [(0.0, 0.0), (3.07e-7, 0.83e-8), (6.11e-7, 0.3e-8), (5e-6, 0.0)]
+    patches = [
+        Patch(
+            id=f"f{k}",
+            heights=rng.normal(0.0, NOISE, (30, 30)),
+            origin=corner,
+            pixel_size=(2e-8, 2e-8),
+        )
+        for k, corner in enumerate(corners)
+    ]
+    fits = _assess(PatchSet(patches), [PatchTransform() for _ in patches])
+    for f in fits[:3]:
+        assert f.correspondences > 0
+        assert f.xy_sigma_local == f.xy_sigma == np.inf  # white noise is no texture
+        assert f.z_sigma < 0.1 * NOISE  # hundreds of points on each overlap
+    # the last overlaps nothing: nothing measured, and it takes nothing from the others
+    lone = fits[3]
+    assert lone.correspondences == 0 and np.isnan(lone.residual_rms)
+    assert lone.xy_sigma == lone.z_sigma == np.inf
+    # (but for the noise estimate, a median over the patches that now counts one more)
+    alone = _assess(PatchSet(patches[:3]), [PatchTransform() for _ in patches[:3]])
+    assert [f.z_sigma for f in fits[:3]] == pytest.approx([f.z_sigma for f in alone], rel=0.05)

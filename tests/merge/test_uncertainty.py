@@ -3,7 +3,7 @@ import pytest
 
 from backend.synthetic import patch_errors
 from merge import run, uncertainty
-from merge.uncertainty import gauge_modes, translation_covariances
+from merge.uncertainty import gauge_modes, tied_groups, translation_covariances
 from tests.conftest import Synthetic
 
 
@@ -75,6 +75,29 @@ def test_a_patch_no_data_see_leaves_the_others_alone() -> None:
     four = link[:3]
     laplacian = np.diag(np.r_[four, 0] + np.r_[0, four]) - np.diag(four, 1) - np.diag(four, -1)
     np.testing.assert_allclose(xy[:4, 0, 0], np.diag(np.linalg.pinv(laplacian)), rtol=1e-6)
+
+
+@pytest.mark.usefixtures("solver")
+def test_groups_that_overlap_no_other_each_get_their_own_gauge() -> None:
+    # a chain of three, a chain of two and a patch that overlaps nothing (no information at
+    # all, spin and plane included): each chain is placed as well as if it were alone
+    s = np.array([[0, 0, 0], [8, 0, 0], [16, 1, 0], [0, 30, 0], [8, 30, 0], [50, 50, 0]], float)
+    radius, weight = np.full(6, 4.0), np.ones(6)
+    three, two = _chain(3, np.array([2.0, 0.5])), _chain(2, np.array([1.0]))
+    rows = np.concatenate([three[0], two[0] + 18])
+    cols = np.concatenate([three[1], two[1] + 18])
+    vals = np.concatenate([three[2], two[2]])
+    groups = tied_groups(rows, cols, 6)
+    assert len(set(groups[:3])) == len(set(groups[3:5])) == 1
+    assert len(set(groups)) == 3
+    xy, z = translation_covariances(rows, cols, vals, gauge_modes(s, radius, weight, groups))
+    for part, idx in ((three, slice(0, 3)), (two, slice(3, 5))):
+        alone_xy, alone_z = translation_covariances(
+            *part, gauge_modes(s[idx], radius[idx], weight[idx])
+        )
+        np.testing.assert_allclose(xy[idx], alone_xy, rtol=1e-6, atol=1e-9)
+        np.testing.assert_allclose(z[idx], alone_z, rtol=1e-6, atol=1e-9)
+    assert np.isinf(np.diag(xy[5])).all() and np.isinf(z[5])
 
 
 def test_gauge_modes_are_common_motions() -> None:
