@@ -16,7 +16,7 @@ from merge.config import MergeConfig
 from merge.downsample import grid_downsample
 from merge.gauge import anchor_to_nominal, nominal_points
 from merge.lattice import coherence, fill_empty_lines
-from merge.overlap import overlapping_pairs
+from merge.overlap import overlap_groups, overlapping_pairs
 from merge.patchset import PatchSet
 from merge.quality import assess
 from merge.refine import DEFAULT_LEVELS, Level, refine
@@ -184,6 +184,15 @@ def run(
         f"patch {patches[c].id!r} overlaps no other patch: it stays at its nominal place"
         for c in np.flatnonzero(~linked)
     ]
+    label = overlap_groups(pairs, n)
+    groups = [np.flatnonzero(label == g) for g in np.unique(label[linked])]
+    if len(groups) > 1:
+        firsts = ", ".join(repr(patches[int(g[0])].id) for g in groups)
+        warnings.append(
+            f"the patches form {len(groups)} groups that do not overlap each other (those of "
+            f"{firsts}): each is merged on its own; where they lie against each other is the "
+            "stage's placement, not a measurement"
+        )
     transforms = [PatchTransform() for _ in range(n)]
     complete = False
     measured_both = np.zeros(n, dtype=bool)  # patches whose XY the start measured both ways

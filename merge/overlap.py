@@ -64,3 +64,15 @@ def _within_reach(x: FloatArray, reach: float) -> tuple[IntArray, IntArray]:
     # the k-th partner of a patch is the k-th after it in sorted order
     step = np.arange(int(count.sum())) - np.repeat(np.cumsum(count) - count, count)
     return order[first], order[first + 1 + step]
+
+
+def overlap_groups(pairs: IntArray, n: int) -> IntArray:
+    """Label (n,) of every patch: the group of patches its ``pairs`` (k, 2) tie together,
+    directly or through others (a patch in no pair is a group of its own)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    p = np.asarray(pairs, dtype=np.intp).reshape(-1, 2)
+    graph = coo_matrix((np.ones(len(p)), (p[:, 0], p[:, 1])), shape=(n, n))
+    labels: IntArray = connected_components(graph, directed=False)[1].astype(np.intp)
+    return labels

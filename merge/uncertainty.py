@@ -24,6 +24,8 @@ from numpy.typing import NDArray
 from scipy.sparse import bmat, coo_matrix, csc_matrix
 from scipy.sparse.linalg import splu
 
+from merge.overlap import overlap_groups
+
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
 
@@ -53,12 +55,8 @@ def tied_groups(rows: IntArray, cols: IntArray, n: int) -> IntArray:
     Patches that overlap no other (and groups that overlap no other group) have common
     motions of their own that no data see: each group needs a gauge of its own.
     """
-    from scipy.sparse.csgraph import connected_components
-
-    a, b = np.asarray(rows) // 6, np.asarray(cols) // 6
-    graph = coo_matrix((np.ones(len(a)), (a, b)), shape=(n, n))
-    labels: IntArray = connected_components(graph, directed=False)[1].astype(np.intp)
-    return labels
+    pairs = np.column_stack([np.asarray(rows) // 6, np.asarray(cols) // 6])
+    return overlap_groups(np.unique(pairs, axis=0), n)
 
 
 def gauge_modes(

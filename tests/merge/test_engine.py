@@ -95,6 +95,20 @@ def test_a_patch_that_overlaps_nothing_stays_nominal(small_mosaic: Synthetic) ->
     assert all(p.xy_constrained and p.xy_sigma < 1e-9 and p.z_sigma < 1e-9 for p in others)
 
 
+def test_groups_that_overlap_each_other_nowhere_are_merged_each_and_said_so(
+    small_mosaic: Synthetic,
+) -> None:
+    shifted = [
+        dataclasses.replace(p, id=f"b{p.id}", origin=(p.origin[0] + 2e-5, p.origin[1]))
+        for p in small_mosaic.patch_set
+    ]
+    result = run(PatchSet([*small_mosaic.patch_set, *shifted]))
+    assert any("2 groups that do not overlap each other" in w for w in result.warnings)
+    assert all(p.xy_constrained and p.xy_sigma < 1e-9 for p in result.patches)
+    alone = run(small_mosaic.patch_set)
+    assert not any("groups" in w for w in alone.warnings)
+
+
 def test_flat_overlaps_constrain_z_but_not_xy() -> None:
     rng = np.random.default_rng(4)
     patches = [

@@ -6,7 +6,7 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from merge.overlap import overlapping_pairs
+from merge.overlap import overlap_groups, overlapping_pairs
 
 
 def _every_pair(boxes: np.ndarray, margin: float) -> list[list[int]]:
@@ -43,3 +43,12 @@ def test_the_sweep_finds_every_overlapping_pair_once(
         lo = np.column_stack([np.arange(n) % side, np.arange(n) // side]) * 0.8
     boxes = np.column_stack([lo, lo + size])
     assert overlapping_pairs(boxes, margin=margin).tolist() == _every_pair(boxes, margin)
+
+
+def test_groups_are_what_the_pairs_tie_together_through_others() -> None:
+    # 0-1-2 a chain, 3-4 a pair, 5 alone
+    label = overlap_groups(np.array([[0, 1], [1, 2], [3, 4]]), 6)
+    assert label[0] == label[1] == label[2]
+    assert label[3] == label[4] != label[0]
+    assert len(set(label.tolist())) == 3 and label[5] not in label[:5]
+    assert overlap_groups(np.empty((0, 2), dtype=np.intp), 3).tolist() == [0, 1, 2]
