@@ -1,4 +1,4 @@
-"""The Gauss-Newton normal system of the default method, and its damped solution.
+"""The Gauss-Newton normal system of the default method (solved by :mod:`merge.solve`).
 
 Every row is one point of a source patch over a destination patch: its residual is the height
 of the point above the destination's surface (drift plane included), linearised on the surface's
@@ -27,8 +27,6 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.sparse import coo_matrix
-from scipy.sparse.linalg import spsolve
 
 from merge.bank import SurfaceBank
 from merge.lines import line_groups, marginalise_offsets, offset_ratio
@@ -39,8 +37,6 @@ FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
 Candidates = tuple[IntArray, IntArray, IntArray, IntArray]
 
-#: Levenberg damping, relative to the largest curvature of each patch's own unknowns.
-DAMPING = 1e-4
 #: Rows per block of the system build (whole runs are kept together).
 BLOCK_ROWS = 1 << 15
 
@@ -379,57 +375,3 @@ def _assemble(
         g,
         diag,
     )
-
-
-@dataclass(frozen=True)
-class Priors:
-    """Gaussian priors on the absolute state, in the scaled units of the unknowns (pixels)."""
-
-    plane: FloatArray  # (n, 2) drift plane times radius
-    plane_sigma: FloatArray  # (2,) along x (the fast axis) and y
-    shift: FloatArray  # (n, 2) XY offset from the start
-    shift_sigma: float
-    spin: FloatArray  # (n,) rotation about z times radius
-    spin_sigma: FloatArray  # (n,)
-
-
-def solve_system(
-    system: NormalSystem, priors: Priors, *, held: NDArray[np.bool_] | None = None
-) -> FloatArray:
-    """Damped solution of the system: ``(n, 6)`` updates (translation, scaled spin and plane).
-
-    A prior ``|value / sigma|²`` enters with the weight the data have per unit residual
-    (``1 / residual scale²``), so it is a proper posterior, not a tuning knob. Patches ``held``
-    (n,) bool do not move (their updates ~1e-9 of what their data alone would give).
-    """
-    n = len(system.g)
-    rows, cols, vals = system.rows, system.cols, system.vals
-    # Levenberg damping relative to each patch's own curvature: directions a patch's data do not
-    # constrain (XY on a flat overlap) stay put instead of following noise
-    on_diag = rows == cols
-    dvals = np.bincount(rows[on_diag], weights=vals[on_diag], minlength=6 * n).reshape(n, 6)
-    lam = np.broadcast_to(DAMPING * dvals.max(axis=1, keepdims=True) + 1e-12, (n, 6)).copy()
-    g = system.g.copy()
-    if system.rscale > 0:
-        r2 = system.rscale**2
-        for cols_, value, sigma in (
-            ([4, 5], priors.plane, np.broadcast_to(priors.plane_sigma, (n, 2))),
-            ([0, 1], priors.shift, np.full((n, 1), priors.shift_sigma)),
-            ([3], priors.spin[:, None], priors.spin_sigma[:, None]),
-        ):
-            k = r2 / np.asarray(sigma, dtype=np.float64) ** 2
-            lam[:, cols_] += k
-            g[:, cols_] -= k * value
-    if held is not None:
-        lam[held] += 1e9 * (float(dvals.max(initial=0.0)) + 1.0)
-    idx = np.arange(6 * n)
-    M = coo_matrix(
-        (
-            np.concatenate([vals, lam.ravel()]),
-            (np.concatenate([rows, idx]), np.concatenate([cols, idx])),
-        ),
-        shape=(6 * n, 6 * n),
-    ).tocsc()
-    x = spsolve(M, g.ravel())
-    out: FloatArray = np.asarray(x, dtype=np.float64).reshape(n, 6)
-    return out

@@ -33,9 +33,10 @@ translation — none changes any residual) is removed: the mean rotation and mea
 zero, and the patch points move on average by zero from their nominal places (:mod:`merge.gauge`),
 so the mosaic cannot drift away from the stage frame.
 
-Pieces: :mod:`merge.bank` holds the patches as surfaces, :mod:`merge.normal_system` builds and
-solves the Gauss-Newton system, :mod:`merge.state` holds the placement of every patch and its
-gauge, :mod:`merge.quality` the per-patch quality report; this module holds the schedule.
+Pieces: :mod:`merge.bank` holds the patches as surfaces, :mod:`merge.normal_system` builds the
+Gauss-Newton system and :mod:`merge.solve` solves it, :mod:`merge.state` holds the placement of
+every patch and its gauge, :mod:`merge.quality` the per-patch quality report; this module holds
+the schedule.
 """
 
 from __future__ import annotations
@@ -50,8 +51,9 @@ from merge.bank import SurfaceBank
 from merge.errors import MergeCancelled
 from merge.heightfield import Border
 from merge.noise import patch_noise
-from merge.normal_system import NormalSystem, Priors, build_normal_system, solve_system
+from merge.normal_system import NormalSystem, build_normal_system
 from merge.patchset import Patch
+from merge.solve import Priors, solve_system
 from merge.state import MosaicState
 from merge.transforms import PatchTransform
 
