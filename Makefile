@@ -62,7 +62,7 @@ test: lint types unit
 bench: install
 	$(BIN)/python benchmarks/merge_bench.py --sweep 10
 	$(BIN)/python benchmarks/merge_variations.py
-	$(BIN)/python benchmarks/crb.py
+	$(BIN)/python benchmarks/crb.py --noise-draws 12
 	$(BIN)/python benchmarks/sim_bench.py
 	$(BIN)/python benchmarks/server_bench.py
 	$(BIN)/python benchmarks/viewer_bench.py

@@ -28,6 +28,8 @@ class MosaicState(PatchState):
     def from_transforms(
         cls, start: Sequence[PatchTransform], bank: SurfaceBank, scale: float
     ) -> MosaicState:
+        """The state of transforms ``start`` (``T_mosaic_patch``, metres) of ``bank``'s patches,
+        lengths in units of ``scale`` (metres)."""
         n = len(start)
         R = np.array([tr.R for tr in start])
         slope = np.array([tr.slope for tr in start])
@@ -40,6 +42,7 @@ class MosaicState(PatchState):
         return cls(R, s, slope)
 
     def to_transforms(self, bank: SurfaceBank, scale: float) -> list[PatchTransform]:
+        """Every patch's ``T_mosaic_patch`` (metres), its drift plane zero at its centre."""
         out = []
         for c in range(len(self.R)):
             centre = bank.centre[c] * scale
@@ -53,6 +56,8 @@ class MosaicState(PatchState):
         return out
 
     def update(self, delta: FloatArray, radius: FloatArray) -> None:
+        """Apply one step ``delta`` (n, 6): translation, then spin and plane times each patch's
+        ``radius`` (n,), pixel units."""
         spin = np.zeros((len(delta), 3))
         spin[:, 2] = delta[:, 3] / radius
         self.R = orthonormalize(np.einsum("cij,cjk->cik", rotation_from_vector(spin), self.R))
@@ -60,7 +65,9 @@ class MosaicState(PatchState):
         self.slope = self.slope + delta[:, 4:] / radius[:, None]
 
     def fix_gauge(self, centre: FloatArray, point_start: IntArray) -> None:
-        """Remove the common motion (module notes): mean spin, mean plane, mean displacement."""
+        """Remove the common motion (:mod:`merge.refine`'s notes): mean spin, mean plane and
+        mean displacement from the nominal ``centre`` (n, 3), weighted by each patch's points
+        (``point_start``, :attr:`merge.bank.SurfaceBank.point_start`)."""
         weight = np.diff(point_start).astype(np.float64)
         weight = weight / weight.sum()
         pivot = weight @ self.s
