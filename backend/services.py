@@ -51,7 +51,9 @@ class Services:
     @property
     def limits(self) -> InstrumentLimits:
         m = self.microscope
-        return InstrumentLimits(fine_range=(m.robot_x.fine_range, m.robot_y.fine_range))
+        scanner = m.scanner
+        fine = scanner.fine_range if scanner is not None else None
+        return InstrumentLimits(fine_range=fine or (m.robot_x.fine_range, m.robot_y.fine_range))
 
     @classmethod
     def open(cls, settings: Settings) -> Services:

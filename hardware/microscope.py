@@ -7,18 +7,26 @@
   ``pixel`` (``dx,dy`` metres), e.g. ``sim://?surface=folded&seed=3&speed=max``.
 * ``mcs://stage=URL;robot=URL`` — real SmarAct MCS controllers on pyserial URLs (device paths,
   ``socket://``, ``rfc2217://``) for the sample stage and the probe robot. The stages move;
-  landing and scanning also need the AFM controller's probe signal and force loop, which
-  this version drives only in simulation, and say so when asked.
+  landing and scanning also need an AFM controller, and say so when asked.
+* ``nanonis://HOST:PORT?stage=mcs:URL`` — a Nanonis controller over its TCP interface for the
+  probe signal (PLL), the force loop (Z controller), the Z and scan piezos and the patch scan,
+  with a SmarAct MCS sample stage on a pyserial URL; ``nanonis://HOST:PORT`` alone drives the
+  sample stage through Nanonis's coarse motor module too. Options (see
+  :func:`hardware.nanonis.open.open_nanonis`): ``landing`` (woodpecker or auto), ``approach``
+  (Z- or Z+), ``z_channel``, ``angle``, ``backward_ratio``, ``timeout``, ``motor_group``.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 from urllib.parse import parse_qs, urlsplit
 
 from hardware.mcs_axis import MCSAxis
-from hardware.protocols import SEM, ForceLoop, LineRecorder, PositionerAxis, ProbeSignal
+from hardware.procedures import LandingReport, land
+from hardware.protocols import SEM, ForceLoop, PatchScanner, PositionerAxis, ProbeSignal
+from hardware.raster import FineRaster
 from hardware.smaract_mcs import MCSController
 
 if TYPE_CHECKING:
@@ -45,21 +53,32 @@ class Microscope:
     robot_z: PositionerAxis
     probe: ProbeSignal | None
     loop: ForceLoop | None
-    recorder: LineRecorder | None
+    scanner: PatchScanner | None
     sem: SEM | None
     simulated: bool
     #: the simulated world, for its truth and fault injection (None on real hardware)
     sim: SimulatedAFM | None = None
+    #: the controller's own landing (Nanonis auto-approach); None: the woodpecker landing
+    approach: Callable[[], LandingReport] | None = None
     _closers: tuple[object, ...] = ()
 
-    def require_afm(self) -> tuple[ProbeSignal, ForceLoop, LineRecorder]:
-        """The probe, force loop and line recorder, or a clear error where there are none."""
-        if self.probe is None or self.loop is None or self.recorder is None:
+    def require_afm(self) -> tuple[ProbeSignal, ForceLoop, PatchScanner]:
+        """The probe, force loop and patch scanner, or a clear error where there are none."""
+        if self.probe is None or self.loop is None or self.scanner is None:
             raise ConfigurationError(
                 f"{self.description}: no AFM controller (probe signal and force loop) is "
-                "configured, so it cannot land or scan; use sim:// or add the controller"
+                "configured, so it cannot land or scan; use sim://, nanonis://HOST:PORT?stage="
+                "mcs:URL, or add the controller"
             )
-        return self.probe, self.loop, self.recorder
+        return self.probe, self.loop, self.scanner
+
+    def land(self) -> LandingReport:
+        """Bring the tip to the surface: the controller's approach, or the woodpecker landing
+        on the robot's Z."""
+        probe, loop, _ = self.require_afm()
+        if self.approach is not None:
+            return self.approach()
+        return land(self.robot_z, loop, probe)
 
     def close(self) -> None:
         for thing in self._closers:
@@ -75,8 +94,13 @@ def open_microscope(config: str) -> Microscope:
         return _open_sim(config, parse_qs(parts.query))
     if parts.scheme == "mcs":
         return _open_mcs(config, config[len("mcs://") :])
+    if parts.scheme == "nanonis":
+        from hardware.nanonis.open import open_nanonis
+
+        return open_nanonis(config)
     raise ConfigurationError(
-        f"unknown instrument {config!r}: use sim://?surface=chessboard or mcs://stage=URL;robot=URL"
+        f"unknown instrument {config!r}: use sim://?surface=chessboard, "
+        "mcs://stage=URL;robot=URL or nanonis://HOST:PORT?stage=mcs:URL"
     )
 
 
@@ -133,7 +157,7 @@ def _open_sim(config: str, query: dict[str, list[str]]) -> Microscope:
         robot_z=afm.robot_z,
         probe=afm,
         loop=afm,
-        recorder=afm,
+        scanner=FineRaster(afm.robot_x, afm.robot_y, afm, afm),
         sem=SimulatedSEM(surface, seed=seed),
         simulated=True,
         sim=afm,
@@ -165,7 +189,7 @@ def _open_mcs(config: str, spec: str) -> Microscope:
         robot_z=MCSAxis(robot, 2, name="robot z"),
         probe=None,
         loop=None,
-        recorder=None,
+        scanner=None,
         sem=None,
         simulated=False,
         _closers=(stage, robot),

@@ -1,12 +1,13 @@
 """One typed Protocol per hardware role (SI units: metres, seconds, hertz).
 
 Real drivers and the simulated instrument both implement these, so the procedures above them
-(landing, retract, raster) and the server run unchanged on either. Roles that the simulated
-AFM-in-SEM fills in (probe signal, force loop, line recorder, SEM) are declared here too.
+(landing, retract, raster) and the server run unchanged on either: SmarAct MCS positioners,
+a Nanonis controller (probe signal, force loop, patch scanner) or the simulated AFM-in-SEM.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Protocol, runtime_checkable
 
@@ -117,6 +118,40 @@ class LineRecorder(Protocol):
     def record_line(self, samples: int, duration: float) -> tuple[FloatArray, float]:
         """Sample the tip height ``samples`` times, evenly over ``duration`` seconds, with the
         force loop engaged; return the heights (metres) and the start time (seconds)."""
+        ...
+
+
+@runtime_checkable
+class PatchScanner(Protocol):
+    """The raster of one patch, centred in the fine range, with the force loop engaged.
+
+    Filled by the software's own raster on the fine axes (:class:`hardware.raster.FineRaster`)
+    or by the AFM controller's scan generator (:class:`hardware.nanonis.scanner.NanonisScanner`).
+    """
+
+    @property
+    def fine_range(self) -> tuple[float, float]:
+        """The scan range along x and y, metres."""
+        ...
+
+    def prepare(self, *, size: tuple[float, float], pixels: tuple[int, int]) -> None:
+        """Before landing: program the patch and put the tip where its raster starts."""
+        ...
+
+    def scan(
+        self,
+        *,
+        size: tuple[float, float],
+        pixels: tuple[int, int],
+        line_rate: float,
+        stop: Callable[[], bool] | None = None,
+    ) -> ScanLines:
+        """Scan ``pixels`` = (nx, ny) over ``size`` (metres) at ``line_rate`` lines per second;
+        ``stop`` is polled between lines (true ends the scan with ``Interrupted``)."""
+        ...
+
+    def stop(self) -> None:
+        """Stop scanning at once (part of the safe state)."""
         ...
 
 

@@ -42,15 +42,7 @@ from backend.db.patch_store import reconcile, write_patch
 from backend.events import EventBus
 from hardware.errors import Interrupted, SafeStateError
 from hardware.microscope import Microscope
-from hardware.procedures import (
-    land,
-    move_stage,
-    preposition,
-    retract,
-    safe_state,
-    sample_origin,
-    scan,
-)
+from hardware.procedures import move_stage, retract, safe_state, sample_origin
 
 log = logging.getLogger("mosaic_afm.runner")
 
@@ -300,7 +292,9 @@ class Runner:
 
     def _safe_state(self) -> None:
         m = self.microscope
-        safe_state(m.loop, m.robot_z, (m.stage_x, m.stage_y, m.robot_x, m.robot_y))
+        safe_state(
+            m.loop, m.robot_z, (m.stage_x, m.stage_y, m.robot_x, m.robot_y), scanner=m.scanner
+        )
         self._snapshot = {**self._snapshot, "safe_state": True, "loop_engaged": False}
 
     def _checkpoint(self, session: Session, run: Run, control: Control, *, may_pause: bool) -> None:
@@ -318,7 +312,7 @@ class Runner:
 
     def _run_patches(self, session: Session, run: Run, control: Control) -> None:
         m = self.microscope
-        probe, loop, recorder = m.require_afm()
+        _, loop, scanner = m.require_afm()
         size = (run.patch_width, run.patch_height)
         pixels = (run.pixels_x, run.pixels_y)
         total = len(run.patches)
@@ -331,21 +325,14 @@ class Runner:
             run.current_patch = patch.index
             machine.go(PatchStep.MOVE)
             move_stage(m.stage_x, m.stage_y, m.robot_x, m.robot_y, origin=planned, size=size)
-            preposition(m.robot_x, m.robot_y, size=size, pixels=pixels)
+            scanner.prepare(size=size, pixels=pixels)
             self._checkpoint(session, run, control, may_pause=True)
             machine.go(PatchStep.LAND)
-            landing = land(m.robot_z, loop, probe)
+            landing = m.land()
             self._checkpoint(session, run, control, may_pause=False)
             machine.go(PatchStep.SCAN)
-            lines = scan(
-                m.robot_x,
-                m.robot_y,
-                loop,
-                recorder,
-                size=size,
-                pixels=pixels,
-                line_rate=run.line_rate,
-                stop=lambda: control.abort,
+            lines = scanner.scan(
+                size=size, pixels=pixels, line_rate=run.line_rate, stop=lambda: control.abort
             )
             machine.go(PatchStep.RETRACT)
             retract(m.robot_z, loop)

@@ -89,6 +89,8 @@ class SimulatedAFM:
         params: WorldParams | None = None,
         probe: ProbeModel | None = None,
         seed: int = 0,
+        stage_port: int = 0,
+        host: str = "127.0.0.1",
     ) -> None:
         self.surface = surface
         self.clock = clock or SimClock(None)
@@ -102,7 +104,9 @@ class SimulatedAFM:
             params=ChannelParams(sensor_scale_error=3e-3, sensor_periodic_error=25e-9),
         )
         self.robot_device = MCSDevice(channels=3, seed=seed + 2)
-        self.stage_server = MCSServer(self.stage_device, clock=self.clock).start()
+        self.stage_server = MCSServer(
+            self.stage_device, clock=self.clock, host=host, port=stage_port
+        ).start()
         self.robot_server = MCSServer(self.robot_device, clock=self.clock).start()
         self.stage = MCSController.open(self.stage_server.url)
         self.robot = MCSController.open(self.robot_server.url)
@@ -122,6 +126,8 @@ class SimulatedAFM:
         self._setpoint: float | None = None
         self._saturated = False
         self.crashed = False
+        #: the PLL has lost the resonance (an injected fault): no amplitude, no lock
+        self.pll_lost = False
         self.beam_on = True
         #: height of the sample holder, metres: lower it far to take the sample out of reach
         self.sample_z = 0.0
@@ -208,6 +214,8 @@ class SimulatedAFM:
     # -- ProbeSignal ------------------------------------------------------------------------
 
     def frequency_shift(self) -> float:
+        if self.pll_lost:  # an unlocked PLL sits at the end of its range
+            return self.probe.pll_range
         t = self.clock.now()
         d = self.distance(t)
         df = float(self.probe.delta_f(d)) + self.charging_offset(t)
@@ -217,10 +225,12 @@ class SimulatedAFM:
         return df
 
     def amplitude(self) -> float:
-        return self.probe.amplitude if not self.crashed else 0.0
+        return self.probe.amplitude if not (self.crashed or self.pll_lost) else 0.0
 
     def locked(self) -> bool:
-        return not self.crashed and self.probe.locked(self.frequency_shift())
+        if self.crashed or self.pll_lost:
+            return False
+        return self.probe.locked(self.frequency_shift())
 
     # -- ForceLoop --------------------------------------------------------------------------
 
@@ -239,6 +249,21 @@ class SimulatedAFM:
 
     def engaged(self) -> bool:
         return self._setpoint is not None
+
+    @property
+    def setpoint(self) -> float | None:
+        """The set-point the loop regulates on, Hz (None when open)."""
+        return self._setpoint
+
+    def hold(self) -> None:
+        """Open the loop and leave Z where it is (a controller switched off, not withdrawn)."""
+        self._setpoint = None
+        self._saturated = False
+
+    def track(self) -> None:
+        """The engaged loop follows the surface (and the drift) up to now."""
+        if self._setpoint is not None:
+            self._settle_loop(self.clock.now())
 
     def saturated(self) -> bool:
         return self._saturated

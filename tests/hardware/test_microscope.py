@@ -5,7 +5,7 @@ import pytest
 from scipy import ndimage
 
 from hardware.microscope import ConfigurationError, open_microscope
-from hardware.protocols import SEM
+from hardware.protocols import SEM, PatchScanner
 from hardware.sim.mcs_device import MCSDevice
 from hardware.sim.mcs_server import MCSServer
 from hardware.sim.sem import SimulatedSEM
@@ -17,7 +17,9 @@ def test_sim_configuration_gives_every_role() -> None:
     try:
         assert scope.simulated
         probe, loop, scanner = scope.require_afm()
-        assert probe is loop is scanner  # the simulated AFM fills all three roles
+        assert probe is loop is scope.sim  # the simulated AFM is probe and loop
+        assert isinstance(scanner, PatchScanner)  # its fine axes raster the patch
+        assert scanner.fine_range == (scope.robot_x.fine_range, scope.robot_y.fine_range)
         assert isinstance(scope.sem, SEM)
         scope.stage_x.move_to(1e-6)
         assert scope.stage_x.position() == pytest.approx(1e-6, abs=5e-9)
@@ -35,6 +37,13 @@ def test_sim_configuration_gives_every_role() -> None:
         "sim://?colour=red",
         "mcs://stage=socket://127.0.0.1:1",
         "mcs://robot",
+        "nanonis://",
+        "nanonis://127.0.0.1",
+        "nanonis://127.0.0.1:1",
+        "nanonis://127.0.0.1:1?landing=jump",
+        "nanonis://127.0.0.1:1?stage=socket://x:1",
+        "nanonis://127.0.0.1:1?timeout=soon",
+        "nanonis://127.0.0.1:1?colour=red",
     ],
 )
 def test_bad_configurations_say_what_to_fix(config: str) -> None:

@@ -1,0 +1,204 @@
+"""The Nanonis protocol simulator as a TCP server, with its sample stage on a second port.
+
+One simulated world (:class:`~hardware.sim.instrument.SimulatedAFM`) answers two controllers,
+each on its own wire protocol, as in the paper's robot: the Nanonis TCP interface for the PLL,
+Z controller, scan generator, auto-approach and coarse motors (:attr:`NanonisServer.address`),
+and the SmarAct MCS ASCII protocol for the sample stage (:attr:`NanonisServer.stage_url`).
+Start it in-process for tests (``with NanonisServer(afm) as server: ...``) or as a program
+(``mosaic-afm sim-nanonis``).
+
+Faults are injected as on the MCS simulator: on the link (``drop`` the connection, stay
+``silent``, answer an ``error`` block, a ``short`` response, ``garbage``), for ``count``
+requests or until healed; and in the physics: ``pll_loss`` (the PLL loses the resonance) and
+``z_limit`` (the sample falls away under the tip, so the Z controller runs into its limit in
+the middle of a frame).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import socket
+import socketserver
+import threading
+from collections import deque
+from dataclasses import dataclass
+from types import TracebackType
+from typing import Literal
+
+from hardware.nanonis import wire
+from hardware.nanonis.errors import NanonisProtocolError
+from hardware.sim.instrument import SimulatedAFM
+from hardware.sim.nanonis_controller import NanonisController
+
+LinkFault = Literal["drop", "silent", "error", "short", "garbage"]
+PhysicsFault = Literal["pll_loss", "z_limit"]
+#: How far a ``z_limit`` fault lowers the sample: beyond the Z piezo's reach, short of a crash.
+Z_LIMIT_DROP = 1.2e-6
+
+
+@dataclass
+class _FaultState:
+    mode: LinkFault | None = None
+    code: int = 1
+    remaining: int | None = None
+
+    def take(self) -> LinkFault | None:
+        mode = self.mode
+        if mode is not None and self.remaining is not None:
+            self.remaining -= 1
+            if self.remaining <= 0:
+                self.mode, self.remaining = None, None
+        return mode
+
+
+class NanonisServer:
+    """A TCP server speaking the Nanonis protocol over the world ``afm``.
+
+    Parameters
+    ----------
+    afm : SimulatedAFM
+        The world; its sample stage's MCS server is the stage this controller's scans see.
+    host, port : str, int
+        Where to listen; port 0 picks a free one (read :attr:`address`).
+    """
+
+    def __init__(self, afm: SimulatedAFM, *, host: str = "127.0.0.1", port: int = 0) -> None:
+        self.afm = afm
+        self.controller = NanonisController(afm)
+        self.faults = _FaultState()
+        self._lock = threading.Lock()
+        #: the latest commands served, for diagnosis (bounded)
+        self.log: deque[str] = deque(maxlen=10_000)
+        server = self
+
+        class Handler(socketserver.BaseRequestHandler):
+            def handle(self) -> None:
+                server._serve(self.request)
+
+        class TCP(socketserver.ThreadingTCPServer):
+            allow_reuse_address = True
+            daemon_threads = True
+
+        self._tcp = TCP((host, port), Handler)
+        self._thread: threading.Thread | None = None
+
+    @property
+    def address(self) -> tuple[str, int]:
+        host, port = self._tcp.server_address[:2]
+        return str(host), int(port)
+
+    @property
+    def stage_url(self) -> str:
+        """The pyserial URL of the sample stage's MCS controller in the same world."""
+        return self.afm.stage_server.url
+
+    @property
+    def instrument_url(self) -> str:
+        """The server's ``MOSAIC_INSTRUMENT`` for this world: Nanonis and its MCS stage."""
+        host, port = self.address
+        return f"nanonis://{host}:{port}?stage=mcs:{self.stage_url}"
+
+    def start(self) -> NanonisServer:
+        self._thread = threading.Thread(
+            target=self._tcp.serve_forever, kwargs={"poll_interval": 0.02}, daemon=True
+        )
+        self._thread.start()
+        return self
+
+    def serve_forever(self) -> None:
+        self._tcp.serve_forever(poll_interval=0.05)
+
+    def stop(self) -> None:
+        self._tcp.shutdown()
+        self._tcp.server_close()
+        self.controller.close()
+
+    def __enter__(self) -> NanonisServer:
+        return self.start()
+
+    def __exit__(
+        self, et: type[BaseException] | None, ev: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        self.stop()
+
+    # -- faults -----------------------------------------------------------------------------
+
+    def inject(self, mode: LinkFault | None, *, code: int = 1, count: int | None = None) -> None:
+        """Misbehave on the link from the next request on (``None`` heals it): for ``count``
+        requests, or until healed when ``count`` is None."""
+        if count is not None and count < 1:
+            raise ValueError(f"count must be a positive number of requests, got {count}")
+        with self._lock:
+            self.faults.mode, self.faults.code = mode, code
+            self.faults.remaining = count if mode is not None else None
+
+    def inject_physics(self, fault: PhysicsFault | None) -> None:
+        """A fault of the instrument itself (None heals it: PLL back, sample back)."""
+        with self.controller.world:
+            if fault == "pll_loss":
+                self.afm.pll_lost = True
+            elif fault == "z_limit":
+                self.afm.sample_z = -Z_LIMIT_DROP
+            elif fault is None:
+                self.afm.pll_lost = False
+                self.afm.sample_z = 0.0
+            else:
+                raise ValueError(f"unknown physics fault {fault!r}: use pll_loss or z_limit")
+
+    # -- serving ----------------------------------------------------------------------------
+
+    def _serve(self, conn: socket.socket) -> None:
+        while True:
+            try:
+                header = _recv_exact(conn, wire.HEADER_SIZE)
+                if header is None:
+                    return
+                parsed = wire.decode_header(header)
+                body = _recv_exact(conn, parsed.body_size)
+                if body is None:
+                    return
+            except (OSError, NanonisProtocolError):
+                conn.close()  # a stream out of step cannot be resynchronised
+                return
+            with self._lock:
+                mode = self.faults.take()
+            if mode == "drop":
+                _close(conn)
+                return
+            if mode == "error":
+                reply = wire.response(
+                    parsed.command, status=self.faults.code, description="simulated fault"
+                )
+            else:
+                reply = self.controller.handle(parsed.command, body)
+            self.log.append(parsed.command)
+            if mode == "silent" or not parsed.respond:
+                continue
+            if mode == "short":
+                reply = reply[: wire.HEADER_SIZE + max(0, len(reply) - wire.HEADER_SIZE) // 2]
+            elif mode == "garbage":
+                reply = b"\x07garbage\x00" * 5
+            try:
+                conn.sendall(reply)
+            except OSError:
+                return
+            if mode == "short":  # the rest never comes: the controller went away mid-reply
+                _close(conn)
+                return
+
+
+def _recv_exact(conn: socket.socket, n: int) -> bytes | None:
+    chunks, got = [], 0
+    while got < n:
+        chunk = conn.recv(min(n - got, 1 << 20))
+        if not chunk:
+            return None
+        chunks.append(chunk)
+        got += len(chunk)
+    return b"".join(chunks)
+
+
+def _close(conn: socket.socket) -> None:
+    with contextlib.suppress(OSError):
+        conn.shutdown(socket.SHUT_RDWR)
+    conn.close()
