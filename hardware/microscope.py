@@ -105,10 +105,41 @@ def open_microscope(config: str) -> Microscope:
 
 
 def _open_sim(config: str, query: dict[str, list[str]]) -> Microscope:
+    from hardware.sim.sem import SimulatedSEM
+
+    afm = simulated_afm(config, query)
+    return Microscope(
+        description=config,
+        stage_x=afm.stage_x,
+        stage_y=afm.stage_y,
+        robot_x=afm.robot_x,
+        robot_y=afm.robot_y,
+        robot_z=afm.robot_z,
+        probe=afm,
+        loop=afm,
+        scanner=FineRaster(afm.robot_x, afm.robot_y, afm, afm),
+        sem=SimulatedSEM(afm.surface, seed=int(query.get("seed", ["0"])[-1])),
+        simulated=True,
+        sim=afm,
+        _closers=(afm,),
+    )
+
+
+def simulated_afm(
+    config: str,
+    query: dict[str, list[str]] | None = None,
+    *,
+    host: str = "127.0.0.1",
+    stage_port: int = 0,
+) -> SimulatedAFM:
+    """The simulated world a ``sim://`` string describes (its sample stage's MCS server on
+    ``host:stage_port``); :class:`ConfigurationError` for a wrong option."""
     from hardware.sim.clock import SimClock
     from hardware.sim.instrument import SimulatedAFM
-    from hardware.sim.sem import SimulatedSEM
     from hardware.sim.surfaces import surface_by_name
+
+    if query is None:
+        query = parse_qs(urlsplit(config).query)
 
     known = {"surface", "seed", "speed", "image", "pixel"}
     unknown = set(query) - known
@@ -147,22 +178,7 @@ def _open_sim(config: str, query: dict[str, list[str]]) -> Microscope:
         )
     except (OSError, ValueError) as exc:
         raise ConfigurationError(f"{config}: {exc}") from None
-    afm = SimulatedAFM(surface, clock=clock, seed=seed)
-    return Microscope(
-        description=config,
-        stage_x=afm.stage_x,
-        stage_y=afm.stage_y,
-        robot_x=afm.robot_x,
-        robot_y=afm.robot_y,
-        robot_z=afm.robot_z,
-        probe=afm,
-        loop=afm,
-        scanner=FineRaster(afm.robot_x, afm.robot_y, afm, afm),
-        sem=SimulatedSEM(surface, seed=seed),
-        simulated=True,
-        sim=afm,
-        _closers=(afm,),
-    )
+    return SimulatedAFM(surface, clock=clock, seed=seed, host=host, stage_port=stage_port)
 
 
 def _open_mcs(config: str, spec: str) -> Microscope:

@@ -6,7 +6,15 @@ import argparse
 import sys
 from collections.abc import Sequence
 
-from backend.cli import formats_cmd, merge_cmd, serve_cmd, sim_cmd, sim_scan_cmd, synth_cmd
+from backend.cli import (
+    formats_cmd,
+    merge_cmd,
+    serve_cmd,
+    sim_cmd,
+    sim_nanonis_cmd,
+    sim_scan_cmd,
+    synth_cmd,
+)
 from backend.cli.common import UsageError
 
 
@@ -20,6 +28,7 @@ def build_parser() -> argparse.ArgumentParser:
     merge_cmd.add_parser(sub)
     synth_cmd.add_parser(sub)
     sim_cmd.add_parser(sub)
+    sim_nanonis_cmd.add_parser(sub)
     sim_scan_cmd.add_parser(sub)
     serve_cmd.add_parser(sub)
     formats_cmd.add_parsers(sub)

@@ -82,6 +82,8 @@ class NanonisController:
         self._idle = threading.Event()
         self._idle.set()
         self.approach_error = ""
+        #: faults of the physics waiting for a frame's line: (what it does, after how many)
+        self.pending: list[tuple[Callable[[], None], int]] = []
         c = _Command
         self.commands: dict[str, _Command] = {
             "PLL.FreqShiftGet": c("i", "f", lambda a: [self._df()]),
@@ -344,13 +346,19 @@ class NanonisController:
                 raise Refused("the Z controller is off: land before scanning")
             scan = FrameScan(self.afm, self.frame, (self.pixels, self.lines), self.times, up=up)
             self._scan = scan
-            self._start("scan", lambda stop: scan.run(self.world, stop))
+            self._start("scan", lambda stop: scan.run(self.world, stop, self._after_line))
         elif action == 1:
             if self._busy("scan"):
                 self._halt()
         elif action not in (2, 3, 4, 5, 6):
             raise Refused(f"scan action {action} is not in 0..6")
         return []
+
+    def _after_line(self, k: int) -> None:
+        due = [fault for fault, lines in self.pending if k + 1 >= lines]
+        self.pending = [(fault, lines) for fault, lines in self.pending if k + 1 < lines]
+        for fault in due:
+            fault()
 
     def _wait_end(self, a: list[Any]) -> list[Any]:
         timeout = int(a[0])

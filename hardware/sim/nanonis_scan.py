@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 import threading
+from collections.abc import Callable
 from contextlib import AbstractContextManager
 from dataclasses import dataclass
 from typing import Any
@@ -99,12 +100,20 @@ class FrameScan:
         z = afm.robot_device.axes[2]
         self.z_high = 0.5 * z.params.fine_range
 
-    def run(self, lock: AbstractContextManager[Any], stop: threading.Event) -> None:
+    def run(
+        self,
+        lock: AbstractContextManager[Any],
+        stop: threading.Event,
+        on_line: Callable[[int], None] | None = None,
+    ) -> None:
+        """Scan every line (``on_line(k)`` after line ``k``, under the lock)."""
         for k in range(self.pixels[1]):
             with lock:
                 if stop.is_set():
                     return
                 self._line(k)
+                if on_line is not None:
+                    on_line(k)
 
     def _line(self, k: int) -> None:
         ny = self.pixels[1]

@@ -132,18 +132,28 @@ class NanonisServer:
             self.faults.mode, self.faults.code = mode, code
             self.faults.remaining = count if mode is not None else None
 
-    def inject_physics(self, fault: PhysicsFault | None) -> None:
-        """A fault of the instrument itself (None heals it: PLL back, sample back)."""
+    def inject_physics(self, fault: PhysicsFault | None, *, after_lines: int = 0) -> None:
+        """A fault of the instrument itself, now or once a frame has scanned ``after_lines``
+        lines (mid-frame); None heals it (PLL back, sample back) and drops pending ones."""
+        afm = self.afm
+
+        def lose_pll() -> None:
+            afm.pll_lost = True
+
+        def drop_sample() -> None:
+            afm.sample_z = -Z_LIMIT_DROP
+
+        actions = {"pll_loss": lose_pll, "z_limit": drop_sample}
+        if fault is not None and fault not in actions:
+            raise ValueError(f"unknown physics fault {fault!r}: use pll_loss or z_limit")
         with self.controller.world:
-            if fault == "pll_loss":
-                self.afm.pll_lost = True
-            elif fault == "z_limit":
-                self.afm.sample_z = -Z_LIMIT_DROP
-            elif fault is None:
-                self.afm.pll_lost = False
-                self.afm.sample_z = 0.0
+            if fault is None:
+                afm.pll_lost, afm.sample_z = False, 0.0
+                self.controller.pending.clear()
+            elif after_lines > 0:
+                self.controller.pending.append((actions[fault], after_lines))
             else:
-                raise ValueError(f"unknown physics fault {fault!r}: use pll_loss or z_limit")
+                actions[fault]()
 
     # -- serving ----------------------------------------------------------------------------
 

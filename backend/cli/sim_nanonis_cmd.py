@@ -1,0 +1,67 @@
+"""``mosaic-afm sim-nanonis``: a simulated Nanonis controller on TCP, with its MCS stage."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from typing import Any
+
+from backend.cli.common import UsageError
+from backend.cli.sim_cmd import parse_speed
+
+
+def add_parser(sub: Any) -> None:
+    p = sub.add_parser(
+        "sim-nanonis",
+        help="serve a simulated Nanonis controller (and its SmarAct MCS sample stage) on TCP",
+        description=(
+            "Speak the Nanonis TCP programming interface over the simulated AFM-in-SEM (the "
+            "same default sample as sim://): PLL, Z controller, scan, auto-approach, motors. "
+            "The sample stage of the same world speaks the MCS protocol on a second port."
+        ),
+    )
+    p.add_argument("--host", default="127.0.0.1", help="address to listen on")
+    p.add_argument("--port", type=int, default=0, help="Nanonis port (0 picks a free one)")
+    p.add_argument("--stage-port", type=int, default=0, help="MCS stage port (0: a free one)")
+    p.add_argument(
+        "--speed",
+        default="max",
+        help="simulated seconds per wall second, or 'max' for as fast as possible",
+    )
+    p.add_argument("--seed", type=int, default=0, help="seed of the sample, drift and noise")
+    p.add_argument("--surface", default="folded", help="folded (default), chessboard or image")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from hardware.microscope import ConfigurationError, simulated_afm
+    from hardware.sim.nanonis_server import NanonisServer
+
+    for name in ("port", "stage_port"):
+        if not 0 <= getattr(args, name) <= 65535:
+            raise UsageError(f"--{name.replace('_', '-')} must be in 0..65535")
+    speed = parse_speed(args.speed)
+    config = f"sim://?surface={args.surface}&seed={args.seed}&speed={speed or 'max'}"
+    try:
+        afm = simulated_afm(config, host=args.host, stage_port=args.stage_port)
+    except ConfigurationError as exc:
+        raise UsageError(str(exc)) from None
+    except OSError as exc:
+        raise UsageError(f"cannot listen on {args.host}:{args.stage_port}: {exc}") from None
+    try:
+        server = NanonisServer(afm, host=args.host, port=args.port)
+    except OSError as exc:
+        afm.close()
+        raise UsageError(f"cannot listen on {args.host}:{args.port}: {exc}") from None
+    host, port = server.address
+    print(f"Nanonis simulator at {host}:{port}", flush=True)
+    print(f"its sample stage (SmarAct MCS) at {server.stage_url}", flush=True)
+    print(f"MOSAIC_INSTRUMENT={server.instrument_url}", flush=True)
+    try:
+        server.serve_forever()
+    except KeyboardInterrupt:
+        print("stopped", file=sys.stderr)
+    finally:
+        server.stop()
+        afm.close()
+    return 0
