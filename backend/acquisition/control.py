@@ -7,6 +7,7 @@ import threading
 from dataclasses import dataclass, field
 
 from hardware.errors import ProcedureError
+from hardware.nanonis.errors import NanonisError
 from hardware.smaract_errors import MCSError
 
 
@@ -44,6 +45,8 @@ def describe(exc: BaseException) -> str:
         return str(exc)
     if isinstance(exc, MCSError):
         return f"positioner controller: {exc}"
+    if isinstance(exc, NanonisError):
+        return f"AFM controller (Nanonis): {exc}"
     if isinstance(exc, OSError):
         return f"instrument link: {exc}"
     return f"unexpected {type(exc).__name__}: {exc} (see the server log)"

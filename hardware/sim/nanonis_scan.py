@@ -151,5 +151,6 @@ class FrameScan:
         except CrashError:
             afm.withdraw()
             return np.full(nx, np.nan)
+        afm.track()  # the loop runs on through the turn at the line's end
         out: FloatArray = heights - tip0 + self.z_high
         return out
