@@ -243,14 +243,14 @@ def test_a_move_is_never_sent_twice() -> None:
 def test_a_time_out_is_typed_and_the_stream_abandoned() -> None:
     request = wire.request("PLL.FreqShiftGet", "i", [1])
     a, b = Transcript([(request, TimeoutError())]), Transcript([(request, TimeoutError())])
-    with pytest.raises(NanonisTimeout, match="no response to PLL.FreqShiftGet"):
+    with pytest.raises(NanonisTimeout, match=r"no response to PLL\.FreqShiftGet"):
         client_on(a, b).frequency_shift()
     assert a.closed and b.closed
 
 
 def test_a_reply_to_another_command_is_a_protocol_error() -> None:
     t = Transcript([(wire.request("Scan.Action", "HI", [0, 1]), wire.response("Scan.StatusGet"))])
-    with pytest.raises(NanonisProtocolError, match="Scan.StatusGet"):
+    with pytest.raises(NanonisProtocolError, match=r"Scan\.StatusGet"):
         client_on(t).scan_action(0)
 
 
@@ -267,7 +267,7 @@ def test_a_closed_client_refuses_and_a_dead_address_says_where() -> None:
     client.close()
     with pytest.raises(NanonisLinkError, match="closed"):
         client.setpoint()
-    with pytest.raises(NanonisLinkError, match="127.0.0.1:1"):
+    with pytest.raises(NanonisLinkError, match=r"127\.0\.0\.1:1"):
         NanonisClient.open("127.0.0.1", 1, timeout=0.5)
     with pytest.raises(ValueError, match="Z-"):
         client_on().motor_move("W+", 1)
