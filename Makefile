@@ -64,6 +64,7 @@ bench: install
 	$(BIN)/python benchmarks/merge_variations.py
 	$(BIN)/python benchmarks/crb.py --noise-draws 12
 	$(BIN)/python benchmarks/sim_bench.py
+	$(BIN)/python benchmarks/nanonis_bench.py
 	$(BIN)/python benchmarks/server_bench.py
 	$(BIN)/python benchmarks/viewer_bench.py
 
