@@ -16,19 +16,16 @@ the middle of a frame).
 
 from __future__ import annotations
 
-import contextlib
 import socket
 import socketserver
-import threading
 from collections import deque
-from dataclasses import dataclass
-from types import TracebackType
 from typing import Literal
 
 from hardware.nanonis import wire
 from hardware.nanonis.errors import NanonisProtocolError
 from hardware.sim.instrument import SimulatedAFM
 from hardware.sim.nanonis_controller import NanonisController
+from hardware.sim.tcp_service import TCPService, close_connection
 
 LinkFault = Literal["drop", "silent", "error", "short", "garbage"]
 PhysicsFault = Literal["pll_loss", "z_limit"]
@@ -36,22 +33,7 @@ PhysicsFault = Literal["pll_loss", "z_limit"]
 Z_LIMIT_DROP = 1.2e-6
 
 
-@dataclass
-class _FaultState:
-    mode: LinkFault | None = None
-    code: int = 1
-    remaining: int | None = None
-
-    def take(self) -> LinkFault | None:
-        mode = self.mode
-        if mode is not None and self.remaining is not None:
-            self.remaining -= 1
-            if self.remaining <= 0:
-                self.mode, self.remaining = None, None
-        return mode
-
-
-class NanonisServer:
+class NanonisServer(TCPService[LinkFault]):
     """A TCP server speaking the Nanonis protocol over the world ``afm``.
 
     Parameters
@@ -63,29 +45,11 @@ class NanonisServer:
     """
 
     def __init__(self, afm: SimulatedAFM, *, host: str = "127.0.0.1", port: int = 0) -> None:
+        super().__init__(host=host, port=port, code=1)
         self.afm = afm
         self.controller = NanonisController(afm)
-        self.faults = _FaultState()
-        self._lock = threading.Lock()
         #: the latest commands served, for diagnosis (bounded)
         self.log: deque[str] = deque(maxlen=10_000)
-        server = self
-
-        class Handler(socketserver.BaseRequestHandler):
-            def handle(self) -> None:
-                server._serve(self.request)
-
-        class TCP(socketserver.ThreadingTCPServer):
-            allow_reuse_address = True
-            daemon_threads = True
-
-        self._tcp = TCP((host, port), Handler)
-        self._thread: threading.Thread | None = None
-
-    @property
-    def address(self) -> tuple[str, int]:
-        host, port = self._tcp.server_address[:2]
-        return str(host), int(port)
 
     @property
     def stage_url(self) -> str:
@@ -98,39 +62,11 @@ class NanonisServer:
         host, port = self.address
         return f"nanonis://{host}:{port}?stage=mcs:{self.stage_url}"
 
-    def start(self) -> NanonisServer:
-        self._thread = threading.Thread(
-            target=self._tcp.serve_forever, kwargs={"poll_interval": 0.02}, daemon=True
-        )
-        self._thread.start()
-        return self
-
-    def serve_forever(self) -> None:
-        self._tcp.serve_forever(poll_interval=0.05)
-
     def stop(self) -> None:
-        self._tcp.shutdown()
-        self._tcp.server_close()
+        super().stop()
         self.controller.close()
 
-    def __enter__(self) -> NanonisServer:
-        return self.start()
-
-    def __exit__(
-        self, et: type[BaseException] | None, ev: BaseException | None, tb: TracebackType | None
-    ) -> None:
-        self.stop()
-
     # -- faults -----------------------------------------------------------------------------
-
-    def inject(self, mode: LinkFault | None, *, code: int = 1, count: int | None = None) -> None:
-        """Misbehave on the link from the next request on (``None`` heals it): for ``count``
-        requests, or until healed when ``count`` is None."""
-        if count is not None and count < 1:
-            raise ValueError(f"count must be a positive number of requests, got {count}")
-        with self._lock:
-            self.faults.mode, self.faults.code = mode, code
-            self.faults.remaining = count if mode is not None else None
 
     def inject_physics(self, fault: PhysicsFault | None, *, after_lines: int = 0) -> None:
         """A fault of the instrument itself, now or once a frame has scanned ``after_lines``
@@ -157,7 +93,8 @@ class NanonisServer:
 
     # -- serving ----------------------------------------------------------------------------
 
-    def _serve(self, conn: socket.socket) -> None:
+    def serve(self, handler: socketserver.StreamRequestHandler) -> None:
+        conn = handler.connection
         while True:
             try:
                 header = _recv_exact(conn, wire.HEADER_SIZE)
@@ -170,10 +107,9 @@ class NanonisServer:
             except (OSError, NanonisProtocolError):
                 conn.close()  # a stream out of step cannot be resynchronised
                 return
-            with self._lock:
-                mode = self.faults.take()
+            mode = self.take_fault()
             if mode == "drop":
-                _close(conn)
+                close_connection(conn)
                 return
             if mode == "error":
                 reply = wire.response(
@@ -193,7 +129,7 @@ class NanonisServer:
             except OSError:
                 return
             if mode == "short":  # the rest never comes: the controller went away mid-reply
-                _close(conn)
+                close_connection(conn)
                 return
 
 
@@ -206,9 +142,3 @@ def _recv_exact(conn: socket.socket, n: int) -> bytes | None:
         chunks.append(chunk)
         got += len(chunk)
     return b"".join(chunks)
-
-
-def _close(conn: socket.socket) -> None:
-    with contextlib.suppress(OSError):
-        conn.shutdown(socket.SHUT_RDWR)
-    conn.close()
