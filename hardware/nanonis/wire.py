@@ -162,6 +162,24 @@ def decode(types: Sequence[str], body: bytes, *, what: str = "body") -> tuple[li
     return out, r.at
 
 
+def placeholders(types: Sequence[str]) -> list[Any]:
+    """Default values of ``types`` (zeros, empty strings and arrays): what a response that
+    refuses its command carries before its error block, so its layout stays the same."""
+    out: list[Any] = []
+    for code in types:
+        if code in _SCALARS:
+            out.append(0)
+        elif code == "s":
+            out.append("")
+        elif code == "2f":
+            out.append(np.zeros((0, 0)))
+        elif code in _ARRAYS or code == "as":
+            out.append([])
+        else:
+            raise ValueError(f"unknown field type {code!r}")
+    return out
+
+
 def encode_error(status: int = 0, description: str = "") -> bytes:
     """The error block that ends every response body."""
     text = description.encode("utf-8")

@@ -150,7 +150,16 @@ class NanonisController:
                     values = spec.run(args)
             return wire.response(command, spec.replies, values)
         except (Refused, NanonisProtocolError, ProcedureError, ValueError) as exc:
-            return wire.response(command, status=1, description=str(exc))
+            return self.refusal(command, str(exc))
+
+    def refusal(self, command: str, description: str, *, status: int = 1) -> bytes:
+        """A response refusing ``command``: its return values as placeholders (the layout
+        stays the command's), then the error block with ``status`` and ``description``."""
+        spec = self.commands.get(command)
+        types = spec.replies if spec is not None else ()
+        return wire.response(
+            command, types, wire.placeholders(types), status=status, description=description
+        )
 
     def close(self) -> None:
         with self.world:

@@ -112,8 +112,8 @@ class NanonisServer(TCPService[LinkFault]):
                 close_connection(conn)
                 return
             if mode == "error":
-                reply = wire.response(
-                    parsed.command, status=self.faults.code, description="simulated fault"
+                reply = self.controller.refusal(
+                    parsed.command, "simulated fault", status=self.faults.code
                 )
             else:
                 reply = self.controller.handle(parsed.command, body)

@@ -271,3 +271,12 @@ def test_a_closed_client_refuses_and_a_dead_address_says_where() -> None:
         NanonisClient.open("127.0.0.1", 1, timeout=0.5)
     with pytest.raises(ValueError, match="Z-"):
         client_on().motor_move("W+", 1)
+
+
+def test_a_refusal_of_a_read_keeps_its_layout_and_is_a_command_error() -> None:
+    refused = wire.response(
+        "ZCtrl.ZPosGet", "f", wire.placeholders("f"), status=3, description="Z is off"
+    )
+    t = Transcript([(wire.request("ZCtrl.ZPosGet", (), ()), refused)])
+    with pytest.raises(NanonisCommandError, match="Z is off"):
+        client_on(t).z_position()
