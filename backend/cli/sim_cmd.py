@@ -15,16 +15,21 @@ def add_parser(sub: Any) -> None:
         help="serve a simulated SmarAct MCS controller on a TCP port",
         description="Speak the MCS ASCII protocol on TCP, for pyserial URLs socket://HOST:PORT.",
     )
+    add_server_options(p, seed="seed of the channel physics")
+    p.add_argument("--channels", type=int, default=3, help="number of channels (1-64)")
+    p.set_defaults(func=run)
+
+
+def add_server_options(p: Any, *, seed: str) -> None:
+    """``--host``, ``--port``, ``--speed`` and ``--seed``: what every protocol simulator takes."""
     p.add_argument("--host", default="127.0.0.1", help="address to listen on")
     p.add_argument("--port", type=int, default=0, help="port (0 picks a free one)")
-    p.add_argument("--channels", type=int, default=3, help="number of channels (1-64)")
     p.add_argument(
         "--speed",
         default="max",
         help="simulated seconds per wall second, or 'max' for as fast as possible",
     )
-    p.add_argument("--seed", type=int, default=0, help="seed of the channel physics")
-    p.set_defaults(func=run)
+    p.add_argument("--seed", type=int, default=0, help=seed)
 
 
 def parse_speed(text: str) -> float | None:

@@ -7,7 +7,7 @@ import sys
 from typing import Any
 
 from backend.cli.common import UsageError
-from backend.cli.sim_cmd import parse_speed
+from backend.cli.sim_cmd import add_server_options, parse_speed
 
 
 def add_parser(sub: Any) -> None:
@@ -20,15 +20,8 @@ def add_parser(sub: Any) -> None:
             "The sample stage of the same world speaks the MCS protocol on a second port."
         ),
     )
-    p.add_argument("--host", default="127.0.0.1", help="address to listen on")
-    p.add_argument("--port", type=int, default=0, help="Nanonis port (0 picks a free one)")
+    add_server_options(p, seed="seed of the sample, drift and noise")
     p.add_argument("--stage-port", type=int, default=0, help="MCS stage port (0: a free one)")
-    p.add_argument(
-        "--speed",
-        default="max",
-        help="simulated seconds per wall second, or 'max' for as fast as possible",
-    )
-    p.add_argument("--seed", type=int, default=0, help="seed of the sample, drift and noise")
     p.add_argument("--surface", default="folded", help="folded (default), chessboard or image")
     p.set_defaults(func=run)
 

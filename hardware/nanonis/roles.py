@@ -83,11 +83,9 @@ class NanonisZLoop:
         settle_timeout: float = 2.0,
     ) -> None:
         self.client, self.z = client, z
-        self.poll, self.settle_tolerance, self.settle_timeout = (
-            poll,
-            settle_tolerance,
-            (settle_timeout),
-        )
+        self.poll = poll
+        self.settle_tolerance = settle_tolerance
+        self.settle_timeout = settle_timeout
 
     def engage(self, setpoint: float) -> None:
         self.client.set_setpoint(setpoint)

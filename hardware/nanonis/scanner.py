@@ -61,6 +61,8 @@ class NanonisScanner:
         self.backward_ratio, self.frame_margin = backward_ratio, frame_margin
         rx, ry, _ = client.piezo_range()
         self._range = (rx, ry)
+        #: what :meth:`prepare` programmed for the next scan (None: nothing yet)
+        self._programmed: tuple[tuple[float, float], tuple[int, int]] | None = None
 
     @property
     def fine_range(self) -> tuple[float, float]:
@@ -70,6 +72,7 @@ class NanonisScanner:
         """Program the frame and buffer; take the tip to the frame's first line (so the long
         move's creep relaxes while the tip lands)."""
         self._program(size, pixels)
+        self._programmed = (size, pixels)
         w, h = size
         self.client.set_tip_speed(10 * max(self._range))
         self.client.move_tip(-w / 2, -h / 2)
@@ -102,7 +105,9 @@ class NanonisScanner:
         if not line_rate > 0:
             raise ValueError(f"line rate must be positive, got {line_rate}")
         nx, ny = pixels
-        self._program(size, pixels)
+        if self._programmed != (size, pixels):
+            self._program(size, pixels)
+        self._programmed = None  # the next scan programs its own frame unless prepared
         forward = 1.0 / line_rate
         backward = forward / self.backward_ratio
         self.client.set_speed(forward, backward, size[0])

@@ -104,7 +104,7 @@ class NanonisController:
             "FolMe.XYPosGet": c("I", "dd", lambda a: list(self._tip_xy())),
             "FolMe.XYPosSet": c("ddI", "", self._move_tip),
             "FolMe.SpeedSet": c("fI", "", self._set_tip_speed),
-            "FolMe.Stop": c("", "", lambda a: self._stop_axes((0, 1))),
+            "FolMe.Stop": c("", "", lambda a: self._stop_tip()),
             "Scan.FrameSet": c("fffff", "", self._set_frame),
             "Scan.FrameGet": c("", "fffff", lambda a: self._frame_values()),
             "Scan.BufferSet": c(("ai", "i", "i"), "", self._set_buffer),
@@ -122,7 +122,7 @@ class NanonisController:
             "Motor.StartMove": c("IHII", "", self._motor_move),
             "Motor.StartClosedLoop": c("IdddII", "", self._motor_closed_loop),
             "Motor.PosGet": c("II", "ddd", lambda a: list(self._motor_position())),
-            "Motor.StopMove": c("", "", lambda a: self._stop_axes((0, 1, 2))),
+            "Motor.StopMove": c("", "", lambda a: self._stop_motors()),
         }
 
     # -- the request/response cycle ---------------------------------------------------------
@@ -289,15 +289,19 @@ class NanonisController:
         self.tip_speed = float(a[0])
         return []
 
-    def _stop_axes(self, channels: tuple[int, ...]) -> list[Any]:
+    def _stop_tip(self) -> list[Any]:
+        """FolMe.Stop: the scan piezos stop where they are (a running frame with them)."""
         t = self.afm.clock.now()
-        for ch in channels:
-            self.afm.robot_device.axes[ch].stop(t)
-        if 0 in channels or 1 in channels:
-            self._halt()
-        if channels == (0, 1, 2):
-            for axis in self.afm.stage_device.axes:
-                axis.stop(t)
+        for axis in self.afm.robot_device.axes[:2]:
+            axis.stop(t)
+        self._halt()
+        return []
+
+    def _stop_motors(self) -> list[Any]:
+        """Motor.StopMove: the coarse motors (the robot's Z, the sample stage) stop."""
+        t = self.afm.clock.now()
+        for axis in (self.afm.robot_device.axes[2], *self.afm.stage_device.axes):
+            axis.stop(t)
         return []
 
     # -- scan -------------------------------------------------------------------------------

@@ -59,7 +59,6 @@ class FrameData:
     forward: FloatArray
     backward: FloatArray
     up: bool
-    lines_done: int = 0
 
 
 def ramp_xy(afm: SimulatedAFM, xy: tuple[float, float], *, duration: float | None) -> None:
@@ -124,7 +123,6 @@ class FrameScan:
         self._move(start, speed=None)
         self.data.forward[k] = self._trace(start, end, self.times[0])
         self.data.backward[k] = self._trace(end, start, self.times[1])[::-1]
-        self.data.lines_done = k + 1
 
     # -- one trace ----------------------------------------------------------------------------
 
