@@ -21,6 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.signal import lfilter
 
 from hardware.errors import CrashError, ProcedureError
 from hardware.mcs_axis import FineCalibration, MCSAxis
@@ -288,6 +289,32 @@ class SimulatedAFM:
         if self.distance(t) < 0:
             self.crashed = True
 
+    def _integrate_line(
+        self, surf: FloatArray, tip0: float, ext: float, d_set: float, gain: float, samples: int
+    ) -> tuple[FloatArray, float]:
+        """The loop over one line sample by sample, with its slew limit, range and crash."""
+        zrange = self.robot_device.axes[2].params.fine_range
+        sub = self.params.substeps
+        branch_end = self.probe.attraction_minimum()
+        crash_depth = self.probe.crash_distance()
+        line = np.zeros(samples)
+        for k in range(samples * sub):
+            dist = tip0 - ext - surf[k]
+            error = dist - d_set
+            if dist > branch_end:
+                error = min(error, MAX_LOOP_STEP)
+            ext = min(max(ext + gain * error, 0.0), zrange)
+            if ext in (0.0, zrange):
+                self._saturated = True
+            if tip0 - ext - surf[k] < crash_depth:
+                self.crashed = True
+                raise CrashError(
+                    "the tip crashed into the surface: the scan is too fast for the force "
+                    "loop here (lower the line rate)"
+                )
+            line[k // sub] += (tip0 - ext) / sub
+        return line, ext
+
     # -- LineRecorder -----------------------------------------------------------------------
 
     def record_line(self, samples: int, duration: float) -> tuple[FloatArray, float]:
@@ -326,25 +353,26 @@ class SimulatedAFM:
         ext = z.extension(t0)
         tip0 = self.params.z_top - (z.true_position(t0) - ext)
         d_set = self.probe.distance_at(self._setpoint - self.charging_offset(t0))
-        line = np.zeros(samples)
-        for k in range(samples * sub):
-            # On the repulsive branch Δf maps one to one onto distance, so the loop acts as
-            # a distance regulator of finite bandwidth; beyond the attractive minimum the
-            # signal is weak and the loop approaches at its slew rate ("parachuting")
-            dist = tip0 - ext - surf[k]
-            error = dist - d_set
-            if dist > branch_end:
-                error = min(error, MAX_LOOP_STEP)
-            ext = min(max(ext + gain * error, 0.0), zrange)
-            if ext in (0.0, zrange):
-                self._saturated = True
-            if tip0 - ext - surf[k] < crash_depth:
-                self.crashed = True
-                raise CrashError(
-                    "the tip crashed into the surface: the scan is too fast for the force "
-                    "loop here (lower the line rate)"
-                )
-            line[k // sub] += (tip0 - ext) / sub
+        # On the repulsive branch Δf maps one to one onto distance, so the loop acts as a
+        # distance regulator of finite bandwidth: a first-order filter of the extension that
+        # puts the tip at the set-point, run at once over the line. Where it would leave that
+        # regime (beyond the attractive minimum the signal is weak and the loop approaches at
+        # its slew rate, "parachuting"; Z at an end of its range; a crash) the line is
+        # integrated sample by sample instead.
+        target = tip0 - surf - d_set
+        exts = lfilter([gain], [1.0, gain - 1.0], target, zi=[(1.0 - gain) * ext])[0]
+        before = tip0 - np.concatenate([[ext], exts[:-1]]) - surf
+        linear = (
+            not np.any((before > branch_end) & (before - d_set > MAX_LOOP_STEP))
+            and exts.min() > 0.0
+            and exts.max() < zrange
+            and (tip0 - exts - surf).min() >= crash_depth
+        )
+        if linear:
+            line = (tip0 - exts).reshape(samples, sub).mean(axis=1)
+            ext = float(exts[-1])
+        else:
+            line, ext = self._integrate_line(surf, tip0, ext, d_set, gain, samples)
         self.clock.advance_to(t0 + duration)
         z.drive_extension(ext, self.clock.now())
         return line + self.rng.normal(0.0, self.params.z_noise, samples), t0

@@ -48,15 +48,9 @@ class ProbeModel:
         """The distance (m) on the repulsive branch where Δf equals ``setpoint`` (bisection)."""
         # the branch runs from deep inside (huge Δf) up to the attractive minimum
         lo, hi = -20 * self.repulsion_length, self._minimum()
-        if not float(self.delta_f(hi)) < setpoint < float(self.delta_f(lo)):
+        if not self._delta_f(hi) < setpoint < self._delta_f(lo):
             raise ValueError(f"set-point {setpoint} Hz is not on the repulsive branch")
-        for _ in range(80):
-            mid = 0.5 * (lo + hi)
-            if float(self.delta_f(mid)) > setpoint:
-                lo = mid
-            else:
-                hi = mid
-        return 0.5 * (lo + hi)
+        return self._descend_to(setpoint, lo, hi)
 
     def attraction_minimum(self) -> float:
         """Distance (m) of the attractive minimum: the end of the repulsive branch."""
@@ -64,10 +58,19 @@ class ProbeModel:
 
     def crash_distance(self) -> float:
         """Distance (m, negative) at which Δf leaves the PLL's range: a crash."""
-        lo, hi = -50 * self.repulsion_length, 0.0
+        return self._descend_to(self.pll_range, -50 * self.repulsion_length, 0.0)
+
+    def _delta_f(self, d: float) -> float:
+        """:meth:`delta_f` of one distance, in scalar arithmetic (the solvers' hot path)."""
+        return -self.attraction * math.exp(-d / self.attraction_length) + (
+            self.repulsion * math.exp(-d / self.repulsion_length)
+        )
+
+    def _descend_to(self, value: float, lo: float, hi: float) -> float:
+        """Where Δf, falling from ``lo`` to ``hi``, crosses ``value`` (80 bisections)."""
         for _ in range(80):
             mid = 0.5 * (lo + hi)
-            if float(self.delta_f(mid)) > self.pll_range:
+            if self._delta_f(mid) > value:
                 lo = mid
             else:
                 hi = mid
