@@ -12,9 +12,11 @@ import contextlib
 import logging
 import threading
 from collections.abc import Callable
+from datetime import UTC, datetime
 from typing import Any
 
 from sqlalchemy import select
+from sqlalchemy.exc import SQLAlchemyError
 from sqlalchemy.orm import Session, sessionmaker
 
 from backend.db.models import Event
@@ -57,12 +59,35 @@ class EventBus:
     def emit(
         self, kind: str, message: str, *, run_id: int | None = None, data: dict[str, Any] | None
     ) -> dict[str, Any]:
-        """Record an event and publish it; return it as the stream sends it."""
-        with self._sessions() as session:
-            row = Event(run_id=run_id, kind=kind, message=message, data=data or {})
-            session.add(row)
-            session.commit()
-            event = event_dict(row)
+        """Record an event and publish it; return it as the stream sends it. Where it cannot
+        be recorded (a full disk, a damaged database) it is still published, without an id."""
+        try:
+            with self._sessions() as session:
+                row = Event(run_id=run_id, kind=kind, message=message, data=data or {})
+                session.add(row)
+                session.commit()
+                event = event_dict(row)
+        except (SQLAlchemyError, OSError):
+            log.warning("event %s not recorded: %s", kind, message, exc_info=True)
+            return self.publish(kind, message, run_id=run_id, data=data)
+        return self._publish(event)
+
+    def publish(
+        self, kind: str, message: str, *, run_id: int | None = None, data: dict[str, Any] | None
+    ) -> dict[str, Any]:
+        """Publish an event that is not recorded (it has no id: a replay will not have it)."""
+        event = {
+            "id": None,
+            "time": datetime.now(UTC).isoformat(),
+            "run_id": run_id,
+            "kind": kind,
+            "message": message,
+            "data": data or {},
+        }
+        return self._publish(event)
+
+    def _publish(self, event: dict[str, Any]) -> dict[str, Any]:
+        kind, message = event["kind"], event["message"]
         log.debug("event %s: %s", kind, message)
         for listener in self._listeners:
             try:

@@ -27,6 +27,7 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from backend.db.models import MergeJob, Run
 from backend.db.patch_store import read_patch, write_merge
+from backend.db.space import full_message, is_full
 from backend.events import EventBus
 
 log = logging.getLogger("mosaic_afm.merge_jobs")
@@ -96,9 +97,14 @@ def _merge_child(
 class MergeService:
     """Queue, run, cancel and store merge jobs."""
 
-    def __init__(self, sessions: sessionmaker[Session], events: EventBus) -> None:
+    def __init__(
+        self, sessions: sessionmaker[Session], events: EventBus, *, data_dir: Path = Path(".")
+    ) -> None:
         self.sessions = sessions
         self.events = events
+        self.data_dir = data_dir
+        #: jobs that failed while the database could not take it: (job id, message)
+        self._unrecorded: list[tuple[int, str]] = []
         self._queue: queue.Queue[int | None] = queue.Queue()
         self._ctx = mp.get_context("spawn")
         self._cancel: dict[int, MpEvent] = {}
@@ -194,18 +200,41 @@ class MergeService:
     # -- the dispatcher ---------------------------------------------------------------------
 
     def _dispatch(self) -> None:
+        """Run queued jobs one by one; a job's failure, even one the database refuses to
+        record, never stops the dispatcher (the record is written once it can be)."""
         while True:
-            job_id = self._queue.get()
+            try:
+                job_id = self._queue.get(timeout=1.0)
+            except queue.Empty:
+                self._record_failures()
+                continue
             if job_id is None:
                 return
+            self._record_failures()
             try:
                 self._run(job_id)
             except Exception as exc:
                 log.exception("merge %s failed", job_id)
+                message = (
+                    full_message(self.data_dir, then="merge again")
+                    if is_full(exc)
+                    else f"merge failed: {exc}"
+                )
+                self._unrecorded.append((job_id, message))
+                self._record_failures()
+
+    def _record_failures(self) -> None:
+        still = []
+        for job_id, message in self._unrecorded:
+            try:
                 with self.sessions() as session:
                     job = session.get(MergeJob, job_id)
                     if job is not None and job.state not in FINAL:
-                        self._set(session, job, "failed", f"merge failed: {exc}")
+                        self._set(session, job, "failed", message)
+            except Exception:
+                log.warning("merge %s: its failure is not recorded yet", job_id, exc_info=True)
+                still.append((job_id, message))
+        self._unrecorded = still
 
     def _run(self, job_id: int) -> None:
         with self.sessions() as session:

@@ -65,8 +65,14 @@ class Services:
         events = EventBus(sessions)
         token, created = load_or_create_token(settings)
         microscope = open_microscope(instrument_url(settings))
-        merges = MergeService(sessions, events)
-        runner = Runner(microscope, sessions, events)
+        merges = MergeService(sessions, events, data_dir=settings.data_dir)
+        runner = Runner(
+            microscope,
+            sessions,
+            events,
+            data_dir=settings.data_dir,
+            reserve=settings.disk_reserve,
+        )
         if settings.auto_merge:
             runner.on_completed = lambda run_id: _auto_merge(merges, run_id)
         viewer = None
@@ -74,6 +80,7 @@ class Services:
             viewer = Viewer(host=settings.host, port=settings.viewer_port)
             events.listen(ViewerFeed(viewer, sessions))
         runner.recover()
+        runner.start_supervisor()
         merges.recover()
         merges.start()
         return cls(

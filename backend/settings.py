@@ -27,6 +27,12 @@ class Settings(BaseSettings):
         default_factory=list, description="origins allowed cross-site (none: CORS closed)"
     )
     max_upload_bytes: int = Field(default=256 * 1024 * 1024, gt=0)
+    disk_reserve: int = Field(
+        default=50 * 1024 * 1024,
+        ge=0,
+        description="bytes kept free in data_dir: a run does not start, nor scan its next "
+        "patch, when a patch would leave less",
+    )
 
     @field_validator("api_token")
     @classmethod

@@ -16,6 +16,7 @@ abort, reset); the worker thread alone touches the instrument while a run is act
 
 from __future__ import annotations
 
+import errno
 import logging
 import threading
 import time
@@ -39,6 +40,7 @@ from backend.acquisition.state import (
 from backend.acquisition.status import read_instrument
 from backend.db.models import PatchRecord, Run
 from backend.db.patch_store import reconcile, write_patch
+from backend.db.space import StorageFull, check_space, full_message, is_full
 from backend.events import EventBus
 from hardware.errors import Interrupted, SafeStateError
 from hardware.microscope import Microscope
@@ -57,6 +59,10 @@ class Runner:
     events : EventBus
     on_completed : callable(run_id), optional
         Called (from the worker thread) when a run completes, e.g. to start its merge.
+    data_dir : Path
+        Where patches are stored: its free space is checked before a run and every patch.
+    reserve : int
+        Bytes to keep free there beyond what a patch needs.
     """
 
     def __init__(
@@ -66,6 +72,8 @@ class Runner:
         events: EventBus,
         *,
         on_completed: Callable[[int], None] | None = None,
+        data_dir: Path = Path("."),
+        reserve: int = 0,
     ) -> None:
         self.microscope = microscope
         self.sessions = sessions
@@ -76,6 +84,14 @@ class Runner:
         self._control: Control | None = None
         self._io = threading.Lock()  # one user of the instrument links at a time
         self._snapshot: dict[str, Any] = {}
+        #: runs concluded whose end the database did not take yet: (state, reason, actor)
+        self._unrecorded: dict[int, tuple[RunState, str, str]] = {}
+        self.data_dir = data_dir
+        self.reserve = reserve
+        #: room one patch needs on disk, bytes (set per run from its pixels)
+        self.patch_bytes = 0
+        self._supervisor: threading.Thread | None = None
+        self._stopping = threading.Event()
 
     # -- start-up ---------------------------------------------------------------------------
 
@@ -85,6 +101,10 @@ class Runner:
         notes: list[str] = []
         with self.sessions() as session:
             runs = session.scalars(select(Run).order_by(Run.id)).all()
+            if any(RunState(run.state) in ACTIVE for run in runs):
+                # the server died mid-run: whatever the tip was doing, it stops now
+                problem = self._try_safe_state()
+                notes.append(problem or "the instrument was put in its safe state")
             for run in runs:
                 if RunState(run.state) in ACTIVE:
                     reason = "the server stopped during the run; resume to continue"
@@ -116,7 +136,15 @@ class Runner:
 
     def start(self, run_id: int, *, actor: str) -> None:
         """Start (or resume from its first patch not stored) a planned, failed or
-        interrupted run."""
+        interrupted run; :class:`StorageFull` when the data directory has no room."""
+        self.flush()
+        with self._lock:
+            if self._unrecorded:
+                held = next(iter(self._unrecorded))
+                raise StorageFull(
+                    errno.ENOSPC,
+                    f"run {held}'s end is not recorded yet: " + self._full_message(),
+                )
         with self._lock:
             busy = self._thread is not None and self._thread.is_alive()
             if busy and self._control is not None:
@@ -140,6 +168,8 @@ class Runner:
                         "run can start"
                     )
                 # completed and aborted runs are final: the table refuses them (HTTP 409)
+                self.patch_bytes = _patch_bytes(run)
+                check_space(self.data_dir, need=self.patch_bytes, reserve=self.reserve)
                 self._transition(session, run, RunState.RUNNING, "started", actor)
             control = Control(run_id)
             self._control = control
@@ -215,8 +245,43 @@ class Runner:
             return not thread.is_alive()
         return True
 
+    def start_supervisor(self, interval: float = 1.0) -> None:
+        """Watch the instrument while no run does: record ends the disk refused once it has
+        room again, and make the instrument safe if the tip is down with nobody scanning."""
+        if self._supervisor is None:
+            self._supervisor = threading.Thread(
+                target=self._supervise, args=(interval,), name="supervisor", daemon=True
+            )
+            self._supervisor.start()
+
+    def _supervise(self, interval: float) -> None:
+        while not self._stopping.wait(interval):
+            try:
+                self.flush()
+                self._watch_instrument()
+            except Exception:  # the supervisor keeps watching
+                log.exception("supervisor: check failed")
+
+    def _watch_instrument(self) -> None:
+        loop = self.microscope.loop
+        if loop is None or self.active_run is not None or not self._io.acquire(timeout=0):
+            return
+        try:
+            if self.active_run is None and loop.engaged():
+                problem = self._try_safe_state()
+                message = "the tip was down with no run scanning: " + (
+                    problem or "the instrument is now in its safe state"
+                )
+                log.error("supervisor: %s", message)
+                self.events.publish(
+                    "fault", message, data={"state": "safe" if not problem else "fault"}
+                )
+        finally:
+            self._io.release()
+
     def close(self, timeout: float = 30.0) -> None:
         """Server shutdown: stop an active run in the safe state (it stays resumable)."""
+        self._stopping.set()
         with self._lock:
             control, thread = self._control, self._thread
         if control is not None and thread is not None and thread.is_alive():
@@ -243,52 +308,127 @@ class Runner:
     # -- the worker -------------------------------------------------------------------------
 
     def _work(self, control: Control) -> None:
-        with self._io, self.sessions() as session:
-            run = session.get(Run, control.run_id)
-            if run is None:  # deleted under us: nothing to do
-                return
-            try:
+        """The worker: scan, then conclude. Whatever fails, and however (the disk, the
+        database, a bug), the instrument is made safe before anything is recorded, and the
+        worker never ends without a conclusion."""
+        try:
+            with self._io:
+                target, reason, actor, safe = self._attempt(control)
+                self._conclude(control.run_id, target, reason, actor, safe=safe)
+        except BaseException as exc:  # the last line of defence: no tip left down
+            log.exception("run %s: the worker failed", control.run_id)
+            self._conclude(
+                control.run_id,
+                RunState.FAULT,
+                f"the acquisition worker failed ({describe(exc)}): check the instrument",
+                "instrument",
+                safe=True,
+            )
+
+    def _attempt(self, control: Control) -> tuple[RunState, str, str, bool]:
+        """Scan the run's patches; return how it ended: (state, reason, actor, make safe)."""
+        try:
+            with self.sessions() as session:
+                run = session.get(Run, control.run_id)
+                if run is None:  # deleted under us: nothing to do
+                    return RunState.FAILED, "the run was deleted", "system", True
                 self._run_patches(session, run, control)
-            except (Abort, Interrupted):
-                target = RunState.INTERRUPTED if control.shutdown else RunState.ABORTED
-                reason = control.reason or "aborted"
-                self._finish(session, run, target, reason, control.actor, safe=True)
-            except Exception as exc:
-                log.exception("run %s: step failed", run.id)
-                self._finish(session, run, RunState.FAILED, describe(exc), "instrument", safe=True)
-            else:
-                self._finish(session, run, RunState.COMPLETED, "every patch stored", "system")
-                if self.on_completed is not None:
-                    try:
-                        self.on_completed(run.id)
-                    except Exception:
-                        log.exception("run %s: starting its merge failed", run.id)
+        except (Abort, Interrupted):
+            target = RunState.INTERRUPTED if control.shutdown else RunState.ABORTED
+            return target, control.reason or "aborted", control.actor, True
+        except Exception as exc:
+            log.exception("run %s: step failed", control.run_id)
+            if is_full(exc):
+                return RunState.FAILED, self._full_message(), "storage", True
+            return RunState.FAILED, describe(exc), "instrument", True
+        return RunState.COMPLETED, "every patch stored", "system", False
+
+    def _conclude(
+        self, run_id: int, target: RunState, reason: str, actor: str, *, safe: bool
+    ) -> None:
+        """Safety first, then bookkeeping: make the instrument safe (a run whose safe state
+        cannot be confirmed goes to ``fault``), then record the end; where the record cannot
+        be written (a full disk) the run holds that state in memory until it can."""
+        if safe:
+            problem = self._try_safe_state()
+            if problem is not None:
+                target, reason = RunState.FAULT, f"{reason}; {problem}"
+        with self._lock:
+            self._unrecorded[run_id] = (target, reason, actor)
+        if not self._record(run_id):
+            message = f"run {run_id}: {target.value} ({reason}); not yet recorded: {reason}"
+            self.events.publish("fault", message, run_id=run_id, data={"state": target.value})
+            return
+        if target == RunState.COMPLETED and self.on_completed is not None:
+            try:
+                self.on_completed(run_id)
+            except Exception:
+                log.exception("run %s: starting its merge failed", run_id)
+
+    def _record(self, run_id: int, *, attempts: int = 3, pause: float = 0.2) -> bool:
+        """Write a concluded run's end to the database (retried); True once it is."""
+        with self._lock:
+            end = self._unrecorded.get(run_id)
+        if end is None:
+            return True
+        target, reason, actor = end
+        for attempt in range(attempts):
+            try:
+                with self.sessions() as session:
+                    run = session.get(Run, run_id)
+                    if run is not None:
+                        self._finish(session, run, target, reason, actor)
+                with self._lock:
+                    self._unrecorded.pop(run_id, None)
+                return True
+            except Exception:
+                log.warning("run %s: recording %s failed", run_id, target.value, exc_info=True)
+                if attempt + 1 < attempts:
+                    time.sleep(pause * (attempt + 1))
+        return False
+
+    def flush(self) -> None:
+        """Record every concluded run whose end is still only in memory (disk freed)."""
+        with self._lock:
+            pending = list(self._unrecorded)
+        for run_id in pending:
+            if self.active_run != run_id:
+                self._record(run_id, attempts=1)
+
+    def unrecorded(self, run_id: int) -> tuple[str, str] | None:
+        """A run's state and message while its end is held in memory only."""
+        with self._lock:
+            end = self._unrecorded.get(run_id)
+        if end is None or self.active_run == run_id:
+            return None
+        target, reason, actor = end
+        return target.value, f"{reason} ({actor})"
 
     def _finish(
-        self,
-        session: Session,
-        run: Run,
-        target: RunState,
-        reason: str,
-        actor: str,
-        *,
-        safe: bool = False,
+        self, session: Session, run: Run, target: RunState, reason: str, actor: str
     ) -> None:
         for patch in run.patches:
             if patch.step not in (PatchStep.PENDING.value, PatchStep.STORED.value):
                 self._patch_machine(session, run, patch).go(
                     PatchStep.PENDING, reason="not stored: it will be scanned again"
                 )
-        if safe:
-            try:
-                self._safe_state()
-            except SafeStateError as exc:
-                self._transition(session, run, RunState.FAULT, f"{reason}; {exc}", actor)
-                self.events.emit("fault", str(exc), run_id=run.id, data={"state": "fault"})
-                return
-        self._transition(session, run, target, reason, actor)
-        if target == RunState.FAILED:
+        if RunState(run.state) != target:
+            self._transition(session, run, target, reason, actor)
+        if target in (RunState.FAILED, RunState.FAULT):
             self.events.emit("fault", reason, run_id=run.id, data={"state": target.value})
+
+    def _try_safe_state(self) -> str | None:
+        """The safe state; None when confirmed, else what went wrong (never raises)."""
+        try:
+            self._safe_state()
+        except SafeStateError as exc:
+            return str(exc)
+        except Exception as exc:
+            return f"safe state not confirmed ({describe(exc)})"
+        return None
+
+    def _full_message(self) -> str:
+        return full_message(self.data_dir, need=self.patch_bytes, reserve=self.reserve)
 
     def _safe_state(self) -> None:
         m = self.microscope
@@ -322,6 +462,7 @@ class Runner:
             machine = self._patch_machine(session, run, patch)
             planned = (patch.origin_x, patch.origin_y)
             self._checkpoint(session, run, control, may_pause=True)
+            check_space(self.data_dir, need=self.patch_bytes, reserve=self.reserve)
             run.current_patch = patch.index
             machine.go(PatchStep.MOVE)
             move_stage(m.stage_x, m.stage_y, m.robot_x, m.robot_y, origin=planned, size=size)
@@ -409,3 +550,8 @@ class Runner:
                 if done(RunState(run.state)):
                     return
             time.sleep(0.01)
+
+
+def _patch_bytes(run: Run) -> int:
+    """Room one patch of ``run`` takes in its file, with HDF5's overhead, bytes."""
+    return 8 * run.pixels_x * run.pixels_y * 2 + 64 * 1024

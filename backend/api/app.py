@@ -12,11 +12,13 @@ from fastapi import FastAPI, Request, Response
 from fastapi.middleware.cors import CORSMiddleware
 from fastapi.responses import JSONResponse
 from fastapi.staticfiles import StaticFiles
+from sqlalchemy.exc import OperationalError
 
 from backend.acquisition.control import Conflict, NotFound
 from backend.acquisition.planner import PlanError
 from backend.acquisition.state import TransitionError
 from backend.api import events, instrument, merges, runs, sem, uploads
+from backend.db.space import StorageFull, full_message, is_full
 from backend.merge_jobs import JobError
 from backend.services import Services
 from backend.settings import Settings
@@ -89,6 +91,19 @@ def create_app(settings: Settings | None = None, *, services: Services | None = 
             return JSONResponse(body, status)
 
         return handle
+
+    async def storage_full(_: Request, exc: Exception) -> JSONResponse:
+        if isinstance(exc, StorageFull):
+            detail = exc.strerror or str(exc)
+        elif is_full(exc):
+            detail = full_message(cfg.data_dir, then="try again")
+        else:  # any other database or file failure: the server's, said plainly
+            log.exception("storage failed")
+            detail = f"the server could not use its data directory {cfg.data_dir}: see its log"
+        return JSONResponse({"detail": detail}, 507 if is_full(exc) else 500)
+
+    for storage in (OSError, OperationalError):
+        app.add_exception_handler(storage, storage_full)
 
     for exc_type, status in (
         (PlanError, 422),

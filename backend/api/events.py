@@ -19,7 +19,10 @@ KEEPALIVE = 15.0
 
 
 def _frame(event: dict[str, Any]) -> str:
-    return f"id: {event['id']}\nevent: {event['kind']}\ndata: {json.dumps(event)}\n\n"
+    # an event that could not be recorded has no id: sent without one, it leaves the
+    # client's Last-Event-ID where it was
+    head = f"id: {event['id']}\n" if event["id"] is not None else ""
+    return f"{head}event: {event['kind']}\ndata: {json.dumps(event)}\n\n"
 
 
 @router.get(
@@ -64,9 +67,12 @@ async def events(
                     continue
                 if item is None:  # server stopping, or this client fell too far behind
                     return
-                if item["id"] <= last or (run_id is not None and item["run_id"] != run_id):
+                if run_id is not None and item["run_id"] != run_id:
                     continue
-                last = item["id"]
+                if item["id"] is not None:
+                    if item["id"] <= last:
+                        continue
+                    last = item["id"]
                 yield _frame(item)
         finally:
             if queue is not None:

@@ -101,9 +101,12 @@ def run_out(run: Run, services: Services, session: Session, *, patches: bool) ->
     merges = session.scalars(
         select(MergeJob.id).where(MergeJob.run_id == run.id).order_by(MergeJob.id)
     ).all()
+    # a run whose end the disk refused: the state the runner holds, not the stale row
+    held = services.runner.unrecorded(run.id)
+    state, message = held if held is not None else (run.state, run.message)
     return RunOut(
         id=run.id,
-        state=run.state,
+        state=state,
         created_at=run.created_at,
         updated_at=run.updated_at,
         roi=RoiIn(x=run.roi_x, y=run.roi_y, width=run.roi_width, height=run.roi_height),
@@ -119,7 +122,7 @@ def run_out(run: Run, services: Services, session: Session, *, patches: bool) ->
         current_patch=current.index if current else run.current_patch,
         current_step=current.step if current else None,
         pending_request=services.runner.pending_request(run.id),
-        message=run.message,
+        message=message,
         merges=list(merges),
         patches=[_patch_out(p) for p in run.patches] if patches else None,
     )

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import time
+
 import pytest
 
 from tests.backend.api.conftest import Server, plan
@@ -79,3 +81,14 @@ def test_fault_injection_is_simulator_only_and_checked(server: Server) -> None:
     assert r.status_code == 422
     r = server.client.post("/api/instrument/sim/fault", json={"fault": "none"})
     assert r.status_code == 401
+
+
+def test_a_tip_left_down_with_no_run_is_withdrawn_by_the_supervisor(server: Server) -> None:
+    sim = server.services.microscope.sim
+    assert sim is not None
+    sim.engage(10.0)  # as a worker that died mid-scan would leave it
+    deadline = time.monotonic() + 10
+    while sim.engaged():
+        assert time.monotonic() < deadline, "the supervisor never withdrew the tip"
+        time.sleep(0.05)
+    _tip_is_safe(server)

@@ -1,0 +1,128 @@
+"""A full disk during a patch write, a commit or a merge: the instrument ends safe, nothing
+stored is lost, and once space returns the run resumes and merges run, without a restart.
+
+The data directory lives on a small tmpfs the test mounts (it needs root, as CI has)."""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import subprocess
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import h5py
+import pytest
+
+from tests.backend.api.conftest import Server, open_server, plan
+from tests.backend.api.test_faults import _tip_is_safe
+
+
+@contextlib.contextmanager
+def small_disk(where: Path, size: str = "24m") -> Iterator[Path]:
+    where.mkdir()
+    done = subprocess.run(
+        ["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(where)],
+        capture_output=True,
+        check=False,
+    )
+    if done.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs here (needs root): {done.stderr.decode().strip()}")
+    try:
+        yield where
+    finally:
+        subprocess.run(["umount", "-l", str(where)], check=False)
+
+
+def fill(disk: Path) -> Path:
+    """Write a ballast file until the disk refuses more."""
+    ballast = disk / "ballast"
+    chunk = b"\0" * (256 * 1024)
+    with contextlib.suppress(OSError), open(ballast, "wb") as f:
+        while True:
+            f.write(chunk)
+            f.flush()
+    return ballast
+
+
+@pytest.fixture
+def disk_server(tmp_path: Path) -> Iterator[tuple[Server, Path]]:
+    with small_disk(tmp_path / "disk") as disk:
+        for server in open_server(disk / "data", disk_reserve=0):
+            yield server, disk
+
+
+def _wait(what: str, until: object, timeout: float = 60.0) -> None:
+    deadline = time.monotonic() + timeout
+    while not until():  # type: ignore[operator]
+        assert time.monotonic() < deadline, f"never: {what}"
+        time.sleep(0.05)
+
+
+def test_a_full_disk_mid_run_ends_safe_then_the_run_resumes(
+    disk_server: tuple[Server, Path],
+) -> None:
+    server, disk = disk_server
+    run = server.create(plan(pixels=(32, 32)))
+    rid = run["id"]
+    server.post(f"/api/runs/{rid}/start")
+    server.wait(rid, lambda r: r["progress"]["stored"] >= 2)
+    ballast = fill(disk)
+    ended = server.wait_state(rid, "failed", "fault", "completed", timeout=120)
+    assert ended["state"] == "failed", ended
+    assert "is full" in ended["message"] and "data" in ended["message"], ended["message"]
+    _tip_is_safe(server)
+    status = server.client.get("/api/instrument").json()
+    assert status["safe_state"] is True and status["loop_engaged"] is False
+    stored = ended["progress"]["stored"]
+    # while full: no other run starts, and the answer says why (507)
+    other = server.post("/api/runs", plan())
+    if other.status_code == 201:
+        r = server.post(f"/api/runs/{other.json()['id']}/start")
+        assert r.status_code == 507, r.text
+    else:
+        assert other.status_code == 507, other.text
+    assert "data directory" in (r if other.status_code == 201 else other).json()["detail"]
+    os.remove(ballast)
+    # space is back: the end is recorded without a restart, and the run resumes
+    _wait("the failure recorded", lambda: server.services.runner.unrecorded(rid) is None)
+    assert server.post(f"/api/runs/{rid}/resume").status_code == 202
+    done = server.wait_state(rid, "completed", "failed", timeout=120)
+    assert done["state"] == "completed", done
+    assert done["progress"]["stored"] == done["progress"]["total"] >= stored
+    with h5py.File(Path(server.data_dir) / "runs" / f"run-{rid:05d}.h5", "r") as f:
+        assert len(f["patches"]) == done["progress"]["total"]
+        assert all(f["patches"][n].attrs["complete"] for n in f["patches"])
+
+
+def test_no_run_starts_without_the_reserve(tmp_path: Path) -> None:
+    for server in open_server(tmp_path, disk_reserve=10**15):
+        run = server.create(plan())
+        r = server.post(f"/api/runs/{run['id']}/start")
+        assert r.status_code == 507, r.text
+        assert "data directory" in r.json()["detail"] and "reserve" in r.json()["detail"]
+        assert server.client.get(f"/api/runs/{run['id']}").json()["state"] == "planned"
+
+
+def test_a_full_disk_during_a_merge_fails_it_and_the_next_one_runs(
+    disk_server: tuple[Server, Path],
+) -> None:
+    server, disk = disk_server
+    run = server.create(plan(pixels=(32, 32)))
+    rid = run["id"]
+    server.post(f"/api/runs/{rid}/start")
+    assert server.wait_state(rid, "completed", "failed", timeout=120)["state"] == "completed"
+    r = server.post(f"/api/runs/{rid}/merges", {"method": "default"})
+    assert r.status_code == 202, r.text
+    job = r.json()["id"]
+    ballast = fill(disk)  # the worker starts now; its result has nowhere to go
+    time.sleep(3.0)
+    os.remove(ballast)
+    ended = server.wait_merge(job)
+    print("merge during a full disk:", ended["state"], ended["message"])
+    assert ended["state"] == "failed", ended
+    assert "full" in ended["message"], ended["message"]
+    again = server.post(f"/api/runs/{rid}/merges", {"method": "default"})
+    assert again.status_code == 202, again.text
+    assert server.wait_merge(again.json()["id"])["state"] == "done"
