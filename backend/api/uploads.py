@@ -8,12 +8,14 @@ listed and merged like any other, and its patches go to the 3D viewer as they ar
 from __future__ import annotations
 
 import math
+import shutil
 import uuid
 from pathlib import Path
 from typing import Annotated, Literal
 
 import numpy as np
 from fastapi import APIRouter, File, Form, HTTPException, UploadFile
+from sqlalchemy.orm import Session
 
 from backend.acquisition.state import RunState
 from backend.api.deps import OperatorDep, ServicesDep, SessionDep
@@ -23,6 +25,7 @@ from backend.db.models import PatchRecord, Run
 from backend.db.patch_store import dataset_name, mark_stored, write_patch
 from backend.formats import READABLE, AfmImage, FormatError, read_image, reader_for
 from backend.formats.layout import LayoutError, scan_places
+from backend.services import Services
 
 router = APIRouter(prefix="/api/runs", tags=["runs"])
 
@@ -75,7 +78,26 @@ async def upload_patch_set(
         raise HTTPException(422, "pixel_size must be a finite number of metres")
     folder = services.settings.data_dir / "uploads" / uuid.uuid4().hex
     folder.mkdir(parents=True)
-    limit, used = services.settings.max_upload_bytes, 0
+    try:
+        images, names = await _receive(
+            files, folder, services.settings.max_upload_bytes, channel, pixel_size
+        )
+        return _store(images, names, folder, services, session, operator,
+                      rows, cols, (overlap_x, overlap_y), order)  # fmt: skip
+    except BaseException:  # a refused (or failed) upload leaves nothing behind
+        shutil.rmtree(folder, ignore_errors=True)
+        raise
+
+
+async def _receive(
+    files: list[UploadFile],
+    folder: Path,
+    limit: int,
+    channel: str | None,
+    pixel_size: float | None,
+) -> tuple[list[AfmImage], list[str]]:
+    """Save and read every upload; 413/422 for what cannot be (its name, never our path)."""
+    used = 0
     images: list[AfmImage] = []
     names: list[str] = []
     for k, upload in enumerate(files):
@@ -92,8 +114,25 @@ async def upload_patch_set(
         try:
             images.append(read_image(path, channel=channel, pixel_size=size))
         except FormatError as exc:
-            raise HTTPException(422, f"files: {name}: {exc}") from None
+            raise HTTPException(422, f"files: {str(exc).replace(str(path), name)}") from None
         names.append(name)
+    return images, names
+
+
+def _store(
+    images: list[AfmImage],
+    names: list[str],
+    folder: Path,
+    services: Services,
+    session: Session,
+    operator: str,
+    rows: int | None,
+    cols: int | None,
+    overlap: tuple[float, float],
+    order: str,
+) -> RunOut:
+    """The uploaded scans as a completed run: its rows, its file, its patches."""
+    overlap_x, overlap_y = overlap
     places = _places(images, rows, cols, (overlap_x, overlap_y), order)
     ny, nx = images[0].heights.shape
     width, height = nx * images[0].pixel_size[0], ny * images[0].pixel_size[1]

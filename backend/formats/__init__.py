@@ -8,9 +8,11 @@ Every reader returns an :class:`AfmImage` with rows along +y (see :mod:`.image`)
 
 from __future__ import annotations
 
+import math
 import struct
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -23,11 +25,51 @@ from backend.formats.nid import read_nid
 from backend.formats.sxm import read_sxm
 from backend.formats.tiff import read_tiff
 
+#: Most pixels one scan may have (4096 x 4096): larger ones are refused before they are read.
+MAX_PIXELS = 4096 * 4096
+
+
+def _check_pixels(p: Path, shape: tuple[int, ...]) -> None:
+    if math.prod(shape) > MAX_PIXELS:
+        raise FormatError(
+            f"{p}: {' x '.join(map(str, shape))} pixels is more than the {MAX_PIXELS} a scan "
+            "may have"
+        )
+
+
+def _npy_header(p: Path) -> tuple[tuple[int, ...], np.dtype[Any]]:
+    """A ``.npy`` file's shape and dtype from its header, checked against the file's size
+    before anything is allocated (a 218-byte file may claim 60000 x 60000)."""
+    try:
+        with open(p, "rb") as f:
+            version = np.lib.format.read_magic(f)
+            header = (
+                np.lib.format.read_array_header_1_0
+                if version == (1, 0)
+                else np.lib.format.read_array_header_2_0
+            )
+            shape, _, dtype = header(f)
+            offset = f.tell()
+    except (OSError, ValueError) as exc:
+        raise FormatError(f"{p}: not a readable .npy array ({exc})") from None
+    if dtype.hasobject:
+        raise FormatError(f"{p}: a .npy of Python objects is not a height array")
+    _check_pixels(p, shape)
+    expected = offset + math.prod(shape) * dtype.itemsize
+    actual = p.stat().st_size
+    if actual != expected:
+        raise FormatError(
+            f"{p}: its header claims {shape} of {dtype} ({expected} bytes) but the file has "
+            f"{actual} bytes: truncated or damaged"
+        )
+    return shape, dtype
+
 
 def read_npy(
     path: str | Path, *, channel: str | None = None, pixel_size: tuple[float, float] | None = None
 ) -> AfmImage:
     p = Path(path)
+    _npy_header(p)
     try:
         data = np.load(p, allow_pickle=False)
     except (OSError, ValueError) as exc:
@@ -88,10 +130,15 @@ def read_image(
         raise FormatError(f"{p}: no such file")
     try:
         if reader in (read_tiff, read_npy):
-            return reader(p, channel=channel, pixel_size=pixel_size)
-        return reader(p, channel=channel)
+            image = reader(p, channel=channel, pixel_size=pixel_size)
+        else:
+            image = reader(p, channel=channel)
+        _check_pixels(p, image.heights.shape)
+        return image
     except FormatError:
         raise
+    except MemoryError:
+        raise FormatError(f"{p}: declares more data than this server can hold") from None
     except (ValueError, KeyError, IndexError, AttributeError, TypeError, ArithmeticError,
             struct.error, EOFError) as exc:  # fmt: skip
         # a header field the reader did not expect to be broken: the file's fault, said so

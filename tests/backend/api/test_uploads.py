@@ -106,3 +106,41 @@ def test_numbered_nanoscope_captures_place_by_offset(server: Server, tmp_path: P
     write_nanoscope(paths[1], [height], scan_size="2 2 ~m", offset=("0 nm", "0 nm"))
     r = _upload(server, paths)
     assert r.status_code == 422 and "share a scan offset" in r.json()["detail"]
+
+
+def _uploads_left(server: Server) -> list[Path]:
+    folder = server.data_dir / "uploads"
+    return sorted(folder.iterdir()) if folder.exists() else []
+
+
+def test_refused_uploads_leave_nothing_and_name_no_server_path(
+    server: Server, tmp_path: Path
+) -> None:
+    paths = _scans(tmp_path, ".npy")
+    for form in ({}, {"pixel_size": "2e-8"}):  # no pixel size; then no grid
+        r = _upload(server, paths, **form)
+        assert r.status_code == 422, r.text
+        assert str(server.data_dir) not in r.json()["detail"], r.json()["detail"]
+    bad = tmp_path / "bad.nid"
+    bad.write_text("not a nid")
+    assert _upload(server, [bad, bad]).status_code == 422
+    assert _uploads_left(server) == []
+    ok = _upload(server, paths, pixel_size="2e-8", rows="2", cols="2")
+    assert ok.status_code == 201 and len(_uploads_left(server)) == 1
+
+
+def test_an_npy_whose_header_claims_more_than_its_bytes_is_refused(
+    server: Server, tmp_path: Path
+) -> None:
+    liar = tmp_path / "liar.npy"
+    header = "{'descr': '<f8', 'fortran_order': False, 'shape': (60000, 60000), }"
+    raw = b"\x93NUMPY\x01\x00" + len(header.ljust(118) + "\n").to_bytes(2, "little")
+    liar.write_bytes(raw + (header.ljust(118) + "\n").encode() + bytes(80))
+    r = _upload(server, [liar, liar], pixel_size="2e-8", rows="1", cols="2")
+    assert r.status_code == 422, r.text
+    assert "60000" in r.json()["detail"] and "liar.npy" in r.json()["detail"]
+    big = tmp_path / "big.npy"
+    np.save(big, np.zeros((4097, 4096), dtype=np.float32))
+    r = _upload(server, [big, big], pixel_size="2e-8", rows="1", cols="2")
+    assert r.status_code == 422 and "more than" in r.json()["detail"], r.text
+    assert _uploads_left(server) == []
