@@ -9,10 +9,12 @@ that does not stop within a few seconds is terminated.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import multiprocessing as mp
 import os
 import queue
+import sys
 import threading
 from dataclasses import dataclass
 from datetime import UTC, datetime
@@ -56,10 +58,56 @@ class PatchInput:
     col: int
 
 
+#: The worker's pid file in the data dir, while a merge runs: start-up reaps what it names.
+PID_FILE = "merge-worker.pid"
+_PR_SET_PDEATHSIG = 1
+
+
+def die_with_parent(parent: int) -> None:
+    """Ask Linux to kill this process when its parent dies (prctl PR_SET_PDEATHSIG), and
+    leave at once if the parent is already gone; elsewhere a no-op."""
+    if not sys.platform.startswith("linux"):
+        return
+    import ctypes
+    import signal
+
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(_PR_SET_PDEATHSIG, int(signal.SIGKILL), 0, 0, 0)
+    except (OSError, AttributeError):  # no prctl: the pid file still gets it reaped
+        return
+    if os.getppid() != parent:  # the server died before the request took hold
+        os._exit(1)
+
+
+def reap_leftover(data_dir: Path) -> str | None:
+    """Kill a merge worker a previous server left running (named by its pid file, and
+    checked to be a Python multiprocessing child); say what was done."""
+    pid_file = data_dir / PID_FILE
+    try:
+        pid = int(pid_file.read_text().strip())
+    except (OSError, ValueError):
+        return None
+    note = None
+    try:
+        cmdline = Path(f"/proc/{pid}/cmdline").read_bytes()
+    except OSError:
+        cmdline = b""
+    if b"multiprocessing" in cmdline and pid != os.getpid():
+        try:
+            os.kill(pid, 9)
+            note = f"killed merge worker {pid} left running by a previous server"
+        except OSError:
+            pass
+    pid_file.unlink(missing_ok=True)
+    return note
+
+
 def _merge_child(
-    patches: list[PatchInput], options: dict[str, Any], out: Any, cancel: MpEvent
+    patches: list[PatchInput], options: dict[str, Any], out: Any, cancel: MpEvent, parent: int
 ) -> None:
     """Worker process: merge, report progress, send the result (or the error) back."""
+    die_with_parent(parent)
     if hasattr(os, "nice"):
         os.nice(WORKER_NICENESS)
     import merge
@@ -118,7 +166,11 @@ class MergeService:
             self._started = True
 
     def recover(self) -> None:
-        """After a restart: a job that was running failed; queued jobs run again."""
+        """After a restart: a worker left running is killed, a job that was running failed;
+        queued jobs run again."""
+        note = reap_leftover(self.data_dir)
+        if note is not None:
+            log.warning(note)
         with self.sessions() as session:
             for job in session.scalars(select(MergeJob).where(MergeJob.state == "running")):
                 job.state, job.message = "failed", "the server stopped during the merge"
@@ -270,9 +322,14 @@ class MergeService:
             self._set(session, job, "running", "merging")
             out: Any = self._ctx.Queue()
             worker = self._ctx.Process(
-                target=_merge_child, args=(inputs, options, out, cancel), daemon=True
+                target=_merge_child,
+                args=(inputs, options, out, cancel, os.getpid()),
+                daemon=True,
             )
             worker.start()
+            pid_file = self.data_dir / PID_FILE
+            with contextlib.suppress(OSError):
+                pid_file.write_text(f"{worker.pid}\n")
             try:
                 self._follow(session, job, path, worker, out, cancel)
             finally:
@@ -281,6 +338,7 @@ class MergeService:
                 if worker.is_alive():
                     worker.terminate()
                 worker.join(5)
+                pid_file.unlink(missing_ok=True)
 
     def _follow(
         self,

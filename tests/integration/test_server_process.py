@@ -3,6 +3,10 @@
 from __future__ import annotations
 
 import io
+import os
+import subprocess
+import sys
+import time
 from pathlib import Path
 
 import h5py
@@ -122,3 +126,53 @@ def test_sigkill_mid_run_then_resume_stores_every_patch_exactly_once(tmp_path: P
         names = sorted(f["patches"])
         assert names == [f"{i:05d}" for i in range(total)]
         assert all(f["patches"][n].attrs["complete"] for n in names)
+
+
+@pytest.mark.slow
+def test_sigkill_of_the_server_mid_merge_takes_its_worker_along(tmp_path: Path) -> None:
+    server = ServerProcess(tmp_path, MOSAIC_AUTO_MERGE="false").start()
+    pid_file = tmp_path / "merge-worker.pid"
+    try:
+        with server.client() as client:
+            run = client.post("/api/runs", json=PAPER_GRID, headers=AUTH).json()
+            client.post(f"/api/runs/{run['id']}/start", headers=AUTH)
+            wait_for(client, f"/api/runs/{run['id']}", lambda r: r["state"] == "completed")
+            r = client.post(f"/api/runs/{run['id']}/merges", json={}, headers=AUTH)
+            assert r.status_code == 202, r.text
+            deadline = time.monotonic() + 60
+            while not pid_file.exists():
+                assert time.monotonic() < deadline, "the merge worker never started"
+                time.sleep(0.01)
+            worker = int(pid_file.read_text())
+    finally:
+        server.kill()
+    deadline = time.monotonic() + 10
+    while Path(f"/proc/{worker}").exists() and b"Z" not in _state(worker):
+        assert time.monotonic() < deadline, f"merge worker {worker} outlived the server"
+        time.sleep(0.05)
+
+
+def _state(pid: int) -> bytes:
+    try:
+        return Path(f"/proc/{pid}/stat").read_bytes().split(b") ")[1][:1]
+    except (OSError, IndexError):
+        return b"Z"
+
+
+def test_start_up_reaps_a_worker_a_previous_server_left(tmp_path: Path) -> None:
+    from backend.merge_jobs import PID_FILE, reap_leftover
+
+    leftover = subprocess.Popen(
+        [sys.executable, "-c", "import multiprocessing, time; time.sleep(120)"]
+    )
+    try:
+        (tmp_path / PID_FILE).write_text(f"{leftover.pid}\n")
+        note = reap_leftover(tmp_path)
+        assert note is not None and str(leftover.pid) in note
+        assert leftover.wait(10) == -9
+        assert not (tmp_path / PID_FILE).exists()
+        (tmp_path / PID_FILE).write_text(f"{os.getpid()}\n")  # never this process itself
+        assert reap_leftover(tmp_path) is None
+    finally:
+        if leftover.poll() is None:
+            leftover.kill()
