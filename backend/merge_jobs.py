@@ -104,10 +104,16 @@ def reap_leftover(data_dir: Path) -> str | None:
 
 
 def _merge_child(
-    patches: list[PatchInput], options: dict[str, Any], out: Any, cancel: MpEvent, parent: int
+    patches: list[PatchInput],
+    options: dict[str, Any],
+    out: Any,
+    cancel: MpEvent,
+    parent: int | None = None,
 ) -> None:
-    """Worker process: merge, report progress, send the result (or the error) back."""
-    die_with_parent(parent)
+    """Worker process: merge, report progress, send the result (or the error) back; it dies
+    with the ``parent`` process (the server) when given."""
+    if parent is not None:
+        die_with_parent(parent)
     if hasattr(os, "nice"):
         os.nice(WORKER_NICENESS)
     import merge
@@ -296,7 +302,7 @@ class MergeService:
             run = session.get(Run, job.run_id)
             if run is None:
                 return
-            path = Path(run.data_file)
+            path = run.file
             records = {p.index: p for p in run.patches}
             inputs = []
             for index in job.patch_ids or []:

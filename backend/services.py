@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 from urllib.parse import parse_qs, urlsplit
 
@@ -61,7 +60,7 @@ class Services:
         settings.runs_dir.mkdir(parents=True, exist_ok=True)
         migrate(settings.database)
         engine = make_engine(settings.database)
-        sessions = session_factory(engine)
+        sessions = session_factory(engine, data_dir=settings.data_dir)
         events = EventBus(sessions)
         token, created = load_or_create_token(settings)
         microscope = open_microscope(instrument_url(settings))
@@ -118,7 +117,7 @@ class ViewerFeed:
             run = session.get(Run, run_id)
             if run is None:
                 return
-            path = Path(run.data_file)
+            path = run.file
         stored = read_patch(path, index)
         self.viewer.show_patch(
             run_id,
@@ -133,7 +132,7 @@ class ViewerFeed:
             run = session.get(Run, job.run_id) if job is not None else None
             if job is None or run is None or not job.result_group:
                 return
-            path, group = Path(run.data_file), job.result_group
+            path, group = run.file, job.result_group
         heights, document = read_merge(path, group)
         origin = (float(document["origin"][0]), float(document["origin"][1]))
         pixel = (float(document["pixel_size"][0]), float(document["pixel_size"][1]))

@@ -481,7 +481,7 @@ class Runner:
                 lines, m.stage_x, m.stage_y, planned=planned, size=size, x=m.robot_x, y=m.robot_y
             )
             name = write_patch(
-                Path(run.data_file),
+                run.file,
                 patch.index,
                 lines.heights,
                 origin=origin,

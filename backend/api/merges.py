@@ -109,7 +109,7 @@ def _result(session: SessionDep, job_id: int) -> tuple[Any, dict[str, Any]]:
     if run is None:
         raise HTTPException(404, f"the run of merge {job_id} was deleted")
     try:
-        return read_merge(Path(run.data_file), job.result_group)
+        return read_merge(run.file, job.result_group)
     except (KeyError, OSError) as exc:
         raise HTTPException(404, f"merge {job_id}: result not readable ({exc})") from None
 

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import io
-from pathlib import Path
 from typing import Annotated, Any
 
 import numpy as np
@@ -132,7 +131,7 @@ def add_run(session: Session, services: Services, run: Run, what: str, operator:
     """Commit a new run (its HDF5 file named by its id) and announce it on the event stream."""
     session.add(run)
     session.flush()
-    run.data_file = str(Path(services.settings.runs_dir).resolve() / f"run-{run.id:05d}.h5")
+    run.data_file = f"runs/run-{run.id:05d}.h5"  # under the data directory, wherever it is
     session.commit()
     services.events.emit(
         "run",
@@ -326,7 +325,7 @@ def _stored(session: Session, run_id: int, index: int) -> StoredPatch:
         )
     if patch.step != "stored":
         raise HTTPException(404, f"patch {index} of run {run_id} is {patch.step}, not stored")
-    return read_patch(Path(run.data_file), index)
+    return read_patch(run.file, index)
 
 
 __all__ = ["PlanError", "add_run", "get_run", "npy_response", "router", "run_out"]

@@ -164,13 +164,17 @@ def _store(
     add_run(session, services, run, f"{len(images)} scans uploaded for an offline merge", operator)
     for k, (image, name, patch) in enumerate(zip(images, names, run.patches, strict=True)):
         write_patch(
-            Path(run.data_file),
+            run.file,
             k,
             image.heights,
             origin=(patch.origin_x, patch.origin_y),
             pixel_size=image.pixel_size,
             line_times=np.zeros(image.heights.shape[0]),
-            attrs={"source": name, "channel": image.channel, "upload": str(folder)},
+            attrs={
+                "source": name,
+                "channel": image.channel,
+                "upload": str(folder.relative_to(services.settings.data_dir)),
+            },
         )
         mark_stored(session, patch, dataset_name(k))
         services.events.emit(

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from datetime import UTC, datetime
+from pathlib import Path
 from typing import Any
 
 from sqlalchemy import (
@@ -16,7 +17,7 @@ from sqlalchemy import (
     TypeDecorator,
     UniqueConstraint,
 )
-from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, relationship
+from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, object_session, relationship
 
 
 def utcnow() -> datetime:
@@ -69,11 +70,25 @@ class Run(Base):
     instrument: Mapped[str] = mapped_column(String(512))
     current_patch: Mapped[int | None] = mapped_column(Integer, nullable=True)
     message: Mapped[str | None] = mapped_column(String(2000), nullable=True)
+    #: the run's HDF5 file, relative to the data directory (absolute in older databases)
     data_file: Mapped[str] = mapped_column(String(512))
 
     patches: Mapped[list[PatchRecord]] = relationship(
         back_populates="run", order_by="PatchRecord.index", cascade="all, delete-orphan"
     )
+
+    @property
+    def file(self) -> Path:
+        """The run's file: ``data_file`` under the data directory its session was made for
+        (so a data directory copied or restored elsewhere still finds its files)."""
+        path = Path(self.data_file)
+        if path.is_absolute():
+            return path
+        session = object_session(self)
+        root = session.info.get("data_dir") if session is not None else None
+        if root is None:
+            raise RuntimeError(f"run {self.id}: no data directory to find {path} in")
+        return Path(root) / path
 
 
 class PatchRecord(Base):

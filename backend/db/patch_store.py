@@ -141,7 +141,7 @@ def _scan(path: Path) -> tuple[set[int], set[int]]:
 
 def reconcile(session: Session, run: Run) -> list[str]:
     """Make the database and the run's file agree after a crash; return what was repaired."""
-    path = Path(run.data_file)
+    path = run.file
     complete, partial = _scan(path)
     notes: list[str] = []
     if partial:

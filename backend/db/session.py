@@ -43,5 +43,7 @@ def migrate(url: str, revision: str = "head") -> None:
     command.upgrade(cfg, revision)
 
 
-def session_factory(engine: Engine) -> sessionmaker[Session]:
-    return sessionmaker(engine, expire_on_commit=False)
+def session_factory(engine: Engine, *, data_dir: Path | None = None) -> sessionmaker[Session]:
+    """Sessions on ``engine``; ``data_dir`` is where their runs' files are (``Run.file``)."""
+    info = {"data_dir": data_dir} if data_dir is not None else {}
+    return sessionmaker(engine, expire_on_commit=False, info=info)

@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import io
+import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
 
-from tests.backend.api.conftest import AUTH, Server, plan
+from tests.backend.api.conftest import AUTH, Server, open_server, plan
 
 
 def test_create_plans_a_snake_grid_and_stores_nothing_yet(server: Server) -> None:
@@ -167,3 +169,18 @@ def test_a_planned_run_can_be_aborted_without_moving(server: Server) -> None:
     run = server.create()
     r = server.client.post(f"/api/runs/{run['id']}/abort", headers=AUTH)
     assert r.status_code == 200 and r.json()["state"] == "aborted"
+
+
+def test_a_data_directory_copied_elsewhere_finds_its_files(tmp_path: Path) -> None:
+    first = tmp_path / "here"
+    for server in open_server(first):
+        run = server.create(plan(pixels=(12, 12)))
+        server.post(f"/api/runs/{run['id']}/start")
+        assert server.wait_state(run["id"], "completed", "failed")["state"] == "completed"
+    moved = tmp_path / "there"
+    shutil.copytree(first, moved)
+    shutil.rmtree(first)
+    for server in open_server(moved):
+        r = server.client.get(f"/api/runs/{run['id']}/patches/0/data")
+        assert r.status_code == 200, r.text
+        assert np.isfinite(np.load(io.BytesIO(r.content))).all()
