@@ -8,6 +8,7 @@ from typing import Any
 from urllib.parse import parse_qs, urlsplit
 
 from sqlalchemy import Engine
+from sqlalchemy.exc import DatabaseError
 from sqlalchemy.orm import Session, sessionmaker
 
 from backend.acquisition.planner import InstrumentLimits
@@ -23,6 +24,21 @@ from backend.viewer import HeightMap, Viewer
 from hardware.microscope import Microscope, open_microscope
 
 log = logging.getLogger("mosaic_afm.server")
+
+
+class DatabaseDamaged(RuntimeError):
+    """The database cannot be read; the message names the file and the ways back."""
+
+    def __init__(self, settings: Settings, problem: str) -> None:
+        url = settings.database
+        path = url.removeprefix("sqlite:///") if url.startswith("sqlite:///") else url
+        super().__init__(
+            f"the database {path} is damaged ({problem}). Stop every server on it and keep a "
+            f"copy of it (with {path}-wal and {path}-shm beside it, which may hold the last "
+            f"changes). Then recover what it holds: sqlite3 {path} .recover | sqlite3 "
+            f"recovered.sqlite, and put recovered.sqlite in its place; or restore a copy made "
+            f"by mosaic-afm backup. The run files under {settings.runs_dir} are not touched."
+        )
 
 
 def instrument_url(settings: Settings) -> str:
@@ -56,10 +72,18 @@ class Services:
 
     @classmethod
     def open(cls, settings: Settings) -> Services:
-        """Migrate the database, open the instrument, recover from a previous stop."""
+        """Migrate the database, open the instrument, recover from a previous stop;
+        :class:`DatabaseDamaged` when the database cannot be read."""
         settings.runs_dir.mkdir(parents=True, exist_ok=True)
-        migrate(settings.database)
-        engine = make_engine(settings.database)
+        try:
+            migrate(settings.database)
+            engine = make_engine(settings.database)
+            with engine.connect() as connection:
+                check = connection.exec_driver_sql("PRAGMA quick_check").scalar()
+            if check not in (None, "ok"):
+                raise DatabaseDamaged(settings, f"quick_check says {check!r}")
+        except DatabaseError as exc:
+            raise DatabaseDamaged(settings, str(exc.orig or exc)) from None
         sessions = session_factory(engine, data_dir=settings.data_dir)
         events = EventBus(sessions)
         token, created = load_or_create_token(settings)

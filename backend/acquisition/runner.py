@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import errno
 import logging
+import shutil
 import threading
 import time
 from collections.abc import Callable
@@ -114,10 +115,28 @@ class Runner:
                     if patch.step not in (PatchStep.PENDING.value, PatchStep.STORED.value):
                         patch.step = PatchStep.PENDING.value
                 session.commit()
-                notes.extend(f"run {run.id}: {n}" for n in reconcile(session, run))
+                try:
+                    notes.extend(f"run {run.id}: {n}" for n in reconcile(session, run))
+                except (OSError, KeyError, ValueError, RuntimeError) as exc:
+                    session.rollback()
+                    notes.append(f"run {run.id}: {self._quarantine(session, run, exc)}")
         for note in notes:
             self.events.emit("recovery", note, data={})
         return notes
+
+    def _quarantine(self, session: Session, run: Run, exc: BaseException) -> str:
+        """Move a run file that cannot be opened aside and mark its run ``damaged``."""
+        source = run.file
+        aside = self.data_dir / "quarantine" / f"{source.name}.{int(time.time())}"
+        aside.parent.mkdir(parents=True, exist_ok=True)
+        shutil.move(source, aside)
+        reason = (
+            f"its file {source.name} could not be opened ({type(exc).__name__}: "
+            f"{str(exc)[:200]}); moved to {aside.relative_to(self.data_dir)}"
+        )
+        log.error("run %s: %s", run.id, reason)
+        self._transition(session, run, RunState.DAMAGED, reason, "server")
+        return f"damaged: {reason}"
 
     # -- what the API asks ------------------------------------------------------------------
 

@@ -34,6 +34,8 @@ class RunState(StrEnum):
     FAILED = "failed"
     INTERRUPTED = "interrupted"
     FAULT = "fault"
+    #: its file could not be opened at start-up: moved aside, the run kept for the record
+    DAMAGED = "damaged"
 
 
 class PatchStep(StrEnum):
@@ -45,8 +47,10 @@ class PatchStep(StrEnum):
     STORED = "stored"
 
 
+_DAMAGED = frozenset({RunState.DAMAGED})  # found at start-up, from any state at rest
+
 RUN_TRANSITIONS: Mapping[RunState, frozenset[RunState]] = {
-    RunState.PLANNED: frozenset({RunState.RUNNING, RunState.ABORTED}),
+    RunState.PLANNED: frozenset({RunState.RUNNING, RunState.ABORTED}) | _DAMAGED,
     RunState.RUNNING: frozenset(
         {
             RunState.PAUSED,
@@ -60,11 +64,12 @@ RUN_TRANSITIONS: Mapping[RunState, frozenset[RunState]] = {
     RunState.PAUSED: frozenset(
         {RunState.RUNNING, RunState.ABORTED, RunState.INTERRUPTED, RunState.FAULT}
     ),
-    RunState.FAILED: frozenset({RunState.RUNNING, RunState.ABORTED}),
-    RunState.INTERRUPTED: frozenset({RunState.RUNNING, RunState.ABORTED}),
-    RunState.FAULT: frozenset({RunState.FAILED}),
-    RunState.COMPLETED: frozenset(),
-    RunState.ABORTED: frozenset(),
+    RunState.FAILED: frozenset({RunState.RUNNING, RunState.ABORTED}) | _DAMAGED,
+    RunState.INTERRUPTED: frozenset({RunState.RUNNING, RunState.ABORTED}) | _DAMAGED,
+    RunState.FAULT: frozenset({RunState.FAILED}) | _DAMAGED,
+    RunState.COMPLETED: _DAMAGED,
+    RunState.ABORTED: _DAMAGED,
+    RunState.DAMAGED: frozenset(),
 }
 
 PATCH_TRANSITIONS: Mapping[PatchStep, frozenset[PatchStep]] = {

@@ -27,9 +27,10 @@ def run(args: argparse.Namespace) -> int:
     from pydantic import ValidationError
 
     from backend.api.app import create_app
-    from backend.services import Services
+    from backend.services import DatabaseDamaged, Services
     from backend.settings import Settings
     from hardware.microscope import ConfigurationError
+    from hardware.nanonis.errors import NanonisError
     from hardware.smaract_errors import MCSError
 
     overrides = {
@@ -51,8 +52,15 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError(f"bad settings: {problems}") from None
     try:
         services = Services.open(settings)
-    except (ConfigurationError, MCSError, OSError) as exc:
+    except DatabaseDamaged as exc:
+        raise UsageError(str(exc)) from None
+    except (ConfigurationError, MCSError, NanonisError) as exc:
         raise UsageError(f"cannot open the instrument {settings.instrument!r}: {exc}") from None
+    except OSError as exc:
+        raise UsageError(
+            f"cannot use the data directory {settings.data_dir}: {exc.strerror or exc}"
+            + (f" ({exc.filename})" if exc.filename else "")
+        ) from None
     base = f"http://{settings.host}:{settings.port}"
     viewer = services.viewer
     print(
