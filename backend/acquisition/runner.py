@@ -135,6 +135,8 @@ class Runner:
             f"{str(exc)[:200]}); moved to {aside.relative_to(self.data_dir)}"
         )
         log.error("run %s: %s", run.id, reason)
+        if RunState(run.state) == RunState.FAULT:  # it still blocks until an operator's reset
+            return f"in fault, and {reason}"
         self._transition(session, run, RunState.DAMAGED, reason, "server")
         return f"damaged: {reason}"
 

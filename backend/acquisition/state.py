@@ -47,7 +47,7 @@ class PatchStep(StrEnum):
     STORED = "stored"
 
 
-_DAMAGED = frozenset({RunState.DAMAGED})  # found at start-up, from any state at rest
+_DAMAGED = frozenset({RunState.DAMAGED})  # found at start-up, from a state at rest
 
 RUN_TRANSITIONS: Mapping[RunState, frozenset[RunState]] = {
     RunState.PLANNED: frozenset({RunState.RUNNING, RunState.ABORTED}) | _DAMAGED,
@@ -66,7 +66,7 @@ RUN_TRANSITIONS: Mapping[RunState, frozenset[RunState]] = {
     ),
     RunState.FAILED: frozenset({RunState.RUNNING, RunState.ABORTED}) | _DAMAGED,
     RunState.INTERRUPTED: frozenset({RunState.RUNNING, RunState.ABORTED}) | _DAMAGED,
-    RunState.FAULT: frozenset({RunState.FAILED}) | _DAMAGED,
+    RunState.FAULT: frozenset({RunState.FAILED}),  # only an operator's reset: it blocks
     RunState.COMPLETED: _DAMAGED,
     RunState.ABORTED: _DAMAGED,
     RunState.DAMAGED: frozenset(),
