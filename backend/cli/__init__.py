@@ -13,6 +13,7 @@ from backend.cli import (
     sim_cmd,
     sim_nanonis_cmd,
     sim_scan_cmd,
+    store_cmd,
     synth_cmd,
 )
 from backend.cli.common import UsageError
@@ -32,6 +33,7 @@ def build_parser() -> argparse.ArgumentParser:
     sim_scan_cmd.add_parser(sub)
     serve_cmd.add_parser(sub)
     formats_cmd.add_parsers(sub)
+    store_cmd.add_parsers(sub)
     return parser
 
 
