@@ -9,15 +9,19 @@ from contextlib import asynccontextmanager
 from pathlib import Path
 
 from fastapi import FastAPI, Request, Response
+from fastapi.dependencies.models import Dependant
 from fastapi.middleware.cors import CORSMiddleware
 from fastapi.responses import JSONResponse
+from fastapi.routing import APIRoute
 from fastapi.staticfiles import StaticFiles
 from sqlalchemy.exc import OperationalError
+from starlette.routing import Match
 
 from backend.acquisition.control import Conflict, NotFound
 from backend.acquisition.planner import PlanError
 from backend.acquisition.state import TransitionError
 from backend.api import events, instrument, merges, runs, sem, uploads
+from backend.api.deps import UNAUTHORISED, bearer_matches, require_operator
 from backend.db.space import StorageFull, full_message, is_full
 from backend.merge_jobs import JobError
 from backend.services import Services
@@ -26,6 +30,15 @@ from hardware.errors import ProcedureError
 from hardware.microscope import ConfigurationError
 
 log = logging.getLogger("mosaic_afm.server")
+
+#: Methods that may change something: their routes that ask for the operator need the token.
+CHANGES = frozenset({"POST", "PUT", "PATCH", "DELETE"})
+
+
+def _needs_token(dependant: Dependant) -> bool:
+    """Whether a route depends (at any depth) on :func:`require_operator`."""
+    return any(d.call is require_operator or _needs_token(d) for d in dependant.dependencies)
+
 
 #: The operator's pages (static files: HTML, CSS, ES modules).
 FRONTEND = Path(__file__).resolve().parents[2] / "frontend"
@@ -72,6 +85,14 @@ def create_app(settings: Settings | None = None, *, services: Services | None = 
     async def limit_body(
         request: Request, call_next: Callable[[Request], Awaitable[Response]]
     ) -> Response:
+        # a change is refused for its missing token before its body is even read
+        if request.method in CHANGES and _guarded(request):
+            services = getattr(request.app.state, "services", None)
+            header = request.headers.get("authorization")
+            if services is not None and not bearer_matches(header, services.token):
+                return JSONResponse(
+                    {"detail": UNAUTHORISED}, 401, headers={"WWW-Authenticate": "Bearer"}
+                )
         length = request.headers.get("content-length")
         if length is not None:
             if not length.isdigit():
@@ -119,6 +140,11 @@ def create_app(settings: Settings | None = None, *, services: Services | None = 
 
     for module in (uploads, runs, merges, instrument, sem, events):
         app.include_router(module.router)
+    guarded = [r for r in app.routes if isinstance(r, APIRoute) and _needs_token(r.dependant)]
+
+    def _guarded(request: Request) -> bool:
+        return any(r.matches(request.scope)[0] == Match.FULL for r in guarded)
+
     app.mount("/", StaticFiles(directory=FRONTEND, html=True), name="pages")
     if services is not None:
         app.state.services = services  # usable before (or without) the lifespan, as in tests

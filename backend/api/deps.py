@@ -31,6 +31,19 @@ def get_session(services: ServicesDep) -> Iterator[Session]:
 SessionDep = Annotated[Session, Depends(get_session)]
 
 
+#: What a change without the token is told (HTTP 401).
+UNAUTHORISED = (
+    "this changes the instrument or its data: send 'Authorization: Bearer <token>' with the "
+    "server's API token (MOSAIC_API_TOKEN, or the file api_token in the data dir)"
+)
+
+
+def bearer_matches(header: str | None, token: str) -> bool:
+    """Whether an ``Authorization`` header carries ``token`` as its bearer token."""
+    scheme, _, given = (header or "").partition(" ")
+    return scheme.lower() == "bearer" and token_matches(given.strip(), token)
+
+
 def require_operator(
     services: ServicesDep,
     credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)],
@@ -39,11 +52,7 @@ def require_operator(
     """Who asks for a change: the bearer token must match; ``X-Operator`` names the person."""
     if credentials is None or not token_matches(credentials.credentials, services.token):
         raise HTTPException(
-            status_code=401,
-            detail="this changes the instrument or its data: send 'Authorization: Bearer "
-            "<token>' with the server's API token (MOSAIC_API_TOKEN, or the file api_token "
-            "in the data dir)",
-            headers={"WWW-Authenticate": "Bearer"},
+            status_code=401, detail=UNAUTHORISED, headers={"WWW-Authenticate": "Bearer"}
         )
     return (x_operator or "").strip() or "api"
 

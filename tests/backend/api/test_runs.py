@@ -66,6 +66,11 @@ def test_changes_need_the_token(server: Server) -> None:
     r = server.client.post("/api/runs", json=plan(), headers={"Authorization": "Bearer wrong"})
     assert r.status_code == 401
     assert server.client.get("/api/runs").status_code == 200  # reads stay open
+    # the token is asked for before the body is looked at
+    r = server.client.post("/api/runs", content=b"{not json", headers={"content-type": "x"})
+    assert r.status_code == 401, r.text
+    r = server.client.post("/api/runs/1/start", headers={"Authorization": "Basic abc"})
+    assert r.status_code == 401
 
 
 def test_a_run_scans_stores_and_serves_every_patch(server: Server) -> None:
