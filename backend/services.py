@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 from urllib.parse import parse_qs, urlsplit
 
@@ -20,6 +20,7 @@ from backend.db.session import make_engine, migrate, session_factory
 from backend.events import EventBus
 from backend.merge_jobs import MergeService
 from backend.settings import Settings
+from backend.status_cache import StatusCache
 from backend.viewer import HeightMap, Viewer
 from hardware.microscope import Microscope, open_microscope
 
@@ -62,6 +63,7 @@ class Services:
     token_created: bool
     viewer: Viewer | None = None
     token_announced: bool = False
+    status: StatusCache = field(default_factory=StatusCache)
 
     @property
     def limits(self) -> InstrumentLimits:
@@ -102,12 +104,24 @@ class Services:
         if settings.viewer:
             viewer = Viewer(host=settings.host, port=settings.viewer_port)
             events.listen(ViewerFeed(viewer, sessions))
+        status = StatusCache()
+        events.listen(status)
         runner.recover()
         runner.start_supervisor()
         merges.recover()
         merges.start()
         return cls(
-            settings, engine, sessions, events, microscope, runner, merges, token, created, viewer
+            settings,
+            engine,
+            sessions,
+            events,
+            microscope,
+            runner,
+            merges,
+            token,
+            created,
+            viewer,
+            status=status,
         )
 
     def close(self) -> None:

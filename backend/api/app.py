@@ -8,7 +8,7 @@ from collections.abc import AsyncIterator, Awaitable, Callable
 from contextlib import asynccontextmanager
 from pathlib import Path
 
-from fastapi import FastAPI, Request, Response
+from fastapi import FastAPI, Request
 from fastapi.dependencies.models import Dependant
 from fastapi.middleware.cors import CORSMiddleware
 from fastapi.responses import JSONResponse
@@ -16,6 +16,7 @@ from fastapi.routing import APIRoute
 from fastapi.staticfiles import StaticFiles
 from sqlalchemy.exc import OperationalError
 from starlette.routing import Match
+from starlette.types import ASGIApp, Receive, Scope, Send
 
 from backend.acquisition.control import Conflict, NotFound
 from backend.acquisition.planner import PlanError
@@ -81,13 +82,14 @@ def create_app(settings: Settings | None = None, *, services: Services | None = 
             allow_headers=["Authorization", "Content-Type", "X-Operator", "Last-Event-ID"],
         )
 
-    @app.middleware("http")
-    async def limit_body(
-        request: Request, call_next: Callable[[Request], Awaitable[Response]]
-    ) -> Response:
-        # a change is refused for its missing token before its body is even read
+    limit = cfg.max_upload_bytes
+
+    def refusal(scope: Scope) -> JSONResponse | None:
+        """What a request is refused with before its body is read: no token for a change,
+        a body over the limit."""
+        request = Request(scope)
         if request.method in CHANGES and _guarded(request):
-            services = getattr(request.app.state, "services", None)
+            services = getattr(app.state, "services", None)
             header = request.headers.get("authorization")
             if services is not None and not bearer_matches(header, services.token):
                 return JSONResponse(
@@ -97,12 +99,25 @@ def create_app(settings: Settings | None = None, *, services: Services | None = 
         if length is not None:
             if not length.isdigit():
                 return JSONResponse({"detail": "Content-Length must be a number"}, 400)
-            if int(length) > cfg.max_upload_bytes:
+            if int(length) > limit:
                 return JSONResponse(
-                    {"detail": f"the body is larger than the {cfg.max_upload_bytes} byte limit"},
-                    413,
+                    {"detail": f"the body is larger than the {limit} byte limit"}, 413
                 )
-        return await call_next(request)
+        return None
+
+    class Gate:
+        """Plain ASGI (no per-request task or stream wrapping, as a status poll is cheap)."""
+
+        def __init__(self, inner: ASGIApp) -> None:
+            self.inner = inner
+
+        async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+            if scope["type"] == "http" and (refused := refusal(scope)) is not None:
+                await refused(scope, receive, send)
+                return
+            await self.inner(scope, receive, send)
+
+    app.add_middleware(Gate)
 
     def handler(status: int) -> Callable[[Request, Exception], Awaitable[JSONResponse]]:
         async def handle(_: Request, exc: Exception) -> JSONResponse:

@@ -15,7 +15,7 @@ from backend.services import Services
 _bearer = HTTPBearer(auto_error=False, description="the token of MOSAIC_API_TOKEN")
 
 
-def get_services(request: Request) -> Services:
+async def get_services(request: Request) -> Services:  # async: no thread hop to get it
     services: Services = request.app.state.services
     return services
 

@@ -7,11 +7,13 @@ from typing import Annotated, Literal
 
 from fastapi import APIRouter, HTTPException, Query, Response
 from sqlalchemy import select
+from sqlalchemy.orm import Session
 
-from backend.api.deps import OperatorDep, ServicesDep, SessionDep
+from backend.api.deps import OperatorDep, ServicesDep
 from backend.api.runs import NPY, npy_response
 from backend.api.schemas import InstrumentOut, SimFaultIn
 from backend.db.models import Run
+from backend.services import Services
 from hardware.sim.instrument import SimulatedAFM
 
 router = APIRouter(prefix="/api/instrument", tags=["instrument"])
@@ -25,8 +27,24 @@ NO_SURFACE_DROP = 1e-3
 
 
 @router.get("", response_model=InstrumentOut)
-def instrument(services: ServicesDep, session: SessionDep) -> InstrumentOut:
-    """State, positions (metres), frequency shift (Hz) and whether it is in the safe state."""
+async def instrument(services: ServicesDep) -> Response:
+    """State, positions (metres), frequency shift (Hz) and whether it is in the safe state
+    (read at most every 0.1 s, however many clients ask)."""
+    body, epoch = services.status.instrument()
+    if body is None:
+        body = await services.status.render(
+            ("instrument", epoch), lambda: _render_instrument(services)
+        )
+        services.status.keep_instrument(epoch, body)
+    return Response(body, media_type="application/json")
+
+
+def _render_instrument(services: Services) -> bytes:
+    with services.sessions() as session:
+        return _instrument(services, session).model_dump_json().encode()
+
+
+def _instrument(services: Services, session: Session) -> InstrumentOut:
     m = services.microscope
     status = services.runner.instrument_status()
     fault = session.scalars(select(Run.id).where(Run.state == "fault")).first()

@@ -211,8 +211,21 @@ def list_runs(services: ServicesDep, session: SessionDep) -> list[RunOut]:
 
 
 @router.get("/{run_id}", response_model=RunOut)
-def read_run(run_id: RunId, services: ServicesDep, session: SessionDep) -> RunOut:
-    return run_out(get_run(session, run_id), services, session, patches=True)
+async def read_run(run_id: RunId, services: ServicesDep) -> Response:
+    """The run, its progress and its patches (served from memory until it changes)."""
+    body, version = services.status.run(run_id)
+    if body is None:
+        body = await services.status.render(
+            ("run", run_id, version), lambda: _render_run(run_id, services)
+        )
+        services.status.keep_run(run_id, version, body)
+    return Response(body, media_type="application/json")
+
+
+def _render_run(run_id: int, services: Services) -> bytes:
+    with services.sessions() as session:
+        out = run_out(get_run(session, run_id), services, session, patches=True)
+    return out.model_dump_json().encode()
 
 
 @router.post("/{run_id}/start", response_model=RunOut, status_code=202)
