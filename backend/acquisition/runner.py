@@ -377,7 +377,7 @@ class Runner:
         with self._lock:
             self._unrecorded[run_id] = (target, reason, actor)
         if not self._record(run_id):
-            message = f"run {run_id}: {target.value} ({reason}); not yet recorded: {reason}"
+            message = f"run {run_id}: {target.value} ({reason}); the database cannot record it yet"
             self.events.publish("fault", message, run_id=run_id, data={"state": target.value})
             return
         if target == RunState.COMPLETED and self.on_completed is not None:

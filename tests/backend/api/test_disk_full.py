@@ -60,13 +60,17 @@ def _wait(what: str, until: object, timeout: float = 60.0) -> None:
         time.sleep(0.05)
 
 
+def _start(server: Server) -> int:
+    run = server.create(plan(pixels=(32, 32)))
+    server.post(f"/api/runs/{run['id']}/start")
+    return int(run["id"])
+
+
 def test_a_full_disk_mid_run_ends_safe_then_the_run_resumes(
     disk_server: tuple[Server, Path],
 ) -> None:
     server, disk = disk_server
-    run = server.create(plan(pixels=(32, 32)))
-    rid = run["id"]
-    server.post(f"/api/runs/{rid}/start")
+    rid = _start(server)
     server.wait(rid, lambda r: r["progress"]["stored"] >= 2)
     ballast = fill(disk)
     ended = server.wait_state(rid, "failed", "fault", "completed", timeout=120)
@@ -109,9 +113,7 @@ def test_a_full_disk_during_a_merge_fails_it_and_the_next_one_runs(
     disk_server: tuple[Server, Path],
 ) -> None:
     server, disk = disk_server
-    run = server.create(plan(pixels=(32, 32)))
-    rid = run["id"]
-    server.post(f"/api/runs/{rid}/start")
+    rid = _start(server)
     assert server.wait_state(rid, "completed", "failed", timeout=120)["state"] == "completed"
     r = server.post(f"/api/runs/{rid}/merges", {"method": "default"})
     assert r.status_code == 202, r.text
