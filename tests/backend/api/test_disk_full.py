@@ -6,14 +6,19 @@ The data directory lives on a small tmpfs the test mounts (it needs root, as CI 
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
 import subprocess
+import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import h5py
 import pytest
+from sqlalchemy import event
+from sqlalchemy.exc import OperationalError
 
 from tests.backend.api.conftest import Server, open_server, plan
 from tests.backend.api.test_faults import _tip_is_safe
@@ -128,3 +133,41 @@ def test_a_full_disk_during_a_merge_fails_it_and_the_next_one_runs(
     again = server.post(f"/api/runs/{rid}/merges", {"method": "default"})
     assert again.status_code == 202, again.text
     assert server.wait_merge(again.json()["id"])["state"] == "done"
+
+
+@pytest.mark.parametrize("site", ["patch write", "commit"])
+def test_enospc_at_each_write_site_ends_safe_and_the_run_resumes(
+    server: Server, site: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The same, with the disk's refusal injected at one write site of the worker."""
+    full = threading.Event()
+    if site == "patch write":
+        import backend.acquisition.runner as runner_module
+
+        real = runner_module.write_patch
+
+        def write_patch(*args: Any, **kwargs: Any) -> str:
+            if full.is_set():
+                raise OSError(errno.ENOSPC, "No space left on device")
+            return real(*args, **kwargs)
+
+        monkeypatch.setattr(runner_module, "write_patch", write_patch)
+    else:
+
+        def before_commit(_session: Any) -> None:
+            if full.is_set() and threading.current_thread().name.startswith(("run-", "super")):
+                raise OperationalError("COMMIT", {}, Exception("database or disk is full"))
+
+        event.listen(server.services.sessions, "before_commit", before_commit)
+    rid = _start(server)
+    server.wait(rid, lambda r: r["progress"]["stored"] >= 2)
+    full.set()
+    ended = server.wait_state(rid, "failed", "fault", "completed", timeout=120)
+    assert ended["state"] == "failed", ended
+    assert "is full" in ended["message"], ended["message"]
+    _tip_is_safe(server)
+    full.clear()
+    _wait("the failure recorded", lambda: server.services.runner.unrecorded(rid) is None)
+    assert server.post(f"/api/runs/{rid}/resume").status_code == 202
+    done = server.wait_state(rid, "completed", "failed", timeout=120)
+    assert done["state"] == "completed" and done["progress"]["stored"] == done["progress"]["total"]
