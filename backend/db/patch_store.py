@@ -108,7 +108,7 @@ def read_patch(path: Path, index: int) -> StoredPatch:
     with locked(path), h5py.File(path, "r") as f:
         name = dataset_name(index)
         if name not in f or not f[name].attrs.get("complete", False):
-            raise KeyError(f"patch {index} is not stored in {path}")
+            raise KeyError(f"patch {index} is not stored in {path.name}")
         ds = f[name]
         extra = {
             k: v
@@ -199,6 +199,6 @@ def read_merge(path: Path, group: str) -> tuple[FloatArray, dict[str, Any]]:
     """A stored merge result: mosaic heights (metres) and its document; KeyError if absent."""
     with locked(path), h5py.File(path, "r") as f:
         if group not in f or not f[group].attrs.get("complete", False):
-            raise KeyError(f"merge result {group} is not stored in {path}")
+            raise KeyError(f"merge result {group} is not stored in {path.name}")
         g = f[group]
         return np.asarray(g["mosaic"][()], dtype=np.float64), json.loads(g.attrs["document"])
