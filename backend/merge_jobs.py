@@ -88,17 +88,20 @@ def reap_leftover(data_dir: Path) -> str | None:
         pid = int(pid_file.read_text().strip())
     except (OSError, ValueError):
         return None
-    note = None
     try:
         cmdline = Path(f"/proc/{pid}/cmdline").read_bytes()
     except OSError:
         cmdline = b""
-    if b"multiprocessing" in cmdline and pid != os.getpid():
+    if not cmdline:
+        note = f"the merge worker {pid} of a previous server is gone"
+    elif b"multiprocessing" not in cmdline or pid == os.getpid():
+        note = f"process {pid} is not a merge worker: left alone"
+    else:
         try:
             os.kill(pid, 9)
             note = f"killed merge worker {pid} left running by a previous server"
-        except OSError:
-            pass
+        except OSError as exc:
+            note = f"could not kill merge worker {pid}: {exc}"
     pid_file.unlink(missing_ok=True)
     return note
 
@@ -176,7 +179,7 @@ class MergeService:
         queued jobs run again."""
         note = reap_leftover(self.data_dir)
         if note is not None:
-            log.warning(note)
+            log.warning("start-up: %s", note)
         with self.sessions() as session:
             for job in session.scalars(select(MergeJob).where(MergeJob.state == "running")):
                 job.state, job.message = "failed", "the server stopped during the merge"

@@ -166,13 +166,19 @@ def test_start_up_reaps_a_worker_a_previous_server_left(tmp_path: Path) -> None:
         [sys.executable, "-c", "import multiprocessing, time; time.sleep(120)"]
     )
     try:
+        cmdline = Path(f"/proc/{leftover.pid}/cmdline")
+        deadline = time.monotonic() + 10
+        while b"multiprocessing" not in cmdline.read_bytes():  # it runs its command
+            assert time.monotonic() < deadline
+            time.sleep(0.01)
         (tmp_path / PID_FILE).write_text(f"{leftover.pid}\n")
         note = reap_leftover(tmp_path)
-        assert note is not None and str(leftover.pid) in note
+        assert note is not None and note.startswith(f"killed merge worker {leftover.pid}"), note
         assert leftover.wait(10) == -9
         assert not (tmp_path / PID_FILE).exists()
         (tmp_path / PID_FILE).write_text(f"{os.getpid()}\n")  # never this process itself
-        assert reap_leftover(tmp_path) is None
+        assert "left alone" in str(reap_leftover(tmp_path))
+        assert reap_leftover(tmp_path) is None  # the pid file is gone
     finally:
         if leftover.poll() is None:
             leftover.kill()
