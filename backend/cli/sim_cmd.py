@@ -63,10 +63,17 @@ def run(args: argparse.Namespace) -> int:
     except OSError as exc:
         raise UsageError(f"cannot listen on {args.host}:{args.port}: {exc}") from None
     print(f"MCS simulator with {args.channels} channels at {server.url}", flush=True)
+    return serve_until_interrupted(server)
+
+
+def serve_until_interrupted(server: Any, *also: Any) -> int:
+    """Serve until Ctrl-C, then stop ``server`` and close what ``also`` names."""
     try:
         server.serve_forever()
     except KeyboardInterrupt:
         print("stopped", file=sys.stderr)
     finally:
         server.stop()
+        for thing in also:
+            thing.close()
     return 0

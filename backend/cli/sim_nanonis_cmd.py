@@ -3,11 +3,10 @@
 from __future__ import annotations
 
 import argparse
-import sys
 from typing import Any
 
 from backend.cli.common import UsageError
-from backend.cli.sim_cmd import add_server_options, parse_speed
+from backend.cli.sim_cmd import add_server_options, parse_speed, serve_until_interrupted
 
 
 def add_parser(sub: Any) -> None:
@@ -50,11 +49,4 @@ def run(args: argparse.Namespace) -> int:
     print(f"Nanonis simulator at {host}:{port}", flush=True)
     print(f"its sample stage (SmarAct MCS) at {server.stage_url}", flush=True)
     print(f"MOSAIC_INSTRUMENT={server.instrument_url}", flush=True)
-    try:
-        server.serve_forever()
-    except KeyboardInterrupt:
-        print("stopped", file=sys.stderr)
-    finally:
-        server.stop()
-        afm.close()
-    return 0
+    return serve_until_interrupted(server, afm)
