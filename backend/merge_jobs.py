@@ -106,6 +106,17 @@ def reap_leftover(data_dir: Path) -> str | None:
     return note
 
 
+def scanned_open_loop(attrs: dict[str, Any]) -> bool:
+    """Whether the server scanned a stored patch without a position sensor placing its rows
+    (a Nanonis scan generator on open-loop piezos: no Y readings, or some missing). Such
+    patches carry the scanner's bend, which the merge's self-calibration takes out; uploaded
+    scans say nothing of their scanner (no readings recorded) and are merged as they are."""
+    if "row_readings" not in attrs:
+        return False
+    readings = np.asarray(attrs["row_readings"], dtype=np.float64)
+    return readings.size == 0 or not bool(np.all(np.isfinite(readings)))
+
+
 def _merge_child(
     patches: list[PatchInput],
     options: dict[str, Any],
@@ -308,8 +319,10 @@ class MergeService:
             path = run.file
             records = {p.index: p for p in run.patches}
             inputs = []
+            bent = True  # every patch scanned here by a scanner without a position sensor
             for index in job.patch_ids or []:
                 stored = read_patch(path, index)
+                bent &= scanned_open_loop(stored.attrs)
                 rec = records[index]
                 inputs.append(
                     PatchInput(
@@ -323,6 +336,8 @@ class MergeService:
                     )
                 )
             options = {"method": job.method, **(job.parameters or {})}
+            if "self_calibrate" not in options and job.method == "default":
+                options["self_calibrate"] = bent
             if "pixel_size" in options and options["pixel_size"] is not None:
                 options["pixel_size"] = tuple(options["pixel_size"])
             cancel = self._ctx.Event()

@@ -29,6 +29,10 @@ class MergeConfig:
         starts from the nominal placement.
     pixel_size : mosaic pixel pitch (dx, dy), metres; default the finest patch pitch.
     feather : blending ramp at patch borders, fraction of a patch's smaller side.
+    self_calibrate : measure the scanner's own bend of rows and columns, shared by every patch
+        (an open-loop piezo's hysteresis and creep), from the overlaps of a first merge, take
+        it out of every patch and merge again (:mod:`merge.scanner`; "default" method only).
+        For scans from a scanner that does not read its own position; it costs a second merge.
     """
 
     method: Method = "default"
@@ -39,6 +43,7 @@ class MergeConfig:
     init: Literal["auto", "nominal"] = "auto"
     pixel_size: tuple[float, float] | None = None
     feather: float = 0.15
+    self_calibrate: bool = False
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -66,6 +71,13 @@ class MergeConfig:
             raise ValueError(f"pixel_size must be two positive lengths, got {self.pixel_size}")
         if not 0 <= self.feather <= 0.5:
             raise ValueError(f"feather must be in [0, 0.5], got {self.feather}")
+        if not isinstance(self.self_calibrate, bool):
+            raise ValueError(f"self_calibrate must be true or false, got {self.self_calibrate!r}")
+        if self.self_calibrate and self.method != "default":
+            raise ValueError(
+                f"self_calibrate needs the default method (it refines a full-resolution merge), "
+                f"got method {self.method!r}"
+            )
 
     def as_dict(self) -> dict[str, object]:
         """The options as JSON-ready values (for the result file)."""
@@ -78,4 +90,5 @@ class MergeConfig:
             "init": self.init,
             "pixel_size": list(self.pixel_size) if self.pixel_size else None,
             "feather": self.feather,
+            "self_calibrate": self.self_calibrate,
         }

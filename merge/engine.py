@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -21,6 +21,7 @@ from merge.patchset import PatchSet
 from merge.quality import assess
 from merge.refine import DEFAULT_LEVELS, Level, refine
 from merge.render import Mosaic, render_mosaic
+from merge.scanner import ScanDistortion, estimate_distortion, undistort
 from merge.transforms import PatchTransform
 
 FloatArray = NDArray[np.float64]
@@ -75,6 +76,8 @@ class MergeResult:
     history: list[float]
     warnings: list[str] = field(default_factory=list)
     timings: dict[str, float] = field(default_factory=dict)
+    #: the scanner's bend taken out of every patch (``MergeConfig.self_calibrate``), or None
+    distortion: ScanDistortion | None = None
 
     @property
     def transforms(self) -> list[PatchTransform]:
@@ -168,8 +171,40 @@ def run(
         Called after every solver iteration.
     cancel : callable() -> bool, keyword-only
         Polled every iteration; true stops the merge with :class:`merge.MergeCancelled`.
+
+    With ``config.self_calibrate`` the scanner's bend shared by every patch is measured from a
+    first merge, taken out of every patch, and the corrected patches are merged again: the
+    result's mosaic and transforms are those of the corrected patches, and its ``distortion``
+    says what was taken out.
     """
     cfg = config or MergeConfig()
+    if not cfg.self_calibrate:
+        return _merge(patch_set, cfg, progress=progress, cancel=cancel)
+    clock = time.perf_counter()
+    first = _merge(patch_set, cfg, progress=progress, cancel=cancel)
+    spent = time.perf_counter() - clock
+    distortion = estimate_distortion(patch_set.patches, first.transforms)
+    if distortion is None:
+        first.warnings.append(
+            "self-calibration needs scans of one size and pixel count; the patches differ, "
+            "so no scanner bend was taken out"
+        )
+        return first
+    corrected = PatchSet(undistort(p, distortion) for p in patch_set)
+    measured = time.perf_counter() - clock - spent
+    result = _merge(corrected, cfg, progress=progress, cancel=cancel)
+    result.timings.update(first_merge=spent, self_calibration=measured)
+    return replace(result, distortion=distortion)
+
+
+def _merge(
+    patch_set: PatchSet,
+    cfg: MergeConfig,
+    *,
+    progress: Progress | None,
+    cancel: Cancel | None,
+) -> MergeResult:
+    """One merge of ``patch_set`` as :func:`run` describes (without self-calibration)."""
     patches = patch_set.patches
     n = len(patches)
     clock = time.perf_counter()

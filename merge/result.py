@@ -15,6 +15,7 @@ from merge.engine import MergeResult
 from merge.patchset import PatchSet
 from merge.preview import write_preview
 from merge.render import Mosaic, render_mosaic
+from merge.scanner import ScanDistortion
 from merge.transforms import PatchTransform
 
 FloatArray = NDArray[np.float64]
@@ -65,6 +66,20 @@ def result_document(result: MergeResult, patch_set: PatchSet | None = None) -> d
             }
             for r in result.patches
         ],
+        **({"scan_distortion": _distortion(result.distortion)} if result.distortion else {}),
+    }
+
+
+def _distortion(d: ScanDistortion) -> dict[str, Any]:
+    """The scanner's bend taken out of every patch before the transforms apply: metres along y
+    of each row and along x of each column (true minus nominal place), with their sigmas."""
+    return {
+        "rows": d.rows.tolist(),
+        "cols": d.cols.tolist(),
+        "rows_sigma": d.rows_sigma.tolist(),
+        "cols_sigma": d.cols_sigma.tolist(),
+        "peak_to_valley": list(d.peak_to_valley),
+        "observations": list(d.observations),
     }
 
 

@@ -67,6 +67,7 @@ def start_merge(
             init=p.init or "auto",
             pixel_size=p.pixel_size,
             feather=0.15 if p.feather is None else p.feather,
+            self_calibrate=bool(p.self_calibrate),
         )
     except ValueError as exc:
         raise HTTPException(422, f"parameters: {exc}") from None

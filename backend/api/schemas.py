@@ -81,6 +81,12 @@ class MergeParams(Strict):
     init: Literal["auto", "nominal"] | None = None
     pixel_size: tuple[PositiveMetres, PositiveMetres] | None = None
     feather: FiniteFloat | None = Field(default=None, ge=0, le=0.5)
+    self_calibrate: bool | None = Field(
+        default=None,
+        description="take out the scanner's row and column bend shared by every patch, measured "
+        "from the overlaps (default method only); default: on for patches scanned without a "
+        "position sensor (open-loop scan piezos)",
+    )
 
 
 class MergeIn(Strict):

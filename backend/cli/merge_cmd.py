@@ -40,6 +40,12 @@ def add_parser(sub: Any) -> None:
         "finer keeps fine texture, e.g. a grating's flat faces at a few nm per pixel)",
     )
     p.add_argument("--pixel", type=float_pair, help="mosaic pixel size dx[,dy], metres")
+    p.add_argument(
+        "--self-calibrate",
+        action="store_true",
+        help="measure the scanner's row and column bend shared by every patch (open-loop piezo "
+        "hysteresis and creep) from the overlaps and take it out, then merge again",
+    )
     p.add_argument("--no-preview", action="store_true", help="do not write preview.png")
     p.add_argument("--quiet", action="store_true", help="no progress display")
     p.set_defaults(func=run)
@@ -57,6 +63,7 @@ def run(args: argparse.Namespace) -> int:
             max_shift=args.max_shift,
             coarse_cell=args.coarse_cell,
             pixel_size=args.pixel,
+            self_calibrate=args.self_calibrate,
         )
         patch_set = merge.read_patch_set(args.manifest, readers=height_readers())
     except (merge.PatchSetError, ValueError) as exc:
@@ -73,6 +80,9 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError(f"cannot write to {args.out}: {exc}") from None
     for w in result.warnings:
         print(f"warning: {w}", file=sys.stderr)
+    if result.distortion is not None:
+        bx, by = result.distortion.peak_to_valley
+        print(f"scanner bend taken out: {bx * 1e9:.2f} nm along x, {by * 1e9:.2f} nm along y")
     ny, nx = result.mosaic.heights.shape
     rms = [r.residual_rms for r in result.patches if r.correspondences]
     residual = f"{np.median(rms) * 1e9:.2f} nm" if rms else "n/a"
