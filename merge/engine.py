@@ -175,7 +175,8 @@ def run(
     With ``config.self_calibrate`` the scanner's bend shared by every patch is measured from a
     first merge, taken out of every patch, and the corrected patches are merged again: the
     result's mosaic and transforms are those of the corrected patches, and its ``distortion``
-    says what was taken out.
+    says what was taken out (nothing, and no second merge, where no bend stands out of the
+    noise).
     """
     cfg = config or MergeConfig()
     if not cfg.self_calibrate:
@@ -190,8 +191,11 @@ def run(
             "so no scanner bend was taken out"
         )
         return first
-    corrected = PatchSet(undistort(p, distortion) for p in patch_set)
     measured = time.perf_counter() - clock - spent
+    if not any(distortion.significant):  # a straight scanner: the first merge stands
+        first.timings.update(self_calibration=measured)
+        return replace(first, distortion=distortion)
+    corrected = PatchSet(undistort(p, distortion) for p in patch_set)
     result = _merge(corrected, cfg, progress=progress, cancel=cancel)
     result.timings.update(first_merge=spent, self_calibration=measured)
     return replace(result, distortion=distortion)

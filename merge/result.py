@@ -80,6 +80,7 @@ def _distortion(d: ScanDistortion) -> dict[str, Any]:
         "cols_sigma": d.cols_sigma.tolist(),
         "peak_to_valley": list(d.peak_to_valley),
         "observations": list(d.observations),
+        "significant": list(d.significant),
     }
 
 

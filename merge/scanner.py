@@ -30,7 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.polynomial import legendre
 from numpy.typing import NDArray
-from scipy import ndimage
+from scipy import ndimage, stats
 
 from merge.overlap import overlapping_pairs
 from merge.patchset import Patch
@@ -43,10 +43,18 @@ IntArray = NDArray[np.intp]
 DEGREE = 4
 #: Rows (columns) per band: each band's shift is one observation of the bend.
 BAND = 2
+#: Neighbouring bands are not independent: each samples the other scan through a cubic spline
+#: four lines wide, so two bands of two lines share half their support. The covariance of the
+#: bend is widened by this factor (measured: the chi-squared of straight scanners' bends came
+#: out about twice its degrees of freedom without it).
+BAND_CORRELATION = 2.0
 #: Fewest valid pixels a band needs to register.
 MIN_BAND_PIXELS = 12
 #: Residuals beyond this many robust sigmas are dropped from the fit (a band on no texture).
 REJECT = 4.0
+#: A bend is taken out only where its coefficients differ from none beyond this quantile of
+#: their chi-squared (so a straight scanner's patches are left as they were, not bent by noise).
+SIGNIFICANCE = 0.999
 
 
 @dataclass(frozen=True)
@@ -57,6 +65,8 @@ class ScanDistortion:
     cols : (nx,) metres along x of each column.
     rows_sigma, cols_sigma : (ny,), (nx,) standard errors of those, metres.
     observations : bands that entered the fit (rows, columns).
+    significant : whether each bend (rows, columns) stood out of its noise (see
+        :data:`SIGNIFICANCE`); one that did not is zero.
     """
 
     rows: FloatArray
@@ -64,6 +74,7 @@ class ScanDistortion:
     rows_sigma: FloatArray
     cols_sigma: FloatArray
     observations: tuple[int, int]
+    significant: tuple[bool, bool] = (True, True)
 
     @property
     def peak_to_valley(self) -> tuple[float, float]:
@@ -202,13 +213,22 @@ def _pair_design(
     return np.concatenate(designs), np.concatenate(shifts), np.concatenate(weights)
 
 
-def _fit(obs: list[list[Observation]], n: int, degree: int) -> tuple[FloatArray, FloatArray, int]:
+@dataclass(frozen=True)
+class _AxisFit:
+    values: FloatArray
+    sigma: FloatArray
+    bands: int
+    significant: bool
+
+
+def _fit(obs: list[list[Observation]], n: int, degree: int) -> _AxisFit:
     """The bend at each of ``n`` places, its sigma, and how many bands it rests on.
 
     Weighted least squares of the Legendre coefficients, twice more without the bands beyond
     :data:`REJECT` robust sigmas; the covariance is scaled by the fit's reduced chi-squared
     where that exceeds one (band variances that were too optimistic). No bend (zeros) where
-    the bands do not determine every coefficient."""
+    the bands do not determine every coefficient, or where the coefficients do not stand out
+    of their covariance (:data:`SIGNIFICANCE`)."""
     D, y, w = _pair_design(obs, n, degree)
     k = degree - 1
     keep = np.ones(len(y), dtype=bool)
@@ -218,16 +238,19 @@ def _fit(obs: list[list[Observation]], n: int, degree: int) -> tuple[FloatArray,
         Dw = D[keep] * w[keep, None]
         A = Dw.T @ D[keep]
         if keep.sum() <= k or np.linalg.matrix_rank(A) < k:
-            return np.zeros(n), np.zeros(n), 0
+            return _AxisFit(np.zeros(n), np.zeros(n), 0, False)
         cov = np.asarray(np.linalg.inv(A), dtype=np.float64)
         coeffs = cov @ (Dw.T @ y[keep])
         z = (y - D @ coeffs) * np.sqrt(w)
         scale = 1.4826 * float(np.median(np.abs(z[keep])))
         keep = np.abs(z) < REJECT * max(scale, 1e-12)
-    chi2 = float(np.mean(((y - D @ coeffs) ** 2 * w)[keep]))
+    scale = BAND_CORRELATION * max(float(np.mean(((y - D @ coeffs) ** 2 * w)[keep])), 1.0)
     basis = _basis(np.arange(n, dtype=np.float64), n, degree)
-    sigma = np.sqrt(np.einsum("ik,kl,il->i", basis, cov * max(chi2, 1.0), basis))
-    return basis @ coeffs, sigma, int(keep.sum())
+    sigma = np.sqrt(np.einsum("ik,kl,il->i", basis, cov * scale, basis))
+    distance = float(coeffs @ np.linalg.solve(cov * scale, coeffs))
+    significant = distance > stats.chi2.ppf(SIGNIFICANCE, k)
+    values = basis @ coeffs if significant else np.zeros(n)
+    return _AxisFit(values, sigma, int(keep.sum()), bool(significant))
 
 
 def estimate_distortion(
@@ -272,9 +295,16 @@ def estimate_distortion(
             r, c = _band_shifts(patches[a], transforms[a], patches[b], transforms[b], surfaces[b])
             by_rows.append(r)
             by_cols.append(c)
-    rows, rows_sigma, n_rows = _fit(by_rows, ny, min(degree, ny - 1))
-    cols, cols_sigma, n_cols = _fit(by_cols, nx, min(degree, nx - 1))
-    return ScanDistortion(rows, cols, rows_sigma, cols_sigma, (n_rows, n_cols))
+    rows = _fit(by_rows, ny, min(degree, ny - 1))
+    cols = _fit(by_cols, nx, min(degree, nx - 1))
+    return ScanDistortion(
+        rows.values,
+        cols.values,
+        rows.sigma,
+        cols.sigma,
+        (rows.bands, cols.bands),
+        (rows.significant, cols.significant),
+    )
 
 
 def undistort(patch: Patch, distortion: ScanDistortion) -> Patch:

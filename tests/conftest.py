@@ -6,7 +6,9 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
 import pytest
+from numpy.typing import NDArray
 
 from backend.synthetic import patch_set_from_synth, registration_error
 from hardware.sim.drift import DriftModel
@@ -52,6 +54,7 @@ def make_synthetic(
     patch_size: tuple[float, float] = (0.8e-6, 0.8e-6),
     pixels: tuple[int, int] = (40, 40),
     overlap: tuple[float, float] = (0.4, 0.4),
+    bend: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None,
 ) -> Synthetic:
     synth = synthesize(
         surface,
@@ -62,6 +65,7 @@ def make_synthetic(
         overlap=overlap,
         drift=drift or DriftModel.typical(),
         seed=seed,
+        bend=bend,
     )
     ps = patch_set_from_synth(synth)
     return Synthetic(synth, ps, surface)

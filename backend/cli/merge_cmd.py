@@ -80,9 +80,11 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError(f"cannot write to {args.out}: {exc}") from None
     for w in result.warnings:
         print(f"warning: {w}", file=sys.stderr)
-    if result.distortion is not None:
+    if result.distortion is not None and any(result.distortion.significant):
         bx, by = result.distortion.peak_to_valley
         print(f"scanner bend taken out: {bx * 1e9:.2f} nm along x, {by * 1e9:.2f} nm along y")
+    elif result.distortion is not None:
+        print("scanner bend: none stood out of the noise; the patches were merged as scanned")
     ny, nx = result.mosaic.heights.shape
     rms = [r.residual_rms for r in result.patches if r.correspondences]
     residual = f"{np.median(rms) * 1e9:.2f} nm" if rms else "n/a"

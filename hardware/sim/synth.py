@@ -71,6 +71,7 @@ def synthesize(
     start: tuple[float, float] = (0.0, 0.0),
     drift: DriftModel | None = None,
     seed: int = 0,
+    bend: tuple[FloatArray, FloatArray] | None = None,
 ) -> list[SynthPatch]:
     """Scan ``surface`` as a ``rows x cols`` snake-ordered grid of drifting patches.
 
@@ -93,6 +94,10 @@ def synthesize(
         Error statistics (default: :meth:`DriftModel.typical`).
     seed : int
         Seed of all random draws.
+    bend : ((nx,), (ny,)) arrays, optional
+        The scanner's own displacement of every column along x and of every row along y,
+        metres, the same in every patch (an open-loop piezo's hysteresis and creep): pixel
+        ``(i, j)`` sees the sample at its nominal place plus ``(bend[0][j], bend[1][i])``.
     """
     nx, ny = pixels
     if nx < 2 or ny < 2:
@@ -103,11 +108,15 @@ def synthesize(
     errs = model.draw(len(plan), rng)
     dx, dy = patch_size[0] / nx, patch_size[1] / ny
     frac = scan_fraction((ny, nx))
+    bend_x, bend_y = (np.zeros(nx), np.zeros(ny)) if bend is None else bend
+    if np.shape(bend_x) != (nx,) or np.shape(bend_y) != (ny,):
+        raise ValueError(f"bend must be arrays of {nx} and {ny} values (columns, rows)")
     out = []
     for k, pp in enumerate(plan):
         x = pp.origin[0] + np.arange(nx) * dx
         y = pp.origin[1] + np.arange(ny) * dy
         xx, yy = np.meshgrid(x, y)
+        xx, yy = xx + bend_x[None, :], yy + bend_y[:, None]
         centre = np.array([x[0] + 0.5 * (x[-1] - x[0]), y[0] + 0.5 * (y[-1] - y[0])])
         c, s = np.cos(errs.rotation[k]), np.sin(errs.rotation[k])
         R2 = np.array([[c, -s], [s, c]])

@@ -39,6 +39,8 @@ def test_a_merge_runs_in_its_process_and_serves_the_result_contract(
     doc = server.client.get(done["mosaic_json"]).json()
     assert list(heights.shape) == doc["shape"]
     assert np.isfinite(heights).mean() > 0.9
+    # sim:// rows are placed by the Y sensor: no self-calibration unless asked for
+    assert doc["parameters"]["self_calibrate"] is False and "scan_distortion" not in doc
     assert [p["id"] for p in doc["patches"]] == [f"p{i:03d}" for i in range(9)]
     assert all(np.asarray(p["rotation"]).shape == (3, 3) for p in doc["patches"])
     events = server.client.get(f"/api/events?run_id={rid}&follow=false").text
@@ -66,6 +68,20 @@ def test_a_subset_and_another_method(scanned: tuple[Server, int]) -> None:
     assert doc["parameters"]["coarse_cell"] == 3e-8
 
 
+def test_self_calibration_when_asked_for(scanned: tuple[Server, int]) -> None:
+    server, rid = scanned
+    r = server.post(f"/api/runs/{rid}/merges", {"parameters": {"self_calibrate": True}})
+    assert r.status_code == 202, r.text
+    done = server.wait_merge(r.json()["id"])
+    assert done["state"] == "done", done
+    doc = server.client.get(done["mosaic_json"]).json()
+    assert doc["parameters"]["self_calibrate"] is True
+    bend = doc["scan_distortion"]
+    assert len(bend["rows"]) == 32 and len(bend["cols"]) == 32
+    # the sensor straightened the rows already: what is left is within the noise
+    assert max(map(abs, bend["rows"])) < 1e-9, bend["peak_to_valley"]
+
+
 @pytest.mark.parametrize(
     ("body", "status", "words"),
     [
@@ -74,6 +90,7 @@ def test_a_subset_and_another_method(scanned: tuple[Server, int]) -> None:
         ({"parameters": {"cell": -1}}, 422, "cell"),
         ({"parameters": {"coarse_cell": 0}}, 422, "coarse_cell"),
         ({"parameters": {"colour": "red"}}, 422, "colour"),
+        ({"method": "nominal", "parameters": {"self_calibrate": True}}, 422, "default method"),
         ({"patches": [0, 99]}, 409, "not stored"),
         ({"patches": [4]}, 409, "at least 2"),
     ],

@@ -60,6 +60,17 @@ def test_merge_writes_the_result_and_a_summary(
         assert (tmp_path / name).is_file()
 
 
+def test_merge_self_calibrates_when_asked(
+    patch_folder: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    args = ["merge", str(patch_folder / "manifest.json"), "--out", str(tmp_path)]
+    assert main([*args, "--self-calibrate", "--quiet"]) == 0
+    assert "scanner bend: none stood out of the noise" in capsys.readouterr().out
+    doc = json.loads((tmp_path / "mosaic.json").read_text())
+    assert doc["parameters"]["self_calibrate"] is True
+    assert doc["scan_distortion"]["significant"] == [False, False]
+
+
 @pytest.mark.parametrize(
     "args",
     [
@@ -67,6 +78,15 @@ def test_merge_writes_the_result_and_a_summary(
         ["merge", "{patches}/manifest.json", "--out", "{tmp}", "--cell", "-1"],
         ["merge", "{patches}/manifest.json", "--out", "{tmp}", "--max-iter", "0"],
         ["merge", "{patches}/manifest.json", "--out", "{tmp}", "--coarse-cell", "0"],
+        [
+            "merge",
+            "{patches}/manifest.json",
+            "--out",
+            "{tmp}",
+            "--method",
+            "paper",
+            "--self-calibrate",
+        ],
         ["synth", "--out", "{tmp}", "--rows", "1", "--cols", "1"],
         ["synth", "--out", "{tmp}", "--overlap", "1.5"],
         ["synth", "--out", "{tmp}", "--surface", "image"],
