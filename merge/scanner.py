@@ -25,7 +25,7 @@ returns the bend; :func:`undistort` resamples a patch's rows and columns to an e
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.polynomial import legendre
@@ -61,7 +61,7 @@ SIGNIFICANCE = 0.999
 class ScanDistortion:
     """Displacement of every row and column from its nominal place, shared by all patches.
 
-    rows : (ny,) metres along y (true minus nominal) of each row, in scan order.
+    rows : (ny,) metres along y (true minus nominal place) of each row.
     cols : (nx,) metres along x of each column.
     rows_sigma, cols_sigma : (ny,), (nx,) standard errors of those, metres.
     observations : bands that entered the fit (rows, columns).
@@ -322,16 +322,7 @@ def undistort(patch: Patch, distortion: ScanDistortion) -> Patch:
     dx, dy = patch.pixel_size
     out = _resample(heights, distortion.rows / dy, axis=0)
     out = _resample(out, distortion.cols / dx, axis=1)
-    return Patch(
-        id=patch.id,
-        heights=out,
-        origin=patch.origin,
-        pixel_size=patch.pixel_size,
-        order=patch.order,
-        row=patch.row,
-        col=patch.col,
-        source=patch.source,
-    )
+    return replace(patch, heights=out)
 
 
 def _resample(heights: FloatArray, offset: FloatArray, *, axis: int) -> FloatArray:
