@@ -176,7 +176,7 @@ def run(
     first merge, taken out of every patch, and the corrected patches are merged again: the
     result's mosaic and transforms are those of the corrected patches, and its ``distortion``
     says what was taken out (nothing, and no second merge, where no bend stands out of the
-    noise).
+    noise). ``progress`` then counts the iterations of both merges in one sequence.
     """
     cfg = config or MergeConfig()
     if not cfg.self_calibrate:
@@ -196,7 +196,13 @@ def run(
         first.timings.update(self_calibration=measured)
         return replace(first, distortion=distortion)
     corrected = PatchSet(undistort(p, distortion) for p in patch_set)
-    result = _merge(corrected, cfg, progress=progress, cancel=cancel)
+
+    def counted_on(iteration: int, residual: float) -> None:
+        """The second merge's iterations numbered on from the first's."""
+        if progress is not None:
+            progress(first.iterations + iteration, residual)
+
+    result = _merge(corrected, cfg, progress=counted_on, cancel=cancel)
     result.timings.update(first_merge=spent, self_calibration=measured)
     return replace(result, distortion=distortion)
 

@@ -78,7 +78,12 @@ def test_self_calibration_registers_a_bent_mosaic_better(
 ) -> None:
     mosaic = bent[0]
     rigid = run(mosaic.patch_set)
-    calibrated = run(mosaic.patch_set, MergeConfig(self_calibrate=True))
+    steps: list[int] = []
+    calibrated = run(
+        mosaic.patch_set, MergeConfig(self_calibrate=True), progress=lambda i, r: steps.append(i)
+    )
+    assert steps == list(range(1, len(steps) + 1))  # one count over both merges
+    assert len(steps) > calibrated.iterations
     xy_rigid, z_rigid = mosaic.registration_error(rigid.transforms)
     xy, z = mosaic.registration_error(calibrated.transforms)
     assert calibrated.distortion is not None and rigid.distortion is None
