@@ -68,14 +68,16 @@ def scan_all(
     return out
 
 
-def accuracy(patches: list[Patch], *, self_calibrate: bool) -> dict[str, float]:
-    """The merged mosaic's errors against the simulated world's truth, nanometres."""
+def accuracy(
+    patches: list[Patch], world: SimulatedAFM, *, self_calibrate: bool
+) -> dict[str, float]:
+    """The merged mosaic's errors against the truth of ``world``, nanometres."""
     result = run(PatchSet(patches), MergeConfig(self_calibrate=self_calibrate))
     mosaic, margin, pitch = result.mosaic, 0.3e-6, 10e-9
     (ox, oy), (px, py) = mosaic.origin, mosaic.pixel_size
     ny, nx = mosaic.heights.shape
     shape = (round((ny * py + 2 * margin) / pitch), round((nx * px + 2 * margin) / pitch))
-    truth = simulated_afm(SIM).true_heights(ox - margin, oy - margin, shape, pitch, tip=True)
+    truth = world.true_heights(ox - margin, oy - margin, shape, pitch, tip=True)
     score = score_mosaic(
         Grid(mosaic.heights, (ox, oy), (px, py)),
         Grid(truth, (ox - margin, oy - margin), (pitch, pitch)),
@@ -163,17 +165,18 @@ def main(argv: list[str] | None = None) -> int:
         f"{'path':<10}{'self-calibrate':>15}{'map':>7}{'XY':>7}{'Z':>7}{'bend x':>8}{'bend y':>8}"
     )
     scores = []
-    for path, patches in scanned.items():
-        server_choice = path == "nanonis"  # the server self-calibrates open-loop scans only
-        for calibrate in (server_choice, not server_choice):
-            a = accuracy(patches, self_calibrate=calibrate)
-            scores.append({"path": path, "self_calibrate": calibrate, **a})
-            print(
-                f"{path:<10}{str(calibrate) + (' *' if calibrate == server_choice else ''):>15}"
-                f"{a['map_nm']:>7.2f}{a['tile_xy_nm']:>7.2f}{a['tile_z_nm']:>7.2f}"
-                f"{a['bend_x_nm']:>8.2f}{a['bend_y_nm']:>8.2f}",
-                flush=True,
-            )
+    with simulated_afm(SIM) as world:  # the world both paths scanned, for its truth
+        for path, patches in scanned.items():
+            server_choice = path == "nanonis"  # the server self-calibrates open-loop scans only
+            for calibrate in (server_choice, not server_choice):
+                a = accuracy(patches, world, self_calibrate=calibrate)
+                scores.append({"path": path, "self_calibrate": calibrate, **a})
+                print(
+                    f"{path:<10}{str(calibrate) + (' *' if calibrate == server_choice else ''):>15}"
+                    f"{a['map_nm']:>7.2f}{a['tile_xy_nm']:>7.2f}{a['tile_z_nm']:>7.2f}"
+                    f"{a['bend_x_nm']:>8.2f}{a['bend_y_nm']:>8.2f}",
+                    flush=True,
+                )
     print("* what the server's merge chooses for that path")
     Path(args.json).parent.mkdir(parents=True, exist_ok=True)
     Path(args.json).write_text(

@@ -16,7 +16,7 @@ from merge.config import MergeConfig
 from merge.downsample import grid_downsample
 from merge.gauge import anchor_to_nominal, nominal_points
 from merge.lattice import coherence, fill_empty_lines
-from merge.overlap import overlap_groups, overlapping_pairs
+from merge.overlap import moved_boxes, overlap_groups, overlapping_pairs
 from merge.patchset import PatchSet
 from merge.quality import assess
 from merge.refine import DEFAULT_LEVELS, Level, refine
@@ -83,13 +83,6 @@ class MergeResult:
     def transforms(self) -> list[PatchTransform]:
         """``T_mosaic_patch`` in patch order."""
         return [p.transform for p in self.patches]
-
-
-def _moved_boxes(boxes: FloatArray, transforms: list[PatchTransform]) -> FloatArray:
-    """Nominal footprints shifted by each transform's XY translation (rotations are small)."""
-    shift = np.array([tr.t[:2] for tr in transforms])
-    out: FloatArray = boxes + np.column_stack([shift, shift])
-    return out
 
 
 def default_cell(patch_set: PatchSet) -> float:
@@ -261,7 +254,7 @@ def _merge(
     raw: SurfaceBank | None = None  # the refinement's surfaces, reused by the assessment
     if cfg.method in ("default", "paper") and len(pairs):
         # pairs at the estimated places, with a margin for what the refinement may still move
-        near = overlapping_pairs(_moved_boxes(boxes, transforms), margin=4.0 * cell)
+        near = overlapping_pairs(moved_boxes(boxes, transforms), margin=4.0 * cell)
         if cfg.method == "default":
             # the widest level is for patches the start left unmeasured along some direction
             levels: tuple[Level, ...] = DEFAULT_LEVELS[1:] if complete else DEFAULT_LEVELS
@@ -302,7 +295,7 @@ def _merge(
             transforms = [PatchTransform(R[c], t[c]) for c in range(n)]
             iterations, converged, history = paper.iterations, paper.converged, paper.history
     timings["solve"] = time.perf_counter() - clock - timings["start"]
-    final_pairs = overlapping_pairs(_moved_boxes(boxes, transforms), margin=cell)
+    final_pairs = overlapping_pairs(moved_boxes(boxes, transforms), margin=cell)
     fits = assess(patches, final_pairs, transforms, bank=raw)
     reports = []
     for c, p in enumerate(patches):

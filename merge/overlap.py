@@ -8,11 +8,23 @@ rows).
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 from numpy.typing import NDArray
 
+from merge.transforms import PatchTransform
+
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
+
+
+def moved_boxes(boxes: FloatArray, transforms: Sequence[PatchTransform]) -> FloatArray:
+    """Nominal footprints ``(n, 4)`` shifted by each transform's XY translation (rotations are
+    small)."""
+    shift = np.array([tr.t[:2] for tr in transforms])
+    out: FloatArray = boxes + np.column_stack([shift, shift])
+    return out
 
 
 def overlapping_pairs(boxes: FloatArray, *, margin: float = 0.0) -> IntArray:
