@@ -131,7 +131,7 @@ def _merge_child(
     if hasattr(os, "nice"):
         os.nice(WORKER_NICENESS)
     import merge
-    from merge.result import result_document
+    from merge.io.result import result_document
 
     try:
         patch_set = merge.PatchSet(

@@ -13,7 +13,7 @@ from numpy.typing import NDArray
 
 from hardware.sim.synth import SynthPatch, true_points
 from merge import Patch, PatchSet, PatchTransform
-from merge.kabsch import weighted_rigid_transform
+from merge.core.kabsch import weighted_rigid_transform
 
 FloatArray = NDArray[np.float64]
 

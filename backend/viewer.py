@@ -23,7 +23,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from backend.formats.exports import grid_triangles
-from merge.preview import afm_colors
+from merge.io.preview import afm_colors
 
 log = logging.getLogger("mosaic_afm.viewer")
 

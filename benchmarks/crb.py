@@ -34,8 +34,8 @@ from hardware.sim.drift import DriftModel
 from hardware.sim.surfaces import Surface
 from hardware.sim.synth import SynthPatch, true_points
 from merge import PatchTransform, render_mosaic, run
-from merge.overlap import overlapping_pairs
-from merge.transforms import rotation_about_z
+from merge.core.overlap import overlapping_pairs
+from merge.core.transforms import rotation_about_z
 
 if TYPE_CHECKING:
     from merge_bench import Case

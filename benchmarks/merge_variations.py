@@ -33,7 +33,7 @@ from merge_bench import CASES, ROOT, Case, floor_of, map_error
 from backend.synthetic import patch_errors, patch_set_from_synth, registration_error
 from hardware.sim.drift import DriftModel
 from hardware.sim.surfaces import ImageSurface
-from merge import engine
+from merge import pipeline
 
 #: The surfaces drawn from, in turn.
 SURFACES = ("tgx1", "folded", "mos2-real", "grid-real", "flat-rough")
@@ -89,7 +89,7 @@ def run_variation(k: int) -> dict[str, Any]:
     surface, synth = case.synthesize()
     patch_set = patch_set_from_synth(synth)
     start = time.perf_counter()
-    result = engine.run(patch_set)
+    result = pipeline.run(patch_set)
     wall = time.perf_counter() - start
     by_id = {p.id: p for p in result.patches}
     transforms = [by_id[s.id].transform for s in synth]

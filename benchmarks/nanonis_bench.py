@@ -31,7 +31,7 @@ from hardware.sim.instrument import SimulatedAFM
 from hardware.sim.nanonis_server import NanonisServer
 from hardware.sim.surfaces import Chessboard
 from merge import MergeConfig, Patch, PatchSet, run
-from merge.evaluate import Grid, score_mosaic
+from merge.report.evaluate import Grid, score_mosaic
 
 ROOT = Path(__file__).resolve().parents[1]
 #: the world both paths scan (the Nanonis simulator builds the same one)

@@ -26,7 +26,7 @@ from hardware.sim.drift import DriftModel
 from hardware.sim.surfaces import FoldedSurface
 from hardware.sim.synth import synthesize
 from merge import run as merge_run
-from merge.result import result_document
+from merge.io.result import result_document
 
 ROOT = Path(__file__).resolve().parents[1]
 CASES = [

@@ -1,19 +1,27 @@
 """The GPA-ICP merge engine: overlapping AFM patches in, one drift-free topography out.
 
-Pure numpy/scipy. The entry points:
+Pure numpy/scipy, laid out as its pipeline (:mod:`merge.pipeline` runs the stages in order):
+
+* :mod:`merge.core` — the vocabulary every stage shares (patches, transforms, grids, noise);
+* :mod:`merge.start` — the coarse start from correlated overlaps;
+* :mod:`merge.refine` — the simultaneous refinement (and the scanner's self-calibration);
+* :mod:`merge.report` — per-patch quality and uncertainty, the result;
+* :mod:`merge.render` — the patches through their transforms onto one grid;
+* :mod:`merge.paper` — the paper's literal method, apart;
+* :mod:`merge.io` — patch-set and result files, at the edge.
+
+The entry points:
 
 * :func:`merge.run` — merge a :class:`PatchSet` with a :class:`MergeConfig`;
 * :func:`merge.read_patch_set` / :func:`merge.write_result` — the file formats of DESIGN.md.
 """
 
 from merge.config import METHODS, MergeConfig
-from merge.engine import MergeResult, PatchReport, run
-from merge.errors import MergeCancelled, PatchSetError
-from merge.manifest import read_patch_set, write_patch_set
-from merge.patchset import Patch, PatchSet
+from merge.core import MergeCancelled, Patch, PatchSet, PatchSetError, PatchTransform
+from merge.io import StoredResult, read_patch_set, read_result, write_patch_set, write_result
+from merge.pipeline import run
 from merge.render import Mosaic, render_mosaic
-from merge.result import StoredResult, read_result, write_result
-from merge.transforms import PatchTransform
+from merge.report import MergeResult, PatchReport
 
 __all__ = [
     "METHODS",

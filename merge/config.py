@@ -23,7 +23,7 @@ class MergeConfig:
     max_shift : largest XY error of a patch relative to its neighbour that the coarse start
         searches, metres; default half the smaller side of the smallest patch.
     coarse_cell : cell the coarse start correlates the patches on, metres; default
-        :func:`merge.engine.coarse_cell` (a whole multiple of the finest pixel pitch, as fine
+        :func:`merge.start.coarse_cell` (a whole multiple of the finest pixel pitch, as fine
         as a budget of cells allows). Finer keeps finer texture, at a cost.
     init : "auto" runs the robust coarse start (Z offsets and XY by correlation); "nominal"
         starts from the nominal placement.
@@ -31,7 +31,7 @@ class MergeConfig:
     feather : blending ramp at patch borders, fraction of a patch's smaller side.
     self_calibrate : measure the scanner's own bend of rows and columns, shared by every patch
         (an open-loop piezo's hysteresis and creep), from the overlaps of a first merge, take
-        it out of every patch and merge again (:mod:`merge.scanner`; "default" method only).
+        it out of every patch and merge again (:mod:`merge.refine.scanner`; "default" method only).
         For scans from a scanner that does not read its own position; it costs a second merge.
     """
 

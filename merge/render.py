@@ -17,9 +17,9 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from merge.heightfield import bilinear
-from merge.patchset import Patch
-from merge.transforms import PatchTransform
+from merge.core.heightfield import bilinear
+from merge.core.patchset import Patch
+from merge.core.transforms import PatchTransform
 
 FloatArray = NDArray[np.float64]
 

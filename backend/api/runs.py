@@ -29,8 +29,8 @@ from backend.db.models import MergeJob, PatchRecord, Run, SemImageRecord
 from backend.db.patch_store import StoredPatch, read_patch
 from backend.services import Services
 from hardware.protocols import SEMImage
-from merge.png import encode_png
-from merge.preview import afm_colors, fit_size, render_panels
+from merge.io.png import encode_png
+from merge.io.preview import afm_colors, fit_size, render_panels
 from merge.render import Mosaic
 
 router = APIRouter(prefix="/api/runs", tags=["runs"])

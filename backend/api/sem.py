@@ -14,7 +14,7 @@ from backend.api.runs import NPY, PNG_RESPONSES, npy_response
 from backend.api.schemas import SemAcquireIn, SemId, SemOut
 from backend.db.models import SemImageRecord
 from backend.sem_files import TiffError, read_sem_tiff, save_pixels, sem_path
-from merge.png import encode_png
+from merge.io.png import encode_png
 
 router = APIRouter(prefix="/api/sem", tags=["sem"])
 

@@ -14,8 +14,8 @@ from numpy.typing import NDArray
 from backend.formats.gwy import write_gwy
 from backend.formats.image import FloatArray, FormatError
 from backend.formats.tiff import write_tiff
-from merge.png import encode_png
-from merge.preview import render_panels
+from merge.io.png import encode_png
+from merge.io.preview import render_panels
 from merge.render import Mosaic
 
 IntArray = NDArray[np.int64]

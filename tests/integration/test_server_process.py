@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from backend.server_process import AUTH, ServerProcess, wait_for
-from merge.evaluate import Grid, score_mosaic
+from merge.report.evaluate import Grid, score_mosaic
 
 #: The paper's grid: 5 x 10 patches of 0.6 x 1.2 µm, 50 % / 33 % overlap, 20 nm pixels.
 PAPER_GRID = {

@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from merge import Patch, PatchTransform, render_mosaic
-from merge.transforms import rotation_about_z
+from merge.core.transforms import rotation_about_z
 
 
 def plane_patch(pid: str, origin: tuple[float, float], shape: tuple[int, int] = (20, 30)) -> Patch:

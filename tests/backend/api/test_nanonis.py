@@ -15,7 +15,7 @@ from hardware.microscope import SIM_SAMPLE_SIZE
 from hardware.sim.instrument import SimulatedAFM
 from hardware.sim.nanonis_server import NanonisServer
 from hardware.sim.surfaces import surface_by_name
-from merge.evaluate import Grid, score_mosaic
+from merge.report.evaluate import Grid, score_mosaic
 from tests.backend.api.conftest import Server, open_server, plan
 
 #: The paper's grid (5 x 10 patches of 0.6 x 1.2 µm, 50 % / 33 % overlap) at the pixels a

@@ -1,0 +1,90 @@
+"""Which patches can overlap: a neighbour graph from nominal footprints.
+
+Footprint centres sorted along the axis they spread most along give every patch its candidates
+within reach by a binary search (a sweep), so building the graph costs O(n log n) plus the
+candidates, whose number grows linearly with the patches on a grid: those of a few columns (or
+rows).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+from numpy.typing import NDArray
+
+from merge.core.transforms import PatchTransform
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.intp]
+
+
+def moved_boxes(boxes: FloatArray, transforms: Sequence[PatchTransform]) -> FloatArray:
+    """Nominal footprints ``(n, 4)`` shifted by each transform's XY translation (rotations are
+    small)."""
+    shift = np.array([tr.t[:2] for tr in transforms])
+    out: FloatArray = boxes + np.column_stack([shift, shift])
+    return out
+
+
+def overlapping_pairs(boxes: FloatArray, *, margin: float = 0.0) -> IntArray:
+    """Pairs ``(a, b)``, ``a < b``, whose boxes grown by ``margin`` intersect with positive area.
+
+    Parameters
+    ----------
+    boxes : (n, 4) array
+        ``(xmin, ymin, xmax, ymax)`` per patch, metres.
+    margin : float, keyword-only
+        Distance added on every side (the largest stage error expected), metres.
+
+    Returns
+    -------
+    (k, 2) int array, sorted.
+    """
+    b = np.asarray(boxes, dtype=np.float64)
+    if b.ndim != 2 or b.shape[1] != 4:
+        raise ValueError(f"boxes must be (n, 4), got {b.shape}")
+    if margin < 0:
+        raise ValueError(f"margin must be >= 0, got {margin}")
+    if len(b) < 2:
+        return np.empty((0, 2), dtype=np.intp)
+    centres = 0.5 * (b[:, :2] + b[:, 2:])
+    half = 0.5 * (b[:, 2:] - b[:, :2])
+    reach = 2.0 * float(np.hypot(half[:, 0], half[:, 1]).max()) + 2.0 * margin
+    axis = int(np.argmax(np.ptp(centres, axis=0)))
+    a, c = _within_reach(centres[:, axis], reach * (1.0 + 1e-9))
+    if len(a) == 0:
+        return np.empty((0, 2), dtype=np.intp)
+    cand = np.column_stack([a, c])
+    lo = np.maximum(b[a, :2], b[c, :2]) - margin
+    hi = np.minimum(b[a, 2:], b[c, 2:]) + margin
+    keep = np.all(hi > lo, axis=1)
+    pairs = np.sort(cand[keep], axis=1)
+    order = np.lexsort((pairs[:, 1], pairs[:, 0]))
+    out: IntArray = pairs[order].astype(np.intp)
+    return out
+
+
+def _within_reach(x: FloatArray, reach: float) -> tuple[IntArray, IntArray]:
+    """Every pair ``(a[k], c[k])``, ``a != c``, once, whose ``x`` (n,) differ by at most
+    ``reach``."""
+    order = np.argsort(x, kind="stable")
+    xs = x[order]
+    n = len(xs)
+    count = np.searchsorted(xs, xs + reach, side="right") - np.arange(n) - 1
+    first = np.repeat(np.arange(n), count)
+    # the k-th partner of a patch is the k-th after it in sorted order
+    step = np.arange(int(count.sum())) - np.repeat(np.cumsum(count) - count, count)
+    return order[first], order[first + 1 + step]
+
+
+def overlap_groups(pairs: IntArray, n: int) -> IntArray:
+    """Label (n,) of every patch: the group of patches its ``pairs`` (k, 2) tie together,
+    directly or through others (a patch in no pair is a group of its own)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    p = np.asarray(pairs, dtype=np.intp).reshape(-1, 2)
+    graph = coo_matrix((np.ones(len(p)), (p[:, 0], p[:, 1])), shape=(n, n))
+    labels: IntArray = connected_components(graph, directed=False)[1].astype(np.intp)
+    return labels

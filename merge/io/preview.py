@@ -1,0 +1,105 @@
+"""``preview.png``: the mosaic before (nominal placement) and after the merge, side by side,
+in one colour map with a nm colour bar and a scale bar."""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+from merge.io.png import draw_text, encode_png
+from merge.render import Mosaic
+
+FloatArray = NDArray[np.float64]
+UInt8Array = NDArray[np.uint8]
+
+BACKGROUND = (245, 245, 245)
+NO_DATA = (64, 64, 64)
+INK = (20, 20, 20)
+
+
+def afm_colors(values: FloatArray) -> UInt8Array:
+    """The gold "AFM hot" colour map of values in [0, 1] (NaN -> dark grey), ``(..., 3)`` uint8."""
+    v = np.clip(np.nan_to_num(values, nan=0.0), 0.0, 1.0)
+    rgb = np.stack([2.0 * v, 2.0 * v - 0.5, 2.0 * v - 1.0], axis=-1)
+    out: UInt8Array = (np.clip(rgb, 0.0, 1.0) * 255 + 0.5).astype(np.uint8)
+    out[np.isnan(values)] = NO_DATA
+    return out
+
+
+def _nice_step(span: float, target: int) -> float:
+    raw = span / max(target, 1)
+    mag = 10 ** np.floor(np.log10(raw)) if raw > 0 else 1.0
+    for m in (1, 2, 5, 10):
+        if m * mag >= raw:
+            return float(m * mag)
+    return float(10 * mag)
+
+
+def fit_size(heights: FloatArray, size: int) -> FloatArray:
+    """Nearest-neighbour resample so the longer side is ``size`` pixels."""
+    ny, nx = heights.shape
+    f = size / max(ny, nx)
+    rows = np.minimum((np.arange(max(1, round(ny * f))) / f).astype(int), ny - 1)
+    cols = np.minimum((np.arange(max(1, round(nx * f))) / f).astype(int), nx - 1)
+    out: FloatArray = heights[np.ix_(rows, cols)]
+    return out
+
+
+def _fmt(v: float) -> str:
+    return f"{v:.0f}" if abs(v) >= 10 or v == 0 else f"{v:.1f}"
+
+
+def render_preview(before: Mosaic, after: Mosaic, *, size: int = 420) -> UInt8Array:
+    """An RGB image: before | after | colour bar (nm), with titles and a scale bar."""
+    return render_panels([("NOMINAL", before), ("MERGED", after)], size=size)
+
+
+def render_panels(panels_in: list[tuple[str, Mosaic]], *, size: int = 420) -> UInt8Array:
+    """Height maps side by side in one colour map (1-99 % of their heights), each titled and
+    with a scale bar, then a colour bar in nm. ``size``: longer side of a panel, pixels."""
+    if not panels_in:
+        raise ValueError("need at least one height map")
+    mosaics = [m for _, m in panels_in]
+    both = np.concatenate([m.heights.ravel() for m in mosaics])
+    both = both[np.isfinite(both)]
+    lo, hi = np.percentile(both, [1, 99]) if both.size else (0.0, 1.0)
+    hi = hi if hi > lo else lo + 1e-9
+    panels = [fit_size(m.heights, size) for m in mosaics]
+    ph = max(p.shape[0] for p in panels)
+    margin, title_h, bar_w, label_w = 16, 30, 18, 70
+    width = margin + sum(p.shape[1] + margin for p in panels) + bar_w + label_w
+    height = title_h + ph + 44
+    img = np.empty((height, width, 3), dtype=np.uint8)
+    img[:] = BACKGROUND
+    col = margin
+    titles = [t for t, _ in panels_in]
+    for title, panel, mosaic in zip(titles, panels, mosaics, strict=True):
+        h, w = panel.shape
+        img[title_h : title_h + h, col : col + w] = afm_colors((panel - lo) / (hi - lo))
+        draw_text(img, title, 8, col, color=INK)
+        # scale bar: a round length near a quarter of the panel width
+        metres_per_px = mosaic.pixel_size[0] * mosaic.heights.shape[1] / w
+        length = _nice_step(0.25 * w * metres_per_px, 1)
+        bar_px = max(1, round(length / metres_per_px))
+        y = title_h + ph + 12
+        img[y : y + 4, col : col + bar_px] = INK
+        label = f"{length * 1e6:g} µm" if length >= 1e-6 else f"{length * 1e9:g} nm"
+        draw_text(img, label, y + 8, col, color=INK)
+        col += w + margin
+    # colour bar with ticks in nm
+    ramp = np.linspace(1.0, 0.0, ph)[:, None] * np.ones((1, bar_w))
+    img[title_h : title_h + ph, col : col + bar_w] = afm_colors(ramp)
+    lo_nm, hi_nm = lo * 1e9, hi * 1e9
+    step = _nice_step(hi_nm - lo_nm, 5)
+    for tick in np.arange(np.ceil(lo_nm / step) * step, hi_nm + 1e-9, step):
+        y = title_h + round((hi_nm - tick) / (hi_nm - lo_nm) * (ph - 1))
+        img[y, col + bar_w : col + bar_w + 4] = INK
+        draw_text(img, _fmt(float(tick)), max(y - 7, 0), col + bar_w + 6, color=INK)
+    draw_text(img, "nm", 8, col, color=INK)
+    return img
+
+
+def write_preview(path: str, before: Mosaic, after: Mosaic) -> None:
+    """Write :func:`render_preview` as a PNG file."""
+    with open(path, "wb") as fh:
+        fh.write(encode_png(render_preview(before, after)))

@@ -1,0 +1,325 @@
+"""``merge.run``: the stages in order, a patch set in, a merged mosaic with per-patch transforms
+and quality out.
+
+One merge is five steps over small records, each timed on its own (``MergeResult.timings``):
+
+1. :func:`_layout` -> :class:`Layout`: which patches can overlap (the stage's error margin), the
+   cell, and warnings for patches and groups nothing ties to the rest;
+2. :func:`_start` -> :class:`Placement`: the coarse start (:mod:`merge.start`), or nominal;
+3. :func:`_solve` -> :class:`Solution`: the simultaneous refinement (:mod:`merge.refine`) or the
+   paper's loop (:mod:`merge.paper`);
+4. report: the assessment of the final transforms (:mod:`merge.report`);
+5. render: one height map (:mod:`merge.render`).
+
+Self-calibration (``MergeConfig.self_calibrate``) wraps it: a first merge, the scanner's bend
+measured from it (:mod:`merge.refine.scanner`), and where the bend stands out of the noise the
+corrected patches merged again.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass, replace
+
+import numpy as np
+from numpy.typing import NDArray
+
+from merge.config import MergeConfig
+from merge.core.overlap import moved_boxes, overlap_groups, overlapping_pairs
+from merge.core.patchset import Patch, PatchSet
+from merge.core.transforms import PatchTransform
+from merge.refine import DEFAULT_LEVELS, Level, SurfaceBank, estimate_distortion, refine, undistort
+from merge.render import render_mosaic
+from merge.report import MergeResult, assess, patch_reports
+from merge.start import coarse_cell, coarse_start
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.intp]
+
+#: Called after every iteration with (iteration, residual RMS in metres).
+Progress = Callable[[int, float], None]
+#: Polled between iterations; returning True stops the merge with MergeCancelled.
+Cancel = Callable[[], bool]
+
+#: Prior standard deviation of a patch's XY correction in the refinement, as a fraction of the
+#: searched stage error: it decides only where the data are silent (flat, 1-D structure).
+SHIFT_PRIOR_FRACTION = 0.25
+
+
+def default_cell(patch_set: PatchSet) -> float:
+    """The raster spacing: the larger pixel pitch over all patches (paper, III-C)."""
+    return max(max(p.pixel_size) for p in patch_set)
+
+
+def default_max_shift(patch_set: PatchSet) -> float:
+    """Half the smaller side of the smallest patch."""
+    return 0.5 * min(min(p.extent) for p in patch_set)
+
+
+@dataclass(frozen=True)
+class Layout:
+    """What the merge knows before any stage: the patches' nominal footprints and overlaps.
+
+    boxes : (n, 4) nominal footprints ``(xmin, ymin, xmax, ymax)``, metres.
+    pairs : (k, 2) patch pairs that can overlap within the stage's error ``max_shift``.
+    linked : (n,) whether each patch is in any pair.
+    cell, max_shift : the refinement's raster spacing and the searched stage error, metres.
+    warnings : patches that overlap nothing, groups that overlap no other group.
+    """
+
+    boxes: FloatArray
+    pairs: IntArray
+    linked: NDArray[np.bool_]
+    cell: float
+    max_shift: float
+    warnings: list[str]
+
+
+@dataclass(frozen=True)
+class Placement:
+    """Where the start put every patch: ``T_mosaic_patch``, and which patches it measured in XY
+    along both axes (``measured_both``; patches that overlap nothing count as measured)."""
+
+    transforms: list[PatchTransform]
+    measured_both: NDArray[np.bool_]
+
+    @property
+    def complete(self) -> bool:
+        """Whether the start measured every patch's XY along both axes."""
+        return bool(self.measured_both.all())
+
+
+@dataclass(frozen=True)
+class Solution:
+    """The transforms the solver settled on and how it went; ``bank``, the refinement's raw
+    surfaces (reused by the assessment), None for the other methods."""
+
+    transforms: list[PatchTransform]
+    iterations: int = 0
+    converged: bool = True
+    history: tuple[float, ...] = ()
+    bank: SurfaceBank | None = None
+
+
+class Stopwatch:
+    """Wall time per named step, summed over repeats (``timings``, seconds)."""
+
+    def __init__(self) -> None:
+        self.timings: dict[str, float] = {}
+
+    @contextmanager
+    def step(self, name: str) -> Iterator[None]:
+        """Time the body of the ``with`` block as step ``name``."""
+        clock = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.timings[name] = self.timings.get(name, 0.0) + time.perf_counter() - clock
+
+
+def run(
+    patch_set: PatchSet,
+    config: MergeConfig | None = None,
+    *,
+    progress: Progress | None = None,
+    cancel: Cancel | None = None,
+) -> MergeResult:
+    """Merge all patches of ``patch_set`` simultaneously into one mosaic.
+
+    Parameters
+    ----------
+    patch_set : PatchSet
+        Validated patches (see :func:`merge.io.manifest.read_patch_set`).
+    config : MergeConfig, optional
+        Method and options; defaults to ``MergeConfig()``.
+    progress : callable(iteration, residual_m), keyword-only
+        Called after every solver iteration.
+    cancel : callable() -> bool, keyword-only
+        Polled every iteration; true stops the merge with :class:`merge.MergeCancelled`.
+
+    With ``config.self_calibrate`` the scanner's bend shared by every patch is measured from a
+    first merge, taken out of every patch, and the corrected patches are merged again: the
+    result's mosaic and transforms are those of the corrected patches, and its ``distortion``
+    says what was taken out (nothing, and no second merge, where no bend stands out of the
+    noise). ``progress`` then counts the iterations of both merges in one sequence.
+    """
+    cfg = config or MergeConfig()
+    if not cfg.self_calibrate:
+        return merge_once(patch_set, cfg, progress=progress, cancel=cancel)
+    clock = time.perf_counter()
+    first = merge_once(patch_set, cfg, progress=progress, cancel=cancel)
+    spent = time.perf_counter() - clock
+    distortion = estimate_distortion(patch_set.patches, first.transforms)
+    if distortion is None:
+        first.warnings.append(
+            "self-calibration needs scans of one size and pixel count; the patches differ, "
+            "so no scanner bend was taken out"
+        )
+        return first
+    measured = time.perf_counter() - clock - spent
+    if not any(distortion.significant):  # a straight scanner: the first merge stands
+        first.timings.update(self_calibration=measured)
+        return replace(first, distortion=distortion)
+    corrected = PatchSet(undistort(p, distortion) for p in patch_set)
+
+    def counted_on(iteration: int, residual: float) -> None:
+        """The second merge's iterations numbered on from the first's."""
+        if progress is not None:
+            progress(first.iterations + iteration, residual)
+
+    result = merge_once(corrected, cfg, progress=counted_on, cancel=cancel)
+    result.timings.update(first_merge=spent, self_calibration=measured)
+    return replace(result, distortion=distortion)
+
+
+def merge_once(
+    patch_set: PatchSet,
+    cfg: MergeConfig,
+    *,
+    progress: Progress | None = None,
+    cancel: Cancel | None = None,
+) -> MergeResult:
+    """One merge of ``patch_set`` as :func:`run` describes, without self-calibration: the five
+    steps of this module's docstring, each timed under its name."""
+    patches = patch_set.patches
+    watch = Stopwatch()
+    with watch.step("start"):
+        layout = _layout(patch_set, cfg)
+        placed = _start(patch_set, layout, cfg)
+    with watch.step("solve"):
+        solution = _solve(patches, layout, placed, cfg, progress=progress, cancel=cancel)
+    transforms = solution.transforms
+    with watch.step("report"):
+        final_pairs = overlapping_pairs(moved_boxes(layout.boxes, transforms), margin=layout.cell)
+        fits = assess(patches, final_pairs, transforms, bank=solution.bank)
+        reports, unheld = patch_reports(
+            patches, transforms, fits, layout.linked, registered=cfg.method in ("default", "paper")
+        )
+    with watch.step("render"):
+        mosaic = render_mosaic(patches, transforms, pixel_size=cfg.pixel_size, feather=cfg.feather)
+    return MergeResult(
+        mosaic=mosaic,
+        patches=reports,
+        method=cfg.method,
+        config=cfg,
+        iterations=solution.iterations,
+        converged=solution.converged,
+        history=list(solution.history),
+        warnings=layout.warnings + unheld,
+        timings=watch.timings,
+    )
+
+
+def _layout(patch_set: PatchSet, cfg: MergeConfig) -> Layout:
+    """Step 1: the pairs that can overlap, and warnings for what nothing ties to the rest."""
+    patches = patch_set.patches
+    n = len(patches)
+    max_shift = cfg.max_shift or default_max_shift(patch_set)
+    boxes = np.array([p.footprint for p in patches])
+    pairs = overlapping_pairs(boxes, margin=max_shift)
+    linked = np.zeros(n, dtype=bool)
+    linked[pairs.ravel()] = True
+    warnings = [
+        f"patch {patches[c].id!r} overlaps no other patch: it stays at its nominal place"
+        for c in np.flatnonzero(~linked)
+    ]
+    label = overlap_groups(pairs, n)
+    groups = [np.flatnonzero(label == g) for g in np.unique(label[linked])]
+    if len(groups) > 1:
+        firsts = ", ".join(repr(patches[int(g[0])].id) for g in groups)
+        warnings.append(
+            f"the patches form {len(groups)} groups that do not overlap each other (those of "
+            f"{firsts}): each is merged on its own; where they lie against each other is the "
+            "stage's placement, not a measurement"
+        )
+    cell = cfg.cell or default_cell(patch_set)
+    return Layout(boxes, pairs, linked, cell, max_shift, warnings)
+
+
+def _start(patch_set: PatchSet, layout: Layout, cfg: MergeConfig) -> Placement:
+    """Step 2: the coarse start (``init="auto"``), or every patch at its nominal place."""
+    patches = patch_set.patches
+    n = len(patches)
+    if cfg.method == "nominal" or cfg.init != "auto" or not len(layout.pairs):
+        return Placement([PatchTransform() for _ in range(n)], np.zeros(n, dtype=bool))
+    start = coarse_start(
+        patches,
+        layout.pairs,
+        cell=cfg.coarse_cell or coarse_cell(patch_set, layout.cell),
+        max_shift=layout.max_shift,
+        estimate_xy=cfg.method != "zlevel",
+    )
+    # a tilt the start found (scans levelled one by one) is the drift plane's start
+    transforms = [
+        PatchTransform(t=tc, slope=-tilt, centre=np.array(p.center))
+        for tc, tilt, p in zip(start.translation, start.tilt, patches, strict=True)
+    ]
+    return Placement(transforms, start.xy_complete | ~layout.linked)
+
+
+def _solve(
+    patches: Sequence[Patch],
+    layout: Layout,
+    placed: Placement,
+    cfg: MergeConfig,
+    *,
+    progress: Progress | None,
+    cancel: Cancel | None,
+) -> Solution:
+    """Step 3: the refinement of the default method, or the paper's loop; the start as it is
+    for the others."""
+    if cfg.method not in ("default", "paper") or not len(layout.pairs):
+        return Solution(placed.transforms)
+    # pairs at the estimated places, with a margin for what the refinement may still move
+    near = overlapping_pairs(moved_boxes(layout.boxes, placed.transforms), margin=4.0 * layout.cell)
+    if cfg.method == "paper":
+        return _paper(patches, near, placed, layout.cell, cfg, progress=progress, cancel=cancel)
+    # the widest level is for patches the start left unmeasured along some direction
+    levels: tuple[Level, ...] = DEFAULT_LEVELS[1:] if placed.complete else DEFAULT_LEVELS
+    if cfg.max_iter is not None:
+        levels = tuple(
+            Level(lv.smooth, lv.stride, max(1, min(lv.max_iter, cfg.max_iter)), lv.tol)
+            for lv in levels
+        )
+    fit = refine(
+        patches,
+        near,
+        placed.transforms,
+        levels=levels,
+        shift_prior=SHIFT_PRIOR_FRACTION * layout.max_shift,
+        progress=progress,
+        cancel=cancel,
+        first_free=None if placed.complete else ~placed.measured_both,
+    )
+    return Solution(fit.transforms, fit.iterations, fit.converged, tuple(fit.history), fit.bank)
+
+
+def _paper(
+    patches: Sequence[Patch],
+    near: IntArray,
+    placed: Placement,
+    cell: float,
+    cfg: MergeConfig,
+    *,
+    progress: Progress | None,
+    cancel: Cancel | None,
+) -> Solution:
+    """The paper's GPA-ICP from the start, anchored to the nominal frame like the default."""
+    from merge.paper import anchor_to_nominal, nominal_points, paper_gpa_icp  # kd-trees on demand
+
+    paper = paper_gpa_icp(
+        patches,
+        near,
+        np.array([tr.R for tr in placed.transforms]),
+        np.array([tr.t for tr in placed.transforms]),
+        cell=cell,
+        max_iter=cfg.max_iter or 200,
+        progress=progress,
+        cancel=cancel,
+    )
+    nominal, owner = nominal_points(patches)
+    R, t = anchor_to_nominal(nominal, owner, paper.R, paper.t)
+    transforms = [PatchTransform(R[c], t[c]) for c in range(len(patches))]
+    return Solution(transforms, paper.iterations, paper.converged, tuple(paper.history))

@@ -1,0 +1,306 @@
+"""The default method: simultaneous GPA refinement on the full-resolution height grids.
+
+Every patch is a continuous surface (bilinear in its own frame). For every point of a patch that
+falls on another patch, the residual is its height above that surface, linearised on the
+surface's tangent plane (point-to-plane, the plane taken from the height map's slopes at the
+sub-pixel foot of the point, so correspondences are sub-cell; heights, not distances along the
+normal, since heights are what the noise is in). All 6 rigid degrees of freedom of all patches are
+solved together, every Gauss-Newton step, from one sparse normal system: this is the Generalized
+Procrustes objective — the sum over every overlap point of its squared distances to the other
+patches is, up to a factor, its squared distance to their mean — never a chain of pairwise
+alignments.
+
+The six unknowns of a patch are its translation (3), its rotation about z and an in-patch drift
+term: a Z plane (dz/dx, dz/dy) that moves heights only. A linear Z drift during the scan is such
+a plane; modelling it as a tilt of a rigid body instead would couple heights to XY (a tilt of
+1 mrad shears the top of a 600 nm step 0.6 nm against its foot), and noise on steep edges would
+then leak into both.
+
+Coarse to fine: the first two levels work on every second point of heights smoothed by two
+pixels, then one, which widens the basin of convergence; the last on the raw heights at every
+point. The widest level matters (and the engine asks for it) only where the coarse start left a
+direction unmeasured: along the stripes of a 1-D grating a patch starts from its stage error,
+and only the stripes' slight bends and defects, tens of nanometres wide, can bring it in. So it
+moves only those patches (``first_free``), against their neighbours held where the start put
+them, on their pairs alone (the gauge is then held by the others): on TGX1, where a few flat-face
+patches are such, it cost as much as a level over all (the solve 1.0-1.1 -> 0.64-0.78 s of 50
+patches, every bench draw's result within 0.01 map/floor).
+Residuals are re-weighted with a Cauchy function of their robust scale, so tip artefacts, dust
+or a changed surface do not pull the solution.
+
+Gauge: after every step the common motion of all patches (rotation about z, a Z plane and a
+translation — none changes any residual) is removed: the mean rotation and mean drift plane are
+zero, and the patch points move on average by zero from their nominal places
+(:meth:`merge.refine.state.MosaicState.fix_gauge`), so the mosaic cannot drift away from the
+stage frame.
+
+Pieces: :mod:`merge.refine.bank` holds the patches as surfaces,
+:mod:`merge.refine.normal_system` builds the Gauss-Newton system and :mod:`merge.refine.solve`
+solves it, :mod:`merge.refine.state` holds the placement of every patch and its gauge,
+:mod:`merge.report.quality` the per-patch quality report; this module holds the schedule.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from merge.core.errors import MergeCancelled
+from merge.core.heightfield import Border
+from merge.core.noise import patch_noise
+from merge.core.patchset import Patch
+from merge.core.transforms import PatchTransform
+from merge.refine.bank import SurfaceBank
+from merge.refine.normal_system import NormalSystem, build_normal_system
+from merge.refine.solve import Priors, solve_system
+from merge.refine.state import MosaicState
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.intp]
+Progress = Callable[[int, float], None]
+
+
+@dataclass(frozen=True)
+class Level:
+    """One stage of the coarse-to-fine schedule: smoothing (pixels) and point stride."""
+
+    smooth: float
+    stride: int
+    max_iter: int
+    tol: float  # largest patch motion (pixels) that counts as converged
+
+
+STALL = 1e-4
+#: The raw level stops once a step changes no height by more than this fraction of the noise
+#: (through the RMS slope for XY and spin): what is left would add a few thousandths of the
+#: noise to the map error in quadrature, and a pixel-based tolerance alone is arbitrary in
+#: physical units (1e-3 px is 20 pm at 20 nm pixels, 2 pm at 2 nm, where an iteration over
+#: 9 patches of 512 x 512 costs a second). Bench draws, against none: iterations -19 % (the
+#: variations -24 %), every map/floor within 0.01 or better (grid draws 5, 7: 1.17, 1.15 ->
+#: 1.08, 1.10); at 0.2 the grating's XY starts to suffer (draw 3: 2.7 -> 4.5 nm). What the
+#: steps still to come would move (:func:`_remaining`) counts, not the last step alone: where
+#: every step is a fifth of the one before, the step after one of 0.15 is not needed (50 TGX1
+#: patches: 9 -> 8 iterations; 100 variations -4 %, map/floor within 0.02 either way).
+HEIGHT_TOL = 0.1
+#: Iterations in a row the cost must stall for: along a grating's stripes the patches creep
+#: (their few defects hold them loosely), and the cost may pause once on the way (grid draws
+#: 0, 3, 5, 25, 30: map/floor 1.10, 1.50, 1.13, 1.18, 1.38 with one -> 1.04, 1.09, 1.14, 1.09,
+#: 1.10 with two; TGX1 as before, one iteration more).
+STALLS = 2
+#: Expected in-patch Z drift (metres, centre to corner) of the drift-plane prior.
+DRIFT_PRIOR = 5e-9
+#: Share of the drift prior along the fast axis (x). A Z drift in time tilts a patch along its
+#: slow axis; along a line it moves by one line's share (1 / lines, a few per cent). Overlaps
+#: measure neighbours' relative tilts, but across a narrow overlap only weakly: left free, these
+#: weak differences add up to a mosaic-wide bowl (on TGX1 draw 0, 0.4 nm per µm² in x²; Z error
+#: 0.60 -> 0.51 nm without it). A tenth leaves room for what the plane does not model (a bow).
+FAST_DRIFT_SHARE = 0.1
+#: Standard deviation (radians) of the prior on a patch's rotation about z.
+SPIN_PRIOR = np.radians(2.0)
+#: Smoothing (pixels) from which the first level continues patches point-symmetrically beyond
+#: their borders; the later levels always do (see :class:`merge.refine.bank.SurfaceBank`). Patches
+#: overlap along their borders, so a bias there is a bias of every pair: repeating the border
+#: value bends a slope that crosses it by a good fraction of slope x sigma. Where the widest
+#: level brings in patches the start left unmeasured along a grating's stripes that bias
+#: dominates (grid-real draws 21-30, median XY 2.7 -> 2.0 nm); the one-pixel level after it,
+#: too (draws 0-5 and 21-30, median 3.56 -> 2.25 nm, draw 25 5.8 -> 2.2; TGX1, MoS2, folded as
+#: before). But the first level's drift planes are free (their spread sets the prior of the
+#: next, :func:`_plane_sigma`), and at one pixel the continuation's doubled border noise tilts
+#: them: 20 x 20 folded patches, x planes spread 0.03 -> 0.10 px, Z 0.77 -> 2.32 nm, as the raw
+#: level stops before it has flattened them. A plane fitted locally at the border instead did
+#: worse on the grating (2.44 nm, draw 25 7.0): its one-sided window feels the stripes' curvature.
+MIRROR_FROM = 1.5
+#: The widest level only brings patches into the next one's reach (a pixel or so): it stops
+#: once no patch moves a fifth of a pixel (at 0.05 px TGX1 ran all six iterations, its
+#: unmeasured patches wandering by 0.08 px; every case's result the same either way, two
+#: iterations fewer). The one-pixel level keeps 0.05: at 0.1 the grating's patches, creeping
+#: along the stripes, stopped short (draws 1 and 4: XY 1.9 -> 2.4 nm).
+DEFAULT_LEVELS = (
+    Level(smooth=2.0, stride=2, max_iter=6, tol=0.2),
+    Level(1.0, 2, 10, 0.05),
+    Level(0.0, 1, 30, 1e-3),
+)
+
+
+@dataclass(frozen=True)
+class RefineResult:
+    """``T_mosaic_patch`` per patch, iterations and the residual RMS of each; ``bank``, the patches'
+    raw heights as surfaces (for :func:`merge.report.quality.assess`, which needs the same)."""
+
+    transforms: list[PatchTransform]
+    iterations: int
+    converged: bool
+    history: list[float]
+    bank: SurfaceBank
+
+
+def refine(
+    patches: Sequence[Patch],
+    pairs: IntArray,
+    start: Sequence[PatchTransform],
+    *,
+    levels: Sequence[Level] = DEFAULT_LEVELS,
+    drift_prior: float = DRIFT_PRIOR,
+    shift_prior: float = np.inf,
+    progress: Progress | None = None,
+    cancel: Callable[[], bool] | None = None,
+    first_free: NDArray[np.bool_] | None = None,
+) -> RefineResult:
+    """Refine all patch transforms at once.
+
+    Parameters
+    ----------
+    patches : sequence of Patch
+    pairs : (k, 2) int array
+        Patch pairs that may overlap.
+    start : sequence of PatchTransform
+        Initial ``T_mosaic_patch`` per patch.
+    levels : sequence of Level, keyword-only
+        Coarse-to-fine schedule.
+    drift_prior : float, keyword-only
+        Expected size of the in-patch Z drift, metres from the patch centre to its corner (a
+        Gaussian prior on the drift plane; along the fast axis :data:`FAST_DRIFT_SHARE` of it).
+        Overlaps pin down the differences of neighbouring planes well but a mosaic-wide bend
+        only weakly; the prior keeps that bend out.
+    shift_prior : float, keyword-only
+        Standard deviation (metres) of a prior holding each patch's XY near its start. It only
+        matters where the data do not constrain XY (a flat overlap, the stripes of a 1-D
+        grating): there the patch stays at its start instead of wandering off.
+    progress : callable(iteration, residual_rms_m), keyword-only
+        Called after every iteration.
+    cancel : callable() -> bool, keyword-only
+        Polled every iteration; true raises :class:`MergeCancelled`.
+    first_free : (n,) bool, keyword-only
+        The patches the first level moves (the others held, and only pairs with a free patch
+        in the system); default all.
+    """
+    pairs = np.asarray(pairs, dtype=np.intp).reshape(-1, 2)
+    scale = float(np.median([min(p.pixel_size) for p in patches]))
+    noise = patch_noise((p.heights for p in patches), scale)
+    history: list[float] = []
+    iteration = 0
+    converged = False
+    stats: NormalSystem | None = None
+    base = SurfaceBank(patches, scale, 0.0, 1)
+    state = MosaicState.from_transforms(start, base, scale)
+    start_s = state.s.copy()
+    plane_sigma = np.full(2, drift_prior / scale)  # the first level: as loose along both axes
+    for li, level in enumerate(levels):
+        raw = level.smooth == 0 and level.stride == 1
+        border: Border = "mirror" if li > 0 or level.smooth >= MIRROR_FROM else "repeat"
+        bank = (
+            base if raw else SurfaceBank(patches, scale, level.smooth, level.stride, border=border)
+        )
+        if li == 1:
+            plane_sigma = _plane_sigma(state.slope * bank.radius[:, None], drift_prior / scale)
+        margin = 1.5 * float(max(bank.dx.max(), bank.dy.max()))
+        held, level_pairs = None, pairs
+        if li == 0 and first_free is not None and not first_free.all():
+            held, level_pairs = ~first_free, pairs[first_free[pairs].any(axis=1)]
+        cand = bank.candidates(level_pairs, state.R, state.s, margin)
+        moved = 0.0
+        level_converged = False
+        previous = np.inf
+        stalls = 0
+        # on the raw heights, once the steps still to come move no height by HEIGHT_TOL of the
+        # noise the level is done
+        slope = _slope_rms(bank) if raw else np.inf
+        effect = np.inf
+        for _ in range(level.max_iter):
+            if cancel is not None and cancel():
+                raise MergeCancelled("merge cancelled")
+            if moved > 0.5 * margin:
+                cand, moved = bank.candidates(level_pairs, state.R, state.s, margin), 0.0
+            # scan lines as correlated noise (merge.refine.lines) only on the raw heights: smoothing
+            # spreads every line's offset over its neighbours, and on the coarse levels the
+            # start's misfit along lines would pass for offsets
+            stats = build_normal_system(bank, cand, state, noise, lines=raw)
+            priors = Priors(
+                plane=state.slope * bank.radius[:, None],
+                plane_sigma=plane_sigma,
+                shift=state.s[:, :2] - (start_s[:, :2] + bank.centre[:, :2] - base.centre[:, :2]),
+                shift_sigma=shift_prior / scale,
+                spin=state.spin() * bank.radius,
+                spin_sigma=SPIN_PRIOR * bank.radius,
+            )
+            delta = solve_system(stats, priors, held=held)
+            state.update(delta, bank.radius)
+            if held is None:  # held patches hold the gauge
+                state.fix_gauge(bank.centre, bank.point_start)
+            motion = float(
+                (np.abs(delta[:, :3]).max(axis=1) + np.abs(delta[:, 3:]).max(axis=1)).max(initial=0)
+            )
+            moved += motion
+            iteration += 1
+            history.append(stats.rms * scale)
+            if progress is not None:
+                progress(iteration, stats.rms * scale)
+            # converged when no patch moves, or when the cost no longer falls (the motion left
+            # is then in directions the data do not constrain, e.g. XY over a flat overlap)
+            stalls = stalls + 1 if abs(previous - stats.rms) <= STALL * stats.rms else 0
+            previous = stats.rms
+            effect, last_effect = _height_effect(delta, slope), effect
+            settled = _remaining(effect, last_effect) < HEIGHT_TOL * noise
+            if motion < level.tol or stalls >= STALLS or settled:
+                level_converged = True
+                break
+        if li == len(levels) - 1:
+            converged = level_converged
+    return RefineResult(
+        transforms=state.to_transforms(base, scale),
+        iterations=iteration,
+        converged=converged,
+        history=history,
+        bank=base,
+    )
+
+
+def _slope_rms(bank: SurfaceBank) -> float:
+    """RMS of the surfaces' slopes over all their nodes (dimensionless)."""
+    g = bank.surface[:, 1:]
+    ok = np.isfinite(g).all(axis=1)
+    return float(np.sqrt(np.mean(g[ok] ** 2) * 2.0)) if ok.any() else 0.0
+
+
+def _height_effect(delta: FloatArray, slope: float) -> float:
+    """The largest height change (pixel units) a step ``delta`` (n, 6) makes anywhere, on
+    surfaces of RMS ``slope``: its Z and drift plane directly, its XY and spin through the
+    slopes."""
+    if not np.isfinite(slope) or len(delta) == 0:
+        return np.inf
+    xy = np.hypot(delta[:, 0], delta[:, 1]) + np.abs(delta[:, 3])
+    z = np.abs(delta[:, 2]) + np.hypot(delta[:, 4], delta[:, 5])
+    return float((z + slope * xy).max())
+
+
+def _remaining(effect: float, last: float) -> float:
+    """How far the steps still to come will move (same units as ``effect``, the last step's
+    effect; ``last`` the one before).
+
+    Gauss-Newton near its solution converges linearly: every step the previous one times about
+    the same ratio, so what remains is the last step times ``ratio / (1 - ratio)``, counted as
+    no more than the last step itself: with a ratio over a half (or none yet), the tail is
+    slow to trust and the last step alone decides, as it did before this rule.
+    """
+    if not (np.isfinite(last) and last > 0):
+        return effect
+    ratio = effect / last
+    return effect * min(1.0, ratio / (1.0 - ratio)) if ratio < 1.0 else effect
+
+
+def _plane_sigma(plane: FloatArray, drift_prior: float) -> FloatArray:
+    """Prior sigmas (x, y) of the drift planes (n, 2), both times the patch radius (pixels).
+
+    Physics sets them: :data:`FAST_DRIFT_SHARE` of ``drift_prior`` along the lines, all of it
+    across. But where the planes the first level found spread more than ``drift_prior`` along
+    an axis, the patches' tilts are not a drift in time (each patch levelled on its own before
+    export, a scanner's bow), and a prior as tight would bend the mosaic to flatten them: there
+    the prior follows their spread. (Below it, the spread is mostly the first level's noise.)
+    """
+    physics = np.array([FAST_DRIFT_SHARE, 1.0]) * drift_prior
+    spread = np.sqrt(np.mean(plane**2, axis=0)) if len(plane) else np.zeros(2)
+    out: FloatArray = np.where(spread > drift_prior, spread, physics)
+    return out

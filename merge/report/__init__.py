@@ -1,0 +1,23 @@
+"""The report: how well every patch fits and how well it is placed, and the merge's result.
+
+In: the patches, their final ``T_mosaic_patch`` and the refinement's surfaces. Out: one
+:class:`PatchFit` per patch (:mod:`~merge.report.quality`: correspondences, residual RMS, XY
+and Z sigmas marginal over the mosaic, :mod:`~merge.report.uncertainty`), turned into
+:class:`PatchReport` and gathered in :class:`MergeResult` (:mod:`~merge.report.summary`).
+:mod:`~merge.report.evaluate` scores a mosaic against a known truth (benchmarks and tests).
+"""
+
+from merge.report.evaluate import Grid, Score, score_mosaic
+from merge.report.quality import PatchFit, assess
+from merge.report.summary import MergeResult, PatchReport, patch_reports
+
+__all__ = [
+    "Grid",
+    "MergeResult",
+    "PatchFit",
+    "PatchReport",
+    "Score",
+    "assess",
+    "patch_reports",
+    "score_mosaic",
+]

@@ -1,0 +1,129 @@
+"""What the merge hands back: every patch's transform and quality, and the mosaic.
+
+:func:`patch_reports` turns the assessment's fits (:func:`merge.report.quality.assess`) into
+one :class:`PatchReport` per patch, with a warning for every patch whose overlaps hold its Z
+but not its XY; :class:`MergeResult` gathers them with the mosaic and how the solver went.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from merge.config import MergeConfig
+from merge.core.patchset import Patch
+from merge.core.transforms import PatchTransform
+from merge.refine.scanner import ScanDistortion
+from merge.render import Mosaic
+from merge.report.quality import PatchFit
+
+FloatArray = NDArray[np.float64]
+
+#: An XY standard deviation above this fraction of the pixel pitch means "XY not constrained".
+XY_CONSTRAINED_FRACTION = 0.25
+
+
+@dataclass(frozen=True)
+class PatchReport:
+    """What the merge did to one patch and how well it fits.
+
+    transform : ``T_mosaic_patch`` (rigid motion plus in-patch drift plane, metres).
+    rotation, translation : the rigid transform closest to ``transform`` over the patch's points,
+        for consumers that only understand ``q = R p + t``.
+    overlaps : whether any other patch can overlap it (otherwise it stays nominal).
+    correspondences : overlap points that entered the fit.
+    residual_rms : RMS normal distance of those points to the other patches, metres.
+    xy_constrained : whether its own overlaps pin down XY (a flat overlap constrains only Z).
+    xy_sigma, z_sigma : standard deviations of its translation (XY: the larger axis), metres,
+        marginal over the whole mosaic with its common motion fixed: a block of patches tied to
+        the rest by little texture is as uncertain as the block (:mod:`merge.report.uncertainty`).
+    """
+
+    id: str
+    transform: PatchTransform
+    rotation: FloatArray
+    translation: FloatArray
+    overlaps: bool
+    correspondences: int
+    residual_rms: float
+    xy_constrained: bool
+    xy_sigma: float
+    z_sigma: float
+
+
+@dataclass(frozen=True)
+class MergeResult:
+    """The mosaic, every patch's transform and quality, and how the solver went."""
+
+    mosaic: Mosaic
+    patches: list[PatchReport]
+    method: str
+    config: MergeConfig
+    iterations: int
+    converged: bool
+    history: list[float]
+    warnings: list[str] = field(default_factory=list)
+    timings: dict[str, float] = field(default_factory=dict)
+    #: the scanner's bend taken out of every patch (``MergeConfig.self_calibrate``), or None
+    distortion: ScanDistortion | None = None
+
+    @property
+    def transforms(self) -> list[PatchTransform]:
+        """``T_mosaic_patch`` in patch order."""
+        return [p.transform for p in self.patches]
+
+
+def patch_reports(
+    patches: Sequence[Patch],
+    transforms: Sequence[PatchTransform],
+    fits: Sequence[PatchFit],
+    linked: NDArray[np.bool_],
+    *,
+    registered: bool,
+) -> tuple[list[PatchReport], list[str]]:
+    """One report per patch, and a warning for each whose overlaps constrain Z but not XY.
+
+    Parameters
+    ----------
+    patches : sequence of Patch
+    transforms : sequence of PatchTransform
+        ``T_mosaic_patch`` per patch, as the merge left them.
+    fits : sequence of PatchFit
+        The assessment of those transforms (:func:`merge.report.quality.assess`).
+    linked : (n,) bool array
+        Whether each patch can overlap any other.
+    registered : bool, keyword-only
+        Whether the method registered XY (the default and paper methods): only then is an
+        XY its overlaps cannot hold worth a warning.
+    """
+    reports, warnings = [], []
+    for c, p in enumerate(patches):
+        f = fits[c]
+        held = f.xy_sigma_local < XY_CONSTRAINED_FRACTION * min(p.pixel_size)
+        xy_ok = f.correspondences > 0 and held
+        xx, yy = p.pixel_coordinates()
+        sample = np.column_stack([xx.ravel(), yy.ravel(), p.heights.ravel()])[::7]
+        R_rigid, t_rigid = transforms[c].rigid_approximation(sample[np.isfinite(sample[:, 2])])
+        reports.append(
+            PatchReport(
+                id=p.id,
+                transform=transforms[c],
+                rotation=R_rigid,
+                translation=t_rigid,
+                overlaps=bool(linked[c]),
+                correspondences=f.correspondences,
+                residual_rms=f.residual_rms,
+                xy_constrained=bool(xy_ok),
+                xy_sigma=f.xy_sigma,
+                z_sigma=f.z_sigma,
+            )
+        )
+        if linked[c] and not xy_ok and registered:
+            warnings.append(
+                f"patch {p.id!r}: its overlaps constrain Z but not XY (too flat or a 1-D "
+                "structure); its XY there is a guess, not a measurement"
+            )
+    return reports, warnings

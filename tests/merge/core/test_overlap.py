@@ -1,0 +1,54 @@
+"""The neighbour graph: the sweep finds exactly the pairs a test of every pair finds."""
+
+from __future__ import annotations
+
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from merge.core.overlap import overlap_groups, overlapping_pairs
+
+
+def _every_pair(boxes: np.ndarray, margin: float) -> list[list[int]]:
+    out = []
+    for a in range(len(boxes)):
+        for c in range(a + 1, len(boxes)):
+            lo = np.maximum(boxes[a, :2], boxes[c, :2]) - margin
+            hi = np.minimum(boxes[a, 2:], boxes[c, 2:]) + margin
+            if np.all(hi > lo):
+                out.append([a, c])
+    return out
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    st.integers(0, 2**32 - 1),
+    st.integers(1, 40),
+    st.sampled_from(["scatter", "column", "row", "grid"]),
+    st.floats(0.0, 0.5),
+)
+def test_the_sweep_finds_every_overlapping_pair_once(
+    seed: int, n: int, layout: str, margin: float
+) -> None:
+    rng = np.random.default_rng(seed)
+    size = rng.uniform(0.2, 1.5, (n, 2))
+    if layout == "scatter":
+        lo = rng.uniform(0.0, 6.0, (n, 2))
+    elif layout == "column":  # one x for all: the sweep must run along y
+        lo = np.column_stack([np.zeros(n), np.arange(n) * 0.7])
+    elif layout == "row":
+        lo = np.column_stack([np.arange(n) * 0.7, np.zeros(n)])
+    else:
+        side = int(np.ceil(np.sqrt(n)))
+        lo = np.column_stack([np.arange(n) % side, np.arange(n) // side]) * 0.8
+    boxes = np.column_stack([lo, lo + size])
+    assert overlapping_pairs(boxes, margin=margin).tolist() == _every_pair(boxes, margin)
+
+
+def test_groups_are_what_the_pairs_tie_together_through_others() -> None:
+    # 0-1-2 a chain, 3-4 a pair, 5 alone
+    label = overlap_groups(np.array([[0, 1], [1, 2], [3, 4]]), 6)
+    assert label[0] == label[1] == label[2]
+    assert label[3] == label[4] != label[0]
+    assert len(set(label.tolist())) == 3 and label[5] not in label[:5]
+    assert overlap_groups(np.empty((0, 2), dtype=np.intp), 3).tolist() == [0, 1, 2]

@@ -1,0 +1,46 @@
+"""Sharing blocks among threads."""
+
+from __future__ import annotations
+
+import os
+import signal
+import threading
+
+import pytest
+
+from merge.core.parallel import WORKERS, each
+
+
+def test_each_item_is_worked_exactly_once() -> None:
+    seen: list[int] = []
+    each(seen.append, list(range(100)))
+    assert sorted(seen) == list(range(100))
+    assert WORKERS >= 1
+
+
+def test_an_error_in_a_block_reaches_the_caller() -> None:
+    def work(item: int) -> None:
+        if item == 7:
+            raise ValueError("block 7")
+
+    with pytest.raises(ValueError, match="block 7"):
+        each(work, list(range(10)))
+
+
+def test_threads_are_kept_between_calls_and_renewed_in_a_forked_child() -> None:
+    if WORKERS < 2 or not hasattr(os, "fork"):
+        pytest.skip("needs two cores and fork")
+    each(lambda _: None, [0, 1])
+    before = {t.ident for t in threading.enumerate() if t.name.startswith("merge")}
+    each(lambda _: None, [0, 1])
+    after = {t.ident for t in threading.enumerate() if t.name.startswith("merge")}
+    # the same threads (the pool starts them as work comes, up to WORKERS)
+    assert before and before <= after and len(after) <= WORKERS
+    pid = os.fork()
+    if pid == 0:  # the child: the parent's pool would wait forever on threads it does not have
+        signal.alarm(20)  # so a regression fails instead of hanging
+        seen: list[int] = []
+        each(seen.append, list(range(10)))
+        os._exit(0 if sorted(seen) == list(range(10)) else 1)
+    _, status = os.waitpid(pid, 0)
+    assert os.waitstatus_to_exitcode(status) == 0

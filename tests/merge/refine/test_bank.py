@@ -1,0 +1,130 @@
+"""Patches as continuous surfaces: look-ups and candidate correspondences."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from merge.core.patchset import Patch
+from merge.refine.bank import SurfaceBank
+
+
+def _plane_patch(pid: str, origin: tuple[float, float]) -> Patch:
+    yy, xx = np.mgrid[0:20, 0:30].astype(np.float64)
+    # heights in metres over 10 nm pixels: slope 0.3 along x, -0.2 along y
+    heights = (0.3 * xx - 0.2 * yy) * 10e-9 + 50e-9
+    return Patch(id=pid, heights=heights, origin=origin, pixel_size=(10e-9, 10e-9))
+
+
+@pytest.mark.parametrize("smooth", [0.0, 1.0, 2.0])
+def test_lookup_is_exact_on_a_plane_and_refuses_points_outside(smooth: float) -> None:
+    # raw heights (spline nodes at half pixels) and smoothed ones (bilinear between pixels),
+    # every level up to the border: there the patches overlap
+    bank = SurfaceBank([_plane_patch("a", (0.0, 0.0))], 10e-9, smooth, 1)
+    rng = np.random.default_rng(0)
+    half = bank.half[0]
+    inside = rng.uniform(-half, half, size=(200, 2))
+    outside = np.array([[half[0] + 0.5, 0.0], [0.0, -half[1] - 0.5]])
+    pts = np.vstack([inside, outside])
+    h, gx, gy, ok = bank.lookup(
+        np.zeros(len(pts), dtype=np.intp), np.column_stack([pts, 0 * pts[:, 0]])
+    )
+    assert ok[:200].all() and not ok[200:].any()
+    # local heights: relative to the patch median, pixel units
+    expected = (
+        0.3 * (pts[:200, 0] + bank.half[0, 0])
+        - 0.2 * (pts[:200, 1] + bank.half[0, 1])
+        + 5.0
+        - bank.centre[0, 2]
+    )
+    np.testing.assert_allclose(h[:200], expected, atol=1e-9)
+    np.testing.assert_allclose(gx[:200], 0.3, atol=1e-9)
+    np.testing.assert_allclose(gy[:200], -0.2, atol=1e-9)
+
+
+def test_raw_slopes_at_the_pixels_are_their_central_differences() -> None:
+    # the spline's slopes reduce to what the bilinear look-ups had at the pixels (one-sided at
+    # the border), so only what lies between pixels changes
+    rng = np.random.default_rng(3)
+    heights = rng.normal(0.0, 1e-9, (12, 16)).cumsum(axis=1)
+    patch = Patch("a", heights, (0.0, 0.0), (1e-9, 1e-9))
+    bank = SurfaceBank([patch], 1e-9, 0.0, 1)
+    yy, xx = np.mgrid[0:12, 0:16]
+    pts = np.column_stack(
+        [xx.ravel() - bank.half[0, 0], yy.ravel() - bank.half[0, 1], 0 * xx.ravel()]
+    )
+    h, gx, gy, ok = bank.lookup(np.zeros(len(pts), dtype=np.intp), pts.astype(np.float64))
+    ey, ex = np.gradient(heights * 1e9)
+    assert ok.all()
+    np.testing.assert_allclose(h, (heights * 1e9 - bank.centre[0, 2]).ravel(), atol=1e-9)
+    np.testing.assert_allclose(gx, ex.ravel(), atol=1e-9)
+    np.testing.assert_allclose(gy, ey.ravel(), atol=1e-9)
+
+
+def test_every_level_places_a_patch_in_the_same_frame() -> None:
+    # a two-level face (a grating's top and bottom): smoothing moves its median, which must not
+    # move the frame a placement refers to, or every level begins with patches jumped in Z
+    yy, xx = np.mgrid[0:20, 0:30].astype(np.float64)
+    heights = np.where(xx + 0.3 * yy < 15.0, 0.0, 100e-9) + 1e-9 * np.sin(xx * yy)
+    patch = Patch("a", heights, (0.0, 0.0), (10e-9, 10e-9))
+    raw, smooth = SurfaceBank([patch], 10e-9, 0.0, 1), SurfaceBank([patch], 10e-9, 2.0, 2)
+    np.testing.assert_array_equal(smooth.centre, raw.centre)
+
+
+def test_raw_lookups_follow_roughness_between_pixels_better_than_bilinear() -> None:
+    # a surface with texture at the scale of two pixels, sampled on whole pixels and looked up
+    # halfway between them: bilinear shaves the roughness, the spline follows it
+    yy, xx = np.mgrid[0:40, 0:40].astype(np.float64)
+    wave = lambda x, y: np.sin(1.6 * x + 0.3) * np.cos(1.3 * y)  # noqa: E731
+    patch = Patch("a", wave(xx, yy) * 1e-9, (0.0, 0.0), (1e-9, 1e-9))
+    raw = SurfaceBank([patch], 1e-9, 0.0, 1)
+    rng = np.random.default_rng(1)
+    uv = rng.uniform(4.0, 35.0, size=(500, 2))
+    pts = np.column_stack([uv - raw.half[0], np.zeros(500)])
+    h, _, _, ok = raw.lookup(np.zeros(500, dtype=np.intp), pts)
+    truth = wave(uv[:, 0], uv[:, 1]) - raw.centre[0, 2]
+    spline_err = np.sqrt(np.mean((h[ok] - truth[ok]) ** 2))
+    # bilinear between the same pixels
+    i0, j0 = np.floor(uv[:, 1]).astype(int), np.floor(uv[:, 0]).astype(int)
+    fv, fu = uv[:, 1] - i0, uv[:, 0] - j0
+    z = patch.heights * 1e9 - raw.centre[0, 2]
+    bil = (1 - fv) * ((1 - fu) * z[i0, j0] + fu * z[i0, j0 + 1]) + fv * (
+        (1 - fu) * z[i0 + 1, j0] + fu * z[i0 + 1, j0 + 1]
+    )
+    bil_err = np.sqrt(np.mean((bil - truth) ** 2))
+    assert ok.all()
+    assert spline_err < 0.4 * bil_err
+
+
+def test_lookup_is_not_valid_next_to_a_hole() -> None:
+    p = _plane_patch("a", (0.0, 0.0))
+    heights = p.heights.copy()
+    heights[10, 15] = np.nan
+    bank = SurfaceBank([Patch("a", heights, p.origin, p.pixel_size)], 10e-9, 0.0, 1)
+    # local coordinates of pixel (row 10, column 15) and of a far corner
+    node = np.array(
+        [
+            [15 - bank.half[0, 0], 10 - bank.half[0, 1], 0.0],
+            [-bank.half[0, 0] + 1, -bank.half[0, 1] + 1, 0.0],
+        ]
+    )
+    _, _, _, ok = bank.lookup(np.zeros(2, dtype=np.intp), node)
+    assert not ok[0] and ok[1]
+
+
+def test_candidates_come_in_contiguous_runs_of_each_directed_pair() -> None:
+    # two patches overlapping by a third along x
+    a = _plane_patch("a", (0.0, 0.0))
+    b = _plane_patch("b", (200e-9, 0.0))
+    bank = SurfaceBank([a, b], 10e-9, 0.0, 1)
+    R = np.repeat(np.eye(3)[None], 2, axis=0)
+    s = bank.centre.copy()
+    src, dst, idx, starts = bank.candidates(np.array([[0, 1]]), R, s, 0.0)
+    assert list(starts) == [0, starts[1], len(idx)]
+    assert (src[: starts[1]] == 0).all() and (dst[: starts[1]] == 1).all()
+    assert (src[starts[1] :] == 1).all() and (dst[starts[1] :] == 0).all()
+    # patch a's points at x >= 200 nm: columns 20..29 of 20 rows
+    assert starts[1] == 10 * 20
+    assert len(idx) - starts[1] == 10 * 20
+    assert (idx[: starts[1]] < bank.point_start[1]).all()
+    assert (idx[starts[1] :] >= bank.point_start[1]).all()

@@ -1,0 +1,82 @@
+"""The per-patch quality report: residuals, and how well each patch is placed."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from hardware.sim.drift import DriftModel
+from hardware.sim.surfaces import FoldedSurface
+from merge import Patch, PatchSet, PatchTransform
+from merge.core.overlap import overlapping_pairs
+from merge.report.quality import PatchFit, assess
+from tests.conftest import Synthetic, make_synthetic
+
+NOISE = 1e-9
+#: No drift at all: the nominal placement is the truth.
+STILL = DriftModel(
+    stage_sigma=0.0,
+    rotation_sigma_deg=0.0,
+    z_step_mean=0.0,
+    z_step_sigma=0.0,
+    z_drift_sigma=0.0,
+    noise=NOISE,
+    line_noise=0.0,
+)
+
+
+@pytest.fixture(scope="module")
+def still(folded: FoldedSurface) -> Synthetic:
+    return make_synthetic(folded, drift=STILL)
+
+
+def _assess(patch_set: PatchSet, transforms: list[PatchTransform]) -> list[PatchFit]:
+    patches = list(patch_set)
+    pairs = overlapping_pairs(np.array([p.footprint for p in patches]))
+    return assess(patches, pairs, transforms)
+
+
+def test_at_the_truth_residuals_are_the_noise_and_every_patch_is_placed(still: Synthetic) -> None:
+    fits = _assess(still.patch_set, [PatchTransform() for _ in still.synth])
+    for f in fits:
+        assert f.correspondences > 100
+        # the height of a point above the other's bilinear surface: both noises, the
+        # surface's a little averaged
+        assert NOISE < f.residual_rms < 1.6 * NOISE
+        assert f.xy_sigma < 2e-9 and f.z_sigma < 0.5 * NOISE
+        assert f.xy_sigma_local <= f.xy_sigma * 1.001  # others held: never worse
+
+
+def test_a_misplaced_patch_shows_in_its_residuals(still: Synthetic) -> None:
+    transforms = [PatchTransform() for _ in still.synth]
+    transforms[2] = PatchTransform(t=np.array([6e-8, 0.0, 0.0]))  # three pixels in x
+    fits = _assess(still.patch_set, transforms)
+    others = np.median([f.residual_rms for k, f in enumerate(fits) if k != 2])
+    assert fits[2].residual_rms > 2.0 * others
+
+
+def test_flat_overlaps_leave_xy_unseen_and_a_lone_patch_unmeasured() -> None:
+    rng = np.random.default_rng(0)
+    # white noise only, the patches a fraction of a pixel apart (as stage errors put them)
+    corners = [(0.0, 0.0), (3.07e-7, 0.83e-8), (6.11e-7, 0.3e-8), (5e-6, 0.0)]
+    patches = [
+        Patch(
+            id=f"f{k}",
+            heights=rng.normal(0.0, NOISE, (30, 30)),
+            origin=corner,
+            pixel_size=(2e-8, 2e-8),
+        )
+        for k, corner in enumerate(corners)
+    ]
+    fits = _assess(PatchSet(patches), [PatchTransform() for _ in patches])
+    for f in fits[:3]:
+        assert f.correspondences > 0
+        assert f.xy_sigma_local == f.xy_sigma == np.inf  # white noise is no texture
+        assert f.z_sigma < 0.1 * NOISE  # hundreds of points on each overlap
+    # the last overlaps nothing: nothing measured, and it takes nothing from the others
+    lone = fits[3]
+    assert lone.correspondences == 0 and np.isnan(lone.residual_rms)
+    assert lone.xy_sigma == lone.z_sigma == np.inf
+    # (but for the noise estimate, a median over the patches that now counts one more)
+    alone = _assess(PatchSet(patches[:3]), [PatchTransform() for _ in patches[:3]])
+    assert [f.z_sigma for f in fits[:3]] == pytest.approx([f.z_sigma for f in alone], rel=0.05)

@@ -1,0 +1,230 @@
+import dataclasses
+
+import numpy as np
+import pytest
+
+from backend.synthetic import patch_set_from_synth
+from hardware.sim.drift import DriftModel
+from hardware.sim.surfaces import Chessboard, FoldedSurface
+from hardware.sim.synth import synthesize
+from merge.core.information import signal_information
+from merge.core.overlap import overlapping_pairs
+from merge.core.patchset import Patch, PatchSet
+from merge.pipeline import default_cell
+from merge.start import coarse_cell
+from merge.start.coarse import (
+    CoarseStart,
+    _drop_odd_scores,
+    _patches_in_doubt,
+    along_ridge_removed,
+    coarse_start,
+)
+from tests.conftest import Synthetic
+
+
+def test_coarse_start_finds_xy_and_the_z_staircase(small_mosaic: Synthetic) -> None:
+    patches = small_mosaic.patch_set.patches
+    boxes = np.array([p.footprint for p in patches])
+    pairs = overlapping_pairs(boxes, margin=2e-7)
+    start = coarse_start(patches, pairs, cell=2e-8, max_shift=3e-7)
+    centre = np.array([[*p.center, float(np.nanmedian(p.heights))] for p in patches])
+    truth = np.array(
+        [
+            s.rotation @ c + s.translation - c
+            for s, c in zip(small_mosaic.synth, centre, strict=True)
+        ]
+    )
+    err = start.translation - truth
+    err -= err.mean(axis=0)  # the gauge
+    assert np.abs(err[:, :2]).max() < 15e-9  # within a cell or so: a start, not the answer
+    assert np.abs(err[:, 2]).max() < 5e-9
+    assert start.xy_measured.all()
+
+
+def _flat_face_start(
+    pixels: tuple[int, int], drift: DriftModel, seed: int
+) -> tuple[CoarseStart, np.ndarray]:
+    """The coarse start of 2 x 2 patches on a grating's flat face (1.5 nm of roughness
+    correlated over about a pixel, 1 nm of noise), and its XY errors less their mean (m)."""
+    synth = synthesize(
+        Chessboard(step=0.0, seed=seed),
+        rows=2,
+        cols=2,
+        patch_size=(0.6e-6, 0.6e-6),
+        pixels=pixels,
+        overlap=(0.5, 0.5),
+        drift=drift,
+        seed=seed,
+    )
+    ps = patch_set_from_synth(synth)
+    pairs = overlapping_pairs(np.array([p.footprint for p in ps]), margin=1e-7)
+    cell = coarse_cell(ps, default_cell(ps))
+    start = coarse_start(ps.patches, pairs, cell=cell, max_shift=3e-7)
+    err = start.translation[:, :2] - np.array([s.translation[:2] for s in synth])
+    return start, err - err.mean(axis=0)  # the gauge
+
+
+def test_a_fine_roughness_is_texture_though_it_raises_the_noise_estimate() -> None:
+    # the roughness also inflates the noise estimate (second differences), so a gate demanding
+    # two noise sigmas of texture refused it and left 65 nm stage errors
+    start, err = _flat_face_start((30, 30), DriftModel.typical(), 3)
+    assert start.xy_measured.all()
+    assert np.abs(err).max() < 25e-9  # about a cell: the refinement takes it from there
+
+
+def test_roughness_under_more_noise_than_itself_is_still_texture() -> None:
+    # 2 nm of noise over 1.5 nm of roughness: the patches' texture is ~1.15 noise estimates
+    # (a gate at 1.2 left every pair unmeasured and the refinement 40-85 nm off); the true peaks
+    # score ~0.4, far above the chance peaks of their windows
+    drift = dataclasses.replace(DriftModel.typical(), noise=2e-9)
+    start, err = _flat_face_start((30, 30), drift, 3)
+    assert start.xy_measured.all()
+    assert np.abs(err).max() < 25e-9
+
+
+def test_oblong_pixels_keep_the_texture_along_their_fine_axis() -> None:
+    # 10 x 40 nm pixels: a lattice at the coarse pitch averaged the roughness away along x and
+    # left x shifts unmeasured; one at the fine pitch, its empty lines filled, keeps it
+    start, err = _flat_face_start((60, 15), DriftModel.harsh(), 4)
+    assert start.xy_measured.all()
+    assert np.abs(err[:, 0]).max() < 25e-9
+
+
+def test_noise_and_drift_ramps_are_not_texture() -> None:
+    rng = np.random.default_rng(5)
+    yy, xx = np.mgrid[0:30, 0:30] / 29.0
+    patches = [
+        Patch(
+            id=f"f{k}",
+            # white noise, a Z step and a ramp of a few nm per patch (in-patch drift)
+            heights=rng.normal(0, 1e-9, (30, 30)) + 20e-9 * k + 4e-9 * ((k - 1.5) * yy + xx),
+            origin=(k % 2 * 3e-7, k // 2 * 3e-7),
+            pixel_size=(2e-8, 2e-8),
+            order=k,
+        )
+        for k in range(4)
+    ]
+    pairs = overlapping_pairs(np.array([p.footprint for p in patches]), margin=1e-7)
+    start = coarse_start(patches, pairs, cell=2e-8, max_shift=3e-7)
+    assert not start.xy_measured.any()
+    assert np.abs(start.translation[:, :2]).max() == 0.0
+
+
+def test_a_ridge_takes_away_the_information_along_it() -> None:
+    info = np.array([[4.0, 1.0], [1.0, 3.0]])
+    np.testing.assert_array_equal(along_ridge_removed(info, ()), info)
+    # alike peaks at (dy, dx) = (3, 3) and (-5, -4): a ridge along about x = y
+    out = along_ridge_removed(info, [(3, 3), (-5, -4)])
+    along = np.array([1.0, 1.0]) / np.sqrt(2.0)
+    assert along @ out @ along < 0.02 * np.trace(info)
+    across = np.array([1.0, -1.0]) / np.sqrt(2.0)
+    assert across @ out @ across > 0.9 * (across @ info @ across)
+    # alike peaks all around: a plateau, nothing measured
+    np.testing.assert_array_equal(along_ridge_removed(info, [(0, 3), (3, 0)]), np.zeros((2, 2)))
+
+
+def test_the_coarse_cell_is_as_fine_as_the_budget_allows() -> None:
+    def patch_set(count: int, pixels: int, pitch: float, stripes: bool = False) -> PatchSet:
+        rng = np.random.default_rng(0)
+        x = np.arange(pixels) * pitch
+        return PatchSet(
+            [
+                Patch(
+                    id=f"p{k}",
+                    heights=1e-7 * np.sin(2 * np.pi * (x[None, :] + x[:, None]) / 3e-7)
+                    if stripes
+                    else rng.normal(0, 1e-9, (pixels, pixels)),
+                    origin=(k * pixels * pitch, 0.0),
+                    pixel_size=(pitch, pitch),
+                    order=k,
+                )
+                for k in range(count)
+            ]
+        )
+
+    # 16 patches of 1 µm at 5 nm: 640 000 pixels, three to a cell (15 nm) fit the budget
+    assert coarse_cell(patch_set(16, 200, 5e-9), 5e-9) == pytest.approx(15e-9)
+    # but stripes keep the 32-cell lattice (30 nm)
+    assert coarse_cell(patch_set(16, 200, 5e-9, stripes=True), 5e-9) == pytest.approx(30e-9)
+    # 400 patches of 64 x 64: no finer than 32 cells a side, as before
+    assert coarse_cell(patch_set(400, 64, 2e-8), 2e-8) == pytest.approx(4e-8)
+    # small sets: the pixel itself, whatever the 32-cell rule allows
+    assert coarse_cell(patch_set(4, 128, 1e-8), 1e-8) == pytest.approx(1e-8)
+
+
+def test_noise_is_not_counted_as_texture() -> None:
+    tensor = np.diag([10.0, 3.0])
+    out = signal_information(tensor, 4.0)
+    np.testing.assert_allclose(out, np.diag([6.0, 0.0]))
+
+
+def test_overlapping_pairs_are_found_by_footprint() -> None:
+    boxes = np.array([[0, 0, 1, 1], [0.9, 0, 2, 1], [3, 0, 4, 1]], dtype=float)
+    assert overlapping_pairs(boxes).tolist() == [[0, 1]]
+    assert overlapping_pairs(boxes, margin=0.6).tolist() == [[0, 1], [1, 2]]
+
+
+def _weights(count: int) -> np.ndarray:
+    return np.repeat(np.eye(2)[None], count, axis=0)
+
+
+def test_a_peak_far_below_the_usual_score_is_not_a_measurement() -> None:
+    # a textured surface: true peaks score 0.95-0.99; one pair found only a chance peak
+    score = np.array([0.97, 0.96, 0.98, 0.99, 0.95, 0.97, 0.98, 0.96, 0.97, 0.56, np.nan])
+    w = _weights(len(score))
+    _drop_odd_scores(score, w)
+    assert not w[9].any()
+    assert all(w[i].any() for i in range(9)) and w[10].any()  # unmatched pairs are left alone
+
+
+def test_scores_that_vary_widely_drop_nothing() -> None:
+    # a sparse grating: peaks from 0.6 (roughness along an edge) to 0.99 (corners) are all real
+    score = np.linspace(0.6, 0.99, 12)
+    w = _weights(len(score))
+    _drop_odd_scores(score, w)
+    assert w.any(axis=(1, 2)).all()
+    few = _weights(5)
+    _drop_odd_scores(np.array([0.99, 0.99, 0.99, 0.99, 0.4]), few)
+    assert few.any(axis=(1, 2)).all()  # too few pairs to know what is usual
+
+
+def test_a_patch_beyond_the_first_search_is_placed_against_all_its_neighbours() -> None:
+    # 3 x 3 patches of a folded surface, all in place but the last corner, whose stage error
+    # (200 nm) lies beyond the pairwise search (150 nm): its pairs return chance peaks or
+    # nothing, and alone they would leave it hundreds of nanometres off or at nominal
+    surface = FoldedSurface(seed=5, tile=2.56e-6)
+    rng = np.random.default_rng(5)
+    side, pixel = 0.6e-6, 20e-9
+    stage: dict[tuple[int | None, int | None], tuple[float, float]] = {(2, 2): (200e-9, -40e-9)}
+    patches = []
+    for r in range(3):
+        for c in range(3):
+            x0, y0 = 0.3e-6 + c * side / 2, 0.3e-6 + r * side / 2
+            tx, ty = stage.get((r, c), (0.0, 0.0))
+            xx, yy = np.meshgrid(x0 + tx + pixel * np.arange(30), y0 + ty + pixel * np.arange(30))
+            heights = surface.height(xx, yy) + rng.normal(0.0, 1e-9, xx.shape)
+            patches.append(Patch(f"r{r}c{c}", heights, (x0, y0), (pixel, pixel), row=r, col=c))
+    pairs = overlapping_pairs(np.array([p.footprint for p in patches]), margin=1.5e-7)
+    start = coarse_start(patches, pairs, cell=pixel, max_shift=1.5e-7)
+    truth = np.array([stage.get((p.row, p.col), (0.0, 0.0)) for p in patches])
+    err = start.translation[:, :2] - truth
+    err -= err.mean(axis=0)  # the gauge
+    assert np.abs(err).max() < 15e-9
+
+
+def test_patches_in_doubt_are_those_with_conflicting_or_no_trusted_links_seen_in_2d() -> None:
+    # a triangle of patches and a fourth linked to patch 2 only; pair (0, 1) conflicts
+    pairs = np.array([[0, 1], [1, 2], [0, 2], [2, 3]])
+    unmeasured = np.array([False, False, False, True])
+    robust = np.array([0.1, 1.0, 1.0, 1.0])
+    can = np.ones(4, dtype=bool)
+    both = np.broadcast_to(np.eye(2), (4, 2, 2)).copy()
+    both[3] = 0.0  # found nothing
+    # patches 0 and 1 conflict (though each has a trusted link); patch 3's only pair found
+    # nothing; patch 2 is held by its trusted links
+    assert sorted(_patches_in_doubt(4, pairs, unmeasured, robust, can, both)) == [0, 1, 3]
+    # seen along x only (a grating's pairs): where a peak lies along the stripes is a guess,
+    # and a pooled search would pick a bump on the ridge; a patch with nothing measured stays
+    along_x = np.broadcast_to(np.diag([1.0, 0.0]), (4, 2, 2)).copy()
+    along_x[3] = 0.0
+    assert _patches_in_doubt(4, pairs, unmeasured, robust, can, along_x) == [3]
