@@ -1,0 +1,60 @@
+"""Which pair measurements the coarse start believes: ridges, odd scores, patches in doubt."""
+
+import numpy as np
+
+from merge.start.trust import along_ridge_removed, drop_odd_scores, patches_in_doubt
+
+
+def _weights(count: int) -> np.ndarray:
+    return np.repeat(np.eye(2)[None], count, axis=0)
+
+
+def test_a_ridge_takes_away_the_information_along_it() -> None:
+    info = np.array([[4.0, 1.0], [1.0, 3.0]])
+    np.testing.assert_array_equal(along_ridge_removed(info, ()), info)
+    # alike peaks at (dy, dx) = (3, 3) and (-5, -4): a ridge along about x = y
+    out = along_ridge_removed(info, [(3, 3), (-5, -4)])
+    along = np.array([1.0, 1.0]) / np.sqrt(2.0)
+    assert along @ out @ along < 0.02 * np.trace(info)
+    across = np.array([1.0, -1.0]) / np.sqrt(2.0)
+    assert across @ out @ across > 0.9 * (across @ info @ across)
+    # alike peaks all around: a plateau, nothing measured
+    np.testing.assert_array_equal(along_ridge_removed(info, [(0, 3), (3, 0)]), np.zeros((2, 2)))
+
+
+def test_a_peak_far_below_the_usual_score_is_not_a_measurement() -> None:
+    # a textured surface: true peaks score 0.95-0.99; one pair found only a chance peak
+    score = np.array([0.97, 0.96, 0.98, 0.99, 0.95, 0.97, 0.98, 0.96, 0.97, 0.56, np.nan])
+    w = _weights(len(score))
+    drop_odd_scores(score, w)
+    assert not w[9].any()
+    assert all(w[i].any() for i in range(9)) and w[10].any()  # unmatched pairs are left alone
+
+
+def test_scores_that_vary_widely_drop_nothing() -> None:
+    # a sparse grating: peaks from 0.6 (roughness along an edge) to 0.99 (corners) are all real
+    score = np.linspace(0.6, 0.99, 12)
+    w = _weights(len(score))
+    drop_odd_scores(score, w)
+    assert w.any(axis=(1, 2)).all()
+    few = _weights(5)
+    drop_odd_scores(np.array([0.99, 0.99, 0.99, 0.99, 0.4]), few)
+    assert few.any(axis=(1, 2)).all()  # too few pairs to know what is usual
+
+
+def testpatches_in_doubt_are_those_with_conflicting_or_no_trusted_links_seen_in_2d() -> None:
+    # a triangle of patches and a fourth linked to patch 2 only; pair (0, 1) conflicts
+    pairs = np.array([[0, 1], [1, 2], [0, 2], [2, 3]])
+    unmeasured = np.array([False, False, False, True])
+    robust = np.array([0.1, 1.0, 1.0, 1.0])
+    can = np.ones(4, dtype=bool)
+    both = np.broadcast_to(np.eye(2), (4, 2, 2)).copy()
+    both[3] = 0.0  # found nothing
+    # patches 0 and 1 conflict (though each has a trusted link); patch 3's only pair found
+    # nothing; patch 2 is held by its trusted links
+    assert sorted(patches_in_doubt(4, pairs, unmeasured, robust, can, both)) == [0, 1, 3]
+    # seen along x only (a grating's pairs): where a peak lies along the stripes is a guess,
+    # and a pooled search would pick a bump on the ridge; a patch with nothing measured stays
+    along_x = np.broadcast_to(np.diag([1.0, 0.0]), (4, 2, 2)).copy()
+    along_x[3] = 0.0
+    assert patches_in_doubt(4, pairs, unmeasured, robust, can, along_x) == [3]
