@@ -43,7 +43,7 @@ solves it, :mod:`merge.refine.state` holds the placement of every patch and its 
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -54,7 +54,7 @@ from merge.core.noise import patch_noise
 from merge.core.patchset import Patch
 from merge.core.transforms import PatchTransform
 from merge.refine.bank import SurfaceBank
-from merge.refine.normal_system import NormalSystem, build_normal_system
+from merge.refine.normal_system import Candidates, NormalSystem, build_normal_system
 from merge.refine.solve import Priors, solve_system
 from merge.refine.state import MosaicState
 
@@ -137,6 +137,37 @@ class RefineResult:
     bank: SurfaceBank
 
 
+@dataclass
+class Fit:
+    """What the refinement carries from level to level: the placement of every patch
+    (``state``, pixel units of ``scale`` metres), where the start put it (``start_s``), the
+    raw surfaces (``base``), the height noise (pixel units), and the iterations so far with the
+    residual RMS (metres) of each."""
+
+    state: MosaicState
+    start_s: FloatArray
+    base: SurfaceBank
+    scale: float
+    noise: float
+    iteration: int = 0
+    history: list[float] = field(default_factory=list)
+
+
+@dataclass(frozen=True)
+class LevelSetup:
+    """One level's surfaces and system: ``bank``; the pairs in it and the patches ``held``
+    (None: none); the look-up ``margin`` (pixels); whether it works on the raw heights; the
+    priors' sigmas of the drift planes (x, y) and of the XY shifts (pixel units)."""
+
+    bank: SurfaceBank
+    pairs: IntArray
+    held: NDArray[np.bool_] | None
+    margin: float
+    raw: bool
+    plane_sigma: FloatArray
+    shift_sigma: float = np.inf
+
+
 def refine(
     patches: Sequence[Patch],
     pairs: IntArray,
@@ -179,83 +210,116 @@ def refine(
     """
     pairs = np.asarray(pairs, dtype=np.intp).reshape(-1, 2)
     scale = float(np.median([min(p.pixel_size) for p in patches]))
-    noise = patch_noise((p.heights for p in patches), scale)
-    history: list[float] = []
-    iteration = 0
-    converged = False
-    stats: NormalSystem | None = None
     base = SurfaceBank(patches, scale, 0.0, 1)
     state = MosaicState.from_transforms(start, base, scale)
-    start_s = state.s.copy()
+    fit = Fit(state, state.s.copy(), base, scale, patch_noise((p.heights for p in patches), scale))
     plane_sigma = np.full(2, drift_prior / scale)  # the first level: as loose along both axes
+    converged = False
     for li, level in enumerate(levels):
-        raw = level.smooth == 0 and level.stride == 1
-        border: Border = "mirror" if li > 0 or level.smooth >= MIRROR_FROM else "repeat"
-        bank = (
-            base if raw else SurfaceBank(patches, scale, level.smooth, level.stride, border=border)
-        )
+        lv = _level_setup(patches, fit, pairs, li, level, first_free)
         if li == 1:
-            plane_sigma = _plane_sigma(state.slope * bank.radius[:, None], drift_prior / scale)
-        margin = 1.5 * float(max(bank.dx.max(), bank.dy.max()))
-        held, level_pairs = None, pairs
-        if li == 0 and first_free is not None and not first_free.all():
-            held, level_pairs = ~first_free, pairs[first_free[pairs].any(axis=1)]
-        cand = bank.candidates(level_pairs, state.R, state.s, margin)
-        moved = 0.0
-        level_converged = False
-        previous = np.inf
-        stalls = 0
-        # on the raw heights, once the steps still to come move no height by HEIGHT_TOL of the
-        # noise the level is done
-        slope = _slope_rms(bank) if raw else np.inf
-        effect = np.inf
-        for _ in range(level.max_iter):
-            if cancel is not None and cancel():
-                raise MergeCancelled("merge cancelled")
-            if moved > 0.5 * margin:
-                cand, moved = bank.candidates(level_pairs, state.R, state.s, margin), 0.0
-            # scan lines as correlated noise (merge.refine.lines) only on the raw heights: smoothing
-            # spreads every line's offset over its neighbours, and on the coarse levels the
-            # start's misfit along lines would pass for offsets
-            stats = build_normal_system(bank, cand, state, noise, lines=raw)
-            priors = Priors(
-                plane=state.slope * bank.radius[:, None],
-                plane_sigma=plane_sigma,
-                shift=state.s[:, :2] - (start_s[:, :2] + bank.centre[:, :2] - base.centre[:, :2]),
-                shift_sigma=shift_prior / scale,
-                spin=state.spin() * bank.radius,
-                spin_sigma=SPIN_PRIOR * bank.radius,
-            )
-            delta = solve_system(stats, priors, held=held)
-            state.update(delta, bank.radius)
-            if held is None:  # held patches hold the gauge
-                state.fix_gauge(bank.centre, bank.point_start)
-            motion = float(
-                (np.abs(delta[:, :3]).max(axis=1) + np.abs(delta[:, 3:]).max(axis=1)).max(initial=0)
-            )
-            moved += motion
-            iteration += 1
-            history.append(stats.rms * scale)
-            if progress is not None:
-                progress(iteration, stats.rms * scale)
-            # converged when no patch moves, or when the cost no longer falls (the motion left
-            # is then in directions the data do not constrain, e.g. XY over a flat overlap)
-            stalls = stalls + 1 if abs(previous - stats.rms) <= STALL * stats.rms else 0
-            previous = stats.rms
-            effect, last_effect = _height_effect(delta, slope), effect
-            settled = _remaining(effect, last_effect) < HEIGHT_TOL * noise
-            if motion < level.tol or stalls >= STALLS or settled:
-                level_converged = True
-                break
+            plane_sigma = _plane_sigma(state.slope * lv.bank.radius[:, None], drift_prior / scale)
+        lv = replace(lv, plane_sigma=plane_sigma, shift_sigma=shift_prior / scale)
+        level_converged = _run_level(fit, lv, level, progress=progress, cancel=cancel)
         if li == len(levels) - 1:
             converged = level_converged
     return RefineResult(
         transforms=state.to_transforms(base, scale),
-        iterations=iteration,
+        iterations=fit.iteration,
         converged=converged,
-        history=history,
+        history=fit.history,
         bank=base,
     )
+
+
+def _level_setup(
+    patches: Sequence[Patch],
+    fit: Fit,
+    pairs: IntArray,
+    li: int,
+    level: Level,
+    first_free: NDArray[np.bool_] | None,
+) -> LevelSetup:
+    """Level ``li``'s surfaces (smoothed and strided, continued beyond the borders as
+    :data:`MIRROR_FROM` says) and, on the first, the patches it holds."""
+    raw = level.smooth == 0 and level.stride == 1
+    border: Border = "mirror" if li > 0 or level.smooth >= MIRROR_FROM else "repeat"
+    bank = (
+        fit.base
+        if raw
+        else SurfaceBank(patches, fit.scale, level.smooth, level.stride, border=border)
+    )
+    margin = 1.5 * float(max(bank.dx.max(), bank.dy.max()))
+    held, level_pairs = None, pairs
+    if li == 0 and first_free is not None and not first_free.all():
+        held, level_pairs = ~first_free, pairs[first_free[pairs].any(axis=1)]
+    return LevelSetup(bank, level_pairs, held, margin, raw, np.zeros(2))
+
+
+def _run_level(
+    fit: Fit,
+    lv: LevelSetup,
+    level: Level,
+    *,
+    progress: Progress | None,
+    cancel: Callable[[], bool] | None,
+) -> bool:
+    """Iterate one level until it converges (True) or runs out of iterations (False)."""
+    state, bank = fit.state, lv.bank
+    cand = bank.candidates(lv.pairs, state.R, state.s, lv.margin)
+    moved = 0.0
+    previous = np.inf
+    stalls = 0
+    # on the raw heights, once the steps still to come move no height by HEIGHT_TOL of the
+    # noise the level is done
+    slope = _slope_rms(bank) if lv.raw else np.inf
+    effect = np.inf
+    for _ in range(level.max_iter):
+        if cancel is not None and cancel():
+            raise MergeCancelled("merge cancelled")
+        if moved > 0.5 * lv.margin:
+            cand, moved = bank.candidates(lv.pairs, state.R, state.s, lv.margin), 0.0
+        stats, delta = _step(fit, lv, cand)
+        motion = float(
+            (np.abs(delta[:, :3]).max(axis=1) + np.abs(delta[:, 3:]).max(axis=1)).max(initial=0)
+        )
+        moved += motion
+        fit.iteration += 1
+        fit.history.append(stats.rms * fit.scale)
+        if progress is not None:
+            progress(fit.iteration, stats.rms * fit.scale)
+        # converged when no patch moves, or when the cost no longer falls (the motion left is
+        # then in directions the data do not constrain, e.g. XY over a flat overlap)
+        stalls = stalls + 1 if abs(previous - stats.rms) <= STALL * stats.rms else 0
+        previous = stats.rms
+        effect, last_effect = _height_effect(delta, slope), effect
+        settled = _remaining(effect, last_effect) < HEIGHT_TOL * fit.noise
+        if motion < level.tol or stalls >= STALLS or settled:
+            return True
+    return False
+
+
+def _step(fit: Fit, lv: LevelSetup, cand: Candidates) -> tuple[NormalSystem, FloatArray]:
+    """One Gauss-Newton step of every patch not held: the system at the current placement, its
+    priors, the solve, the move and the gauge; the system and the step ``delta`` (n, 6)."""
+    state, bank, base = fit.state, lv.bank, fit.base
+    # scan lines as correlated noise (merge.refine.lines) only on the raw heights: smoothing
+    # spreads every line's offset over its neighbours, and on the coarse levels the start's
+    # misfit along lines would pass for offsets
+    stats = build_normal_system(bank, cand, state, fit.noise, lines=lv.raw)
+    priors = Priors(
+        plane=state.slope * bank.radius[:, None],
+        plane_sigma=lv.plane_sigma,
+        shift=state.s[:, :2] - (fit.start_s[:, :2] + bank.centre[:, :2] - base.centre[:, :2]),
+        shift_sigma=lv.shift_sigma,
+        spin=state.spin() * bank.radius,
+        spin_sigma=SPIN_PRIOR * bank.radius,
+    )
+    delta = solve_system(stats, priors, held=lv.held)
+    state.update(delta, bank.radius)
+    if lv.held is None:  # held patches hold the gauge
+        state.fix_gauge(bank.centre, bank.point_start)
+    return stats, delta
 
 
 def _slope_rms(bank: SurfaceBank) -> float:

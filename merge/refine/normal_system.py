@@ -32,6 +32,7 @@ from merge.core.information import line_design, noise_share, psd_part
 from merge.core.parallel import each
 from merge.refine.bank import SurfaceBank
 from merge.refine.lines import line_groups, marginalise_offsets, offset_ratio
+from merge.refine.rows import PatchState, jacobians, residuals, segment_sums
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
@@ -39,19 +40,6 @@ Candidates = tuple[IntArray, IntArray, IntArray, IntArray]
 
 #: Rows per block of the system build (whole runs are kept together).
 BLOCK_ROWS = 1 << 15
-
-
-@dataclass
-class PatchState:
-    """Where every patch is, in pixel units: ``q = R p_local + s + e_z (slope · p_local_xy)``.
-
-    ``R`` (n, 3, 3) rotations, ``s`` (n, 3) the mosaic position of each patch frame's origin,
-    ``slope`` (n, 2) the drift plane (dz/dx, dz/dy) of each patch.
-    """
-
-    R: FloatArray
-    s: FloatArray
-    slope: FloatArray
 
 
 @dataclass(frozen=True)
@@ -126,44 +114,120 @@ def build_normal_system(
     """
     n = len(bank.centre)
     src, dst, idx, starts = cand
-    empty_i = np.empty(0, dtype=np.intp)
-    empty = NormalSystem(
-        empty_i,
-        empty_i,
-        np.empty(0),
-        np.zeros((n, 6)),
-        np.zeros(n),
-        np.zeros(n),
-        np.zeros((n, 6, 6)),
-        0.0,
-    )
-    if len(idx) == 0:
-        return empty
     blocks = _blocks(starts, block_rows)
-    # pass 1: residual, slopes and lever arm of every row; the robust scale needs all of them
+    rows = None if len(idx) == 0 else _scored_rows(bank, cand, state, noise, blocks)
+    if rows is None:
+        empty_i = np.empty(0, dtype=np.intp)
+        return NormalSystem(
+            empty_i,
+            empty_i,
+            np.empty(0),
+            np.zeros((n, 6)),
+            np.zeros(n),
+            np.zeros(n),
+            np.zeros((n, 6, 6)),
+            0.0,
+        )
+    # the residuals of one source line share its offset (merge.refine.lines); no groups, none
+    line = bank.line[idx]
+    groups = line_groups(starts, line) if lines else np.empty(0, dtype=np.intp)
+    Baa, ga = _run_information(bank, cand, state, rows, groups, blocks)
+    a_seg, b_seg = src[starts[:-1]], dst[starts[:-1]]
+    signal_blocks, design = None, 1.0
+    if signal:
+        pitch2 = 0.5 * (bank.dx[b_seg] ** -2 + bank.dy[b_seg] ** -2)
+        share = noise_share(
+            rows.w, rows.arm, starts, bank.radius[a_seg], bank.slope_noise * noise**2 * pitch2
+        )
+        signal_blocks = psd_part(Baa - share)
+        # the design effect of the raw Z scores, on top of the offsets' model: measured on the
+        # whitened scores (what the model leaves correlated) the Z sigmas were 1.3-1.9 x too
+        # small on TGX1, its flat face and the grating (a bowl no line model holds); this way
+        # they are 0.9-1.4 x, and cautious (0.3-0.6 x) on MoS2 and the folded surface
+        design = line_design(rows.w * rows.r, starts, line)
+    count, sq = _patch_sums(n, src, dst, rows)
+    a_rows, a_cols, vals, g, diag = _assemble(bank, state, a_seg, b_seg, Baa, ga)
+    signal_vals = None
+    if signal_blocks is not None:
+        signal_vals = _assemble(bank, state, a_seg, b_seg, signal_blocks, ga)[2]
+    return NormalSystem(
+        rows=a_rows,
+        cols=a_cols,
+        vals=vals,
+        g=g,
+        diag=diag,
+        count=count,
+        sq=sq,
+        rms=float(np.sqrt(np.mean(rows.used**2))),
+        rscale=rows.rscale,
+        signal_vals=signal_vals,
+        line_design=design,
+    )
+
+
+@dataclass(frozen=True)
+class ScoredRows:
+    """Pass 1 of the build: per row (m,) its residual ``r``, validity ``valid`` (1 or 0) and
+    robust weight ``w``, the destination's slopes ``grad`` (m, 2) and the lever arm ``arm``
+    (m, 2); the valid residuals' magnitudes ``used`` and their robust scale ``rscale``."""
+
+    r: FloatArray
+    valid: FloatArray
+    grad: FloatArray
+    arm: FloatArray
+    w: FloatArray
+    used: FloatArray
+    rscale: float
+
+    @property
+    def ok(self) -> NDArray[np.bool_]:
+        """Whether each row's foot lies on its destination."""
+        ok: NDArray[np.bool_] = self.valid > 0
+        return ok
+
+
+def _scored_rows(
+    bank: SurfaceBank,
+    cand: Candidates,
+    state: PatchState,
+    noise: float,
+    blocks: list[tuple[int, int]],
+) -> ScoredRows | None:
+    """Pass 1: every row's residual, slopes and lever arm (block by block, on the cores), then
+    the robust scale and the Cauchy weights, which need all of them; None if no row is valid."""
+    _, dst, idx, starts = cand
     m = len(idx)
     r, valid, arm = np.empty(m), np.empty(m), np.empty((m, 2))
     grad = np.empty((m, 2))
 
-    def residuals(block: tuple[int, int]) -> None:
+    def block_residuals(block: tuple[int, int]) -> None:
         lo, hi = starts[block[0]], starts[block[1]]
-        r[lo:hi], valid[lo:hi], grad[lo:hi], arm[lo:hi] = _residuals(
+        r[lo:hi], valid[lo:hi], grad[lo:hi], arm[lo:hi] = residuals(
             bank, idx[lo:hi], dst[lo:hi], starts[block[0] : block[1] + 1] - lo, state
         )
 
-    each(residuals, blocks)
-    d = r
-    ok = valid > 0
-    used = np.abs(d[ok])
+    each(block_residuals, blocks)
+    used = np.abs(r[valid > 0])
     if used.size == 0:
-        return empty
+        return None
     rscale = max(1.4826 * float(np.median(used)), noise)
-    w = valid / (1.0 + (d / (3.0 * rscale)) ** 2)
-    # the residuals of one source line share its offset (merge.refine.lines); no groups, no offsets
-    line = bank.line[idx]
-    groups = line_groups(starts, line) if lines else np.empty(0, dtype=np.intp)
-    rho = offset_ratio(r, w, valid, groups)
-    # pass 2: per run, the source's information block and gradient
+    w = valid / (1.0 + (r / (3.0 * rscale)) ** 2)
+    return ScoredRows(r, valid, grad, arm, w, used, rscale)
+
+
+def _run_information(
+    bank: SurfaceBank,
+    cand: Candidates,
+    state: PatchState,
+    rows: ScoredRows,
+    groups: IntArray,
+    blocks: list[tuple[int, int]],
+) -> tuple[FloatArray, FloatArray]:
+    """Pass 2: per run, the source's information block (k, 6, 6) and gradient (k, 6), the
+    offsets of its lines (``groups``) marginalised."""
+    _, dst, idx, starts = cand
+    r, w, ok = rows.r, rows.w, rows.ok
+    rho = offset_ratio(r, w, rows.valid, groups)
     k = len(starts) - 1
     Baa, ga = np.empty((k, 6, 6)), np.empty((k, 6))
 
@@ -171,8 +235,8 @@ def build_normal_system(
         first, last = block
         lo, hi = starts[first], starts[last]
         runs = starts[first : last + 1] - lo
-        J = _jacobians(
-            bank, idx[lo:hi], dst[lo:hi], runs, state, grad[lo:hi], ok[lo:hi], arm[lo:hi]
+        J = jacobians(
+            bank, idx[lo:hi], dst[lo:hi], runs, state, rows.grad[lo:hi], ok[lo:hi], rows.arm[lo:hi]
         )
         Baa[first:last], ga[first:last] = segment_sums(J, w[lo:hi], r[lo:hi], runs)
         g_lo, g_hi = np.searchsorted(groups, [lo, hi])
@@ -188,130 +252,23 @@ def build_normal_system(
         )
 
     each(information, blocks)
-    a_seg, b_seg = src[starts[:-1]], dst[starts[:-1]]
-    signal_blocks, design = None, 1.0
-    if signal:
-        pitch2 = 0.5 * (bank.dx[b_seg] ** -2 + bank.dy[b_seg] ** -2)
-        share = noise_share(
-            w, arm, starts, bank.radius[a_seg], bank.slope_noise * noise**2 * pitch2
-        )
-        signal_blocks = psd_part(Baa - share)
-        # the design effect of the raw Z scores, on top of the offsets' model: measured on the
-        # whitened scores (what the model leaves correlated) the Z sigmas were 1.3-1.9 x too
-        # small on TGX1, its flat face and the grating (a bowl no line model holds); this way
-        # they are 0.9-1.4 x, and cautious (0.3-0.6 x) on MoS2 and the folded surface
-        design = line_design(w * r, starts, line)
+    return Baa, ga
+
+
+def _patch_sums(
+    n: int, src: IntArray, dst: IntArray, rows: ScoredRows
+) -> tuple[FloatArray, FloatArray]:
+    """Per patch (n,): the valid residuals that involve it, and the sum of their squares as
+    distances along the surface normal (how far the surfaces lie apart: a flank misplaced by a
+    nanometre is tens of nanometres off in height)."""
+    ok = rows.ok
     count = np.bincount(src[ok], minlength=n) + np.bincount(dst[ok], minlength=n)
-    # reported per patch as distances along the normal: how far the surfaces lie apart (a flank
-    # misplaced by a nanometre is tens of nanometres off in height)
-    d2 = d**2 / (1.0 + np.einsum("ij,ij->i", grad, grad))
+    d2 = rows.r**2 / (1.0 + np.einsum("ij,ij->i", rows.grad, rows.grad))
     sq = np.asarray(
         np.bincount(src, weights=d2, minlength=n) + np.bincount(dst, weights=d2, minlength=n),
         dtype=np.float64,
     )
-    rows, cols, vals, g, diag = _assemble(bank, state, a_seg, b_seg, Baa, ga)
-    signal_vals = None
-    if signal_blocks is not None:
-        signal_vals = _assemble(bank, state, a_seg, b_seg, signal_blocks, ga)[2]
-    return NormalSystem(
-        rows=rows,
-        cols=cols,
-        vals=vals,
-        g=g,
-        diag=diag,
-        count=count.astype(np.float64),
-        sq=sq,
-        rms=float(np.sqrt(np.mean(used**2))),
-        rscale=rscale,
-        signal_vals=signal_vals,
-        line_design=design,
-    )
-
-
-def _run_maps(state: PatchState, a: IntArray, b: IntArray) -> tuple[FloatArray, FloatArray]:
-    """Per run: the affine map ``p_b = M p_a + c`` from the source's frame to the destination's.
-
-    ``q = R_a p + s_a + e_z (slope_a · p_xy)`` in the mosaic, then ``p_b = R_b' (q - s_b)``:
-    ``M = R_b' (R_a + e_z [slope_a, 0])`` (k, 3, 3) and ``c = R_b' (s_a - s_b)`` (k, 3).
-    """
-    A = state.R[a]  # a gathered copy
-    A[:, 2, :2] += state.slope[a]
-    M = np.einsum("kji,kjl->kil", state.R[b], A)
-    c = np.einsum("kji,kj->ki", state.R[b], state.s[a] - state.s[b])
-    return M, c
-
-
-def _residuals(
-    bank: SurfaceBank, idx: IntArray, dst: IntArray, starts: IntArray, state: PatchState
-) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
-    """Per row: residual, validity (1 or 0), normal slopes (m, 2), lever arm (m, 2).
-
-    Rows ``idx`` (points) over ``dst`` (patches) come in runs ``starts[k]:starts[k + 1]`` of one
-    directed pair each, so every run moves its points with one small matrix product. The
-    residual is the height of the source point above the destination's surface and drift plane;
-    its gradient with respect to the mosaic position is the destination's normal
-    ``(-slope_x, -slope_y, 1)``.
-    """
-    a, b = bank.owner[idx[starts[:-1]]], dst[starts[:-1]]
-    M, c = _run_maps(state, a, b)
-    p_src = bank.points[idx]
-    p_dst = np.empty_like(p_src)
-    arm = np.empty((len(idx), 2))
-    Ra = state.R[a, :2, :]
-    for k in range(len(a)):
-        lo, hi = starts[k], starts[k + 1]
-        np.matmul(p_src[lo:hi], M[k].T, out=p_dst[lo:hi])
-        p_dst[lo:hi] += c[k]
-        np.matmul(p_src[lo:hi], Ra[k].T, out=arm[lo:hi])
-    h, gx, gy, ok = bank.lookup(dst, p_dst)
-    slope = state.slope[dst]
-    r = np.where(ok, p_dst[:, 2] - np.einsum("mi,mi->m", slope, p_dst[:, :2]) - h, 0.0)
-    grad = np.column_stack([gx, gy]) + slope
-    grad[~ok] = 0.0
-    return r, ok.astype(np.float64), grad, arm
-
-
-def _jacobians(
-    bank: SurfaceBank,
-    idx: IntArray,
-    dst: IntArray,
-    starts: IntArray,
-    state: PatchState,
-    grad: FloatArray,
-    ok: NDArray[np.bool_],
-    arm: FloatArray,
-) -> FloatArray:
-    """(m, 6) derivative of every residual with respect to its source patch's unknowns.
-
-    The translation part is the destination's normal in the mosaic, ``R_b (-grad, 1)``: one
-    rotation per run.
-    """
-    nrm = np.column_stack([-grad, ok.astype(np.float64)])
-    m = np.empty_like(nrm)
-    for k, b in enumerate(dst[starts[:-1]]):
-        lo, hi = starts[k], starts[k + 1]
-        np.matmul(nrm[lo:hi], state.R[b].T, out=m[lo:hi])
-    rho = bank.radius[bank.owner[idx], None]
-    spin = (m[:, 1] * arm[:, 0] - m[:, 0] * arm[:, 1])[:, None]
-    return np.concatenate([m, spin / rho, bank.points[idx, :2] / rho], axis=1)
-
-
-def segment_sums(
-    J: FloatArray, w: FloatArray, r: FloatArray, starts: IntArray
-) -> tuple[FloatArray, FloatArray]:
-    """Per run of rows ``starts[k]:starts[k + 1]``: ``Σ w J J'`` (k, 6, 6) and ``Σ w r J`` (k, 6).
-
-    ``J`` (m, 6), ``w`` and ``r`` (m,); runs are non-empty and cover the rows from
-    ``starts[0]`` on. One matrix product per run (runs hold hundreds of rows).
-    """
-    k = len(starts) - 1
-    B, grad = np.empty((k, 6, 6)), np.empty((k, 6))
-    wJ = J * w[:, None]
-    for j in range(k):
-        lo, hi = starts[j], starts[j + 1]
-        B[j] = wJ[lo:hi].T @ J[lo:hi]
-        grad[j] = r[lo:hi] @ wJ[lo:hi]
-    return B, grad
+    return count.astype(np.float64), sq
 
 
 def _assemble(

@@ -15,7 +15,7 @@ from numpy.typing import NDArray
 
 from merge.core.transforms import PatchTransform, orthonormalize, rotation_from_vector
 from merge.refine.bank import SurfaceBank
-from merge.refine.normal_system import PatchState
+from merge.refine.rows import PatchState
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]

@@ -1,65 +1,17 @@
-"""The Gauss-Newton system: block sums, and a build that does not depend on its blocking."""
+"""The Gauss-Newton system: a build that does not depend on its blocking."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from merge.core.patchset import Patch
-from merge.refine.bank import SurfaceBank
-from merge.refine.normal_system import PatchState, _residuals, build_normal_system, segment_sums
-
-
-def test_segment_sums_equal_the_sums_they_stand_for() -> None:
-    rng = np.random.default_rng(3)
-    J, w, r = rng.normal(size=(50, 6)), rng.uniform(0, 2, 50), rng.normal(size=50)
-    starts = np.array([0, 7, 8, 30, 50])
-    B, g = segment_sums(J, w, r, starts)
-    for k in range(4):
-        sl = slice(starts[k], starts[k + 1])
-        np.testing.assert_allclose(B[k], (J[sl] * w[sl, None]).T @ J[sl], atol=1e-12)
-        np.testing.assert_allclose(g[k], (w[sl] * r[sl]) @ J[sl], atol=1e-12)
-
-
-def _bank() -> tuple[SurfaceBank, PatchState]:
-    rng = np.random.default_rng(5)
-    yy, xx = np.mgrid[0:24, 0:24].astype(np.float64)
-    patches = []
-    for k, (x0, y0) in enumerate([(0.0, 0.0), (160e-9, 0.0), (0.0, 160e-9), (160e-9, 160e-9)]):
-        x, y = xx * 10e-9 + x0, yy * 10e-9 + y0
-        h = 20e-9 * np.sin(x / 70e-9) * np.cos(y / 90e-9) + rng.normal(0, 1e-9, x.shape)
-        patches.append(Patch(id=str(k), heights=h, origin=(x0, y0), pixel_size=(10e-9, 10e-9)))
-    bank = SurfaceBank(patches, 10e-9, 0.0, 1)
-    angle = rng.normal(0, 0.01, 4)
-    c, s = np.cos(angle), np.sin(angle)
-    R = np.zeros((4, 3, 3))
-    R[:, 0, 0], R[:, 0, 1], R[:, 1, 0], R[:, 1, 1], R[:, 2, 2] = c, -s, s, c, 1.0
-    state = PatchState(R, bank.centre + rng.normal(0, 0.3, (4, 3)), rng.normal(0, 1e-3, (4, 2)))
-    return bank, state
-
-
-def test_residuals_move_every_point_as_its_patch_state_says() -> None:
-    bank, state = _bank()
-    pairs = np.array([[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]])
-    src, dst, idx, starts = bank.candidates(pairs, state.R, state.s, 1.5)
-    r, w_plane, _, arm = _residuals(bank, idx, dst, starts, state)
-    # row by row: into the mosaic with the source's state, back out with the destination's
-    p = bank.points[idx]
-    rot = np.einsum("mij,mj->mi", state.R[src], p)
-    q = rot + state.s[src]
-    q[:, 2] += np.einsum("mi,mi->m", state.slope[src], p[:, :2])
-    p_dst = np.einsum("mji,mj->mi", state.R[dst], q - state.s[dst])
-    h, _, _, ok = bank.lookup(dst, p_dst)
-    expected = p_dst[:, 2] - np.einsum("mi,mi->m", state.slope[dst], p_dst[:, :2]) - h
-    assert ok.sum() > 0.5 * len(ok)
-    np.testing.assert_array_equal(w_plane > 0, ok)
-    np.testing.assert_allclose(r[ok], expected[ok], atol=1e-9)
-    np.testing.assert_allclose(arm, rot[:, :2], atol=1e-12)
+from merge.refine.normal_system import build_normal_system
+from tests.merge.refine.test_rows import four_patches
 
 
 @pytest.mark.parametrize("block_rows", [1, 97, 1000])
 def test_the_system_does_not_depend_on_its_blocks(block_rows: int) -> None:
-    bank, state = _bank()
+    bank, state = four_patches()
     pairs = np.array([[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]])
     cand = bank.candidates(pairs, state.R, state.s, 1.5)
     whole = build_normal_system(bank, cand, state, 0.1, block_rows=10**9)
@@ -72,7 +24,7 @@ def test_the_system_does_not_depend_on_its_blocks(block_rows: int) -> None:
 
 
 def test_no_correspondence_gives_an_empty_system() -> None:
-    bank, state = _bank()
+    bank, state = four_patches()
     cand = bank.candidates(np.empty((0, 2), dtype=np.intp), state.R, state.s, 1.5)
     system = build_normal_system(bank, cand, state, 0.1)
     assert system.rms == 0.0 and len(system.vals) == 0 and not system.g.any()

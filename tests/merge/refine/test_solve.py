@@ -7,11 +7,11 @@ import pytest
 
 from merge.refine.normal_system import build_normal_system
 from merge.refine.solve import Priors, solve_system
-from tests.merge.refine.test_normal_system import _bank
+from tests.merge.refine.test_rows import four_patches
 
 
 def test_the_drift_plane_prior_holds_each_axis_by_its_own_sigma() -> None:
-    bank, state = _bank()
+    bank, state = four_patches()
     pairs = np.array([[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]])
     system = build_normal_system(bank, bank.candidates(pairs, state.R, state.s, 1.5), state, 0.1)
     plane = np.full((4, 2), 2.0)  # every patch tilted by 2 (pixels at its radius) both ways
@@ -36,7 +36,7 @@ def test_the_drift_plane_prior_holds_each_axis_by_its_own_sigma() -> None:
 
 
 def test_held_patches_do_not_move_and_the_others_fit_against_them() -> None:
-    bank, state = _bank()
+    bank, state = four_patches()
     pairs = np.array([[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]])
     system = build_normal_system(bank, bank.candidates(pairs, state.R, state.s, 1.5), state, 0.1)
     priors = Priors(

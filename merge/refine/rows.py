@@ -1,0 +1,118 @@
+"""Every correspondence row of the normal system: its residual and its Jacobian.
+
+A row is one point of a source patch over a destination patch, at the placement
+:class:`PatchState` holds (pixel units). Rows come in runs, one per directed pair, so every run
+moves its points with one small matrix product (:func:`residuals`, :func:`jacobians`) and sums
+its information with another (:func:`segment_sums`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from merge.refine.bank import SurfaceBank
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.intp]
+
+
+@dataclass
+class PatchState:
+    """Where every patch is, in pixel units: ``q = R p_local + s + e_z (slope · p_local_xy)``.
+
+    ``R`` (n, 3, 3) rotations, ``s`` (n, 3) the mosaic position of each patch frame's origin,
+    ``slope`` (n, 2) the drift plane (dz/dx, dz/dy) of each patch.
+    """
+
+    R: FloatArray
+    s: FloatArray
+    slope: FloatArray
+
+
+def _run_maps(state: PatchState, a: IntArray, b: IntArray) -> tuple[FloatArray, FloatArray]:
+    """Per run: the affine map ``p_b = M p_a + c`` from the source's frame to the destination's.
+
+    ``q = R_a p + s_a + e_z (slope_a · p_xy)`` in the mosaic, then ``p_b = R_b' (q - s_b)``:
+    ``M = R_b' (R_a + e_z [slope_a, 0])`` (k, 3, 3) and ``c = R_b' (s_a - s_b)`` (k, 3).
+    """
+    A = state.R[a]  # a gathered copy
+    A[:, 2, :2] += state.slope[a]
+    M = np.einsum("kji,kjl->kil", state.R[b], A)
+    c = np.einsum("kji,kj->ki", state.R[b], state.s[a] - state.s[b])
+    return M, c
+
+
+def residuals(
+    bank: SurfaceBank, idx: IntArray, dst: IntArray, starts: IntArray, state: PatchState
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+    """Per row: residual, validity (1 or 0), normal slopes (m, 2), lever arm (m, 2).
+
+    Rows ``idx`` (points) over ``dst`` (patches) come in runs ``starts[k]:starts[k + 1]`` of one
+    directed pair each, so every run moves its points with one small matrix product. The
+    residual is the height of the source point above the destination's surface and drift plane;
+    its gradient with respect to the mosaic position is the destination's normal
+    ``(-slope_x, -slope_y, 1)``.
+    """
+    a, b = bank.owner[idx[starts[:-1]]], dst[starts[:-1]]
+    M, c = _run_maps(state, a, b)
+    p_src = bank.points[idx]
+    p_dst = np.empty_like(p_src)
+    arm = np.empty((len(idx), 2))
+    Ra = state.R[a, :2, :]
+    for k in range(len(a)):
+        lo, hi = starts[k], starts[k + 1]
+        np.matmul(p_src[lo:hi], M[k].T, out=p_dst[lo:hi])
+        p_dst[lo:hi] += c[k]
+        np.matmul(p_src[lo:hi], Ra[k].T, out=arm[lo:hi])
+    h, gx, gy, ok = bank.lookup(dst, p_dst)
+    slope = state.slope[dst]
+    r = np.where(ok, p_dst[:, 2] - np.einsum("mi,mi->m", slope, p_dst[:, :2]) - h, 0.0)
+    grad = np.column_stack([gx, gy]) + slope
+    grad[~ok] = 0.0
+    return r, ok.astype(np.float64), grad, arm
+
+
+def jacobians(
+    bank: SurfaceBank,
+    idx: IntArray,
+    dst: IntArray,
+    starts: IntArray,
+    state: PatchState,
+    grad: FloatArray,
+    ok: NDArray[np.bool_],
+    arm: FloatArray,
+) -> FloatArray:
+    """(m, 6) derivative of every residual with respect to its source patch's unknowns.
+
+    The translation part is the destination's normal in the mosaic, ``R_b (-grad, 1)``: one
+    rotation per run.
+    """
+    nrm = np.column_stack([-grad, ok.astype(np.float64)])
+    m = np.empty_like(nrm)
+    for k, b in enumerate(dst[starts[:-1]]):
+        lo, hi = starts[k], starts[k + 1]
+        np.matmul(nrm[lo:hi], state.R[b].T, out=m[lo:hi])
+    rho = bank.radius[bank.owner[idx], None]
+    spin = (m[:, 1] * arm[:, 0] - m[:, 0] * arm[:, 1])[:, None]
+    return np.concatenate([m, spin / rho, bank.points[idx, :2] / rho], axis=1)
+
+
+def segment_sums(
+    J: FloatArray, w: FloatArray, r: FloatArray, starts: IntArray
+) -> tuple[FloatArray, FloatArray]:
+    """Per run of rows ``starts[k]:starts[k + 1]``: ``Σ w J J'`` (k, 6, 6) and ``Σ w r J`` (k, 6).
+
+    ``J`` (m, 6), ``w`` and ``r`` (m,); runs are non-empty and cover the rows from
+    ``starts[0]`` on. One matrix product per run (runs hold hundreds of rows).
+    """
+    k = len(starts) - 1
+    B, grad = np.empty((k, 6, 6)), np.empty((k, 6))
+    wJ = J * w[:, None]
+    for j in range(k):
+        lo, hi = starts[j], starts[j + 1]
+        B[j] = wJ[lo:hi].T @ J[lo:hi]
+        grad[j] = r[lo:hi] @ wJ[lo:hi]
+    return B, grad
