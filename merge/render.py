@@ -22,6 +22,7 @@ from merge.core.patchset import Patch
 from merge.core.transforms import PatchTransform
 
 FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.intp]
 
 
 @dataclass(frozen=True)
@@ -99,53 +100,85 @@ def render_mosaic(
     xmin, ymin, xmax, ymax = bounds if bounds is not None else mosaic_bounds(patches, trs)
     nx = int(np.floor((xmax - xmin) / dx + 1e-9)) + 1
     ny = int(np.floor((ymax - ymin) / dy + 1e-9)) + 1
+    grid = _Grid(xmin, ymin, dx, dy, nx, ny)
     acc = np.zeros((ny, nx))
     wsum = np.zeros((ny, nx))
     coverage = np.zeros((ny, nx), dtype=np.int32)
     for p, tr in zip(patches, trs, strict=True):
-        R, t = tr.R, tr.t
-        zc = float(np.nanmedian(p.heights))
-        q = tr.apply(_corners(p))
-        j0 = max(int(np.floor((q[:, 0].min() - xmin) / dx)) - 1, 0)
-        j1 = min(int(np.ceil((q[:, 0].max() - xmin) / dx)) + 1, nx - 1)
-        i0 = max(int(np.floor((q[:, 1].min() - ymin) / dy)) - 1, 0)
-        i1 = min(int(np.ceil((q[:, 1].max() - ymin) / dy)) + 1, ny - 1)
-        if j1 < j0 or i1 < i0:
+        hit = _resample(p, tr, grid, feather)
+        if hit is None:
             continue
-        X, Y = np.meshgrid(xmin + np.arange(j0, j1 + 1) * dx, ymin + np.arange(i0, i1 + 1) * dy)
-        X, Y = X.ravel(), Y.ravel()
-        Ainv = np.linalg.inv(R[:2, :2])
-        z = np.full(X.shape, zc)
-        valid = np.zeros(X.shape, dtype=bool)
-        u = v = np.zeros(X.shape)
-        # the drift plane moves Z only, so XY inverts through the rigid part; a tilt (if any)
-        # couples XY to the height, hence a few fixed-point rounds
-        for _ in range(3 if np.abs(R[:2, 2]).max() > 0 else 1):
-            rhs = np.column_stack([X, Y]) - t[:2] - np.outer(z, R[:2, 2])
-            xy = rhs @ Ainv.T
-            u = (xy[:, 0] - p.origin[0]) / p.pixel_size[0]
-            v = (xy[:, 1] - p.origin[1]) / p.pixel_size[1]
-            (zi,), valid = bilinear((p.heights,), v, u)
-            z = np.where(valid, zi, zc)
-        x_p = p.origin[0] + u * p.pixel_size[0]
-        y_p = p.origin[1] + v * p.pixel_size[1]
-        Z = R[2, 0] * x_p + R[2, 1] * y_p + R[2, 2] * z + t[2]
-        Z = Z + (x_p - tr.centre[0]) * tr.slope[0] + (y_p - tr.centre[1]) * tr.slope[1]
-        pny, pnx = p.shape
-        edge = np.minimum.reduce([u, pnx - 1 - u, v, pny - 1 - v])
-        ramp = feather * min(pnx, pny)
-        if ramp > 0:
-            s = np.clip(edge / ramp, 0.0, 1.0)
-            w = 1e-3 + s * s * (3.0 - 2.0 * s)
-        else:
-            w = np.ones_like(edge)
-        w = np.where(valid, w, 0.0)
-        ii = (np.repeat(np.arange(i0, i1 + 1), j1 - j0 + 1))[valid]
-        jj = (np.tile(np.arange(j0, j1 + 1), i1 - i0 + 1))[valid]
+        ii, jj, wz, w = hit
         # (ii, jj) are unique within one patch, so plain fancy-index adds are exact
-        acc[ii, jj] += (w * Z)[valid]
-        wsum[ii, jj] += w[valid]
+        acc[ii, jj] += wz
+        wsum[ii, jj] += w
         coverage[ii, jj] += 1
     with np.errstate(invalid="ignore", divide="ignore"):
         heights = np.where(wsum > 0, acc / wsum, np.nan)
     return Mosaic(heights=heights, origin=(xmin, ymin), pixel_size=(dx, dy), coverage=coverage)
+
+
+@dataclass(frozen=True)
+class _Grid:
+    """The mosaic's lattice: node (0, 0) at ``(xmin, ymin)``, pitch ``(dx, dy)``, ``nx`` by
+    ``ny`` nodes (metres)."""
+
+    xmin: float
+    ymin: float
+    dx: float
+    dy: float
+    nx: int
+    ny: int
+
+
+def _resample(
+    p: Patch, tr: PatchTransform, grid: _Grid, feather: float
+) -> tuple[IntArray, IntArray, FloatArray, FloatArray] | None:
+    """Patch ``p`` through ``tr`` at the grid nodes it covers: their rows and columns, its
+    blending weight times height, and the weight; None where it covers none."""
+    xmin, ymin, dx, dy = grid.xmin, grid.ymin, grid.dx, grid.dy
+    R, t = tr.R, tr.t
+    zc = float(np.nanmedian(p.heights))
+    q = tr.apply(_corners(p))
+    j0 = max(int(np.floor((q[:, 0].min() - xmin) / dx)) - 1, 0)
+    j1 = min(int(np.ceil((q[:, 0].max() - xmin) / dx)) + 1, grid.nx - 1)
+    i0 = max(int(np.floor((q[:, 1].min() - ymin) / dy)) - 1, 0)
+    i1 = min(int(np.ceil((q[:, 1].max() - ymin) / dy)) + 1, grid.ny - 1)
+    if j1 < j0 or i1 < i0:
+        return None
+    X, Y = np.meshgrid(xmin + np.arange(j0, j1 + 1) * dx, ymin + np.arange(i0, i1 + 1) * dy)
+    X, Y = X.ravel(), Y.ravel()
+    Ainv = np.linalg.inv(R[:2, :2])
+    z = np.full(X.shape, zc)
+    valid = np.zeros(X.shape, dtype=bool)
+    u = v = np.zeros(X.shape)
+    # the drift plane moves Z only, so XY inverts through the rigid part; a tilt (if any)
+    # couples XY to the height, hence a few fixed-point rounds
+    for _ in range(3 if np.abs(R[:2, 2]).max() > 0 else 1):
+        rhs = np.column_stack([X, Y]) - t[:2] - np.outer(z, R[:2, 2])
+        xy = rhs @ Ainv.T
+        u = (xy[:, 0] - p.origin[0]) / p.pixel_size[0]
+        v = (xy[:, 1] - p.origin[1]) / p.pixel_size[1]
+        (zi,), valid = bilinear((p.heights,), v, u)
+        z = np.where(valid, zi, zc)
+    x_p = p.origin[0] + u * p.pixel_size[0]
+    y_p = p.origin[1] + v * p.pixel_size[1]
+    Z = R[2, 0] * x_p + R[2, 1] * y_p + R[2, 2] * z + t[2]
+    Z = Z + (x_p - tr.centre[0]) * tr.slope[0] + (y_p - tr.centre[1]) * tr.slope[1]
+    w = np.where(valid, _blend_weight(p, u, v, feather), 0.0)
+    ii = (np.repeat(np.arange(i0, i1 + 1), j1 - j0 + 1))[valid]
+    jj = (np.tile(np.arange(j0, j1 + 1), i1 - i0 + 1))[valid]
+    return ii, jj, (w * Z)[valid], w[valid]
+
+
+def _blend_weight(p: Patch, u: FloatArray, v: FloatArray, feather: float) -> FloatArray:
+    """Blending weights at patch pixel coordinates ``(u, v)``: a smooth step from 1e-3 at the
+    border to 1 at ``feather`` of the patch's smaller side in (1 everywhere at 0)."""
+    pny, pnx = p.shape
+    edge = np.minimum.reduce([u, pnx - 1 - u, v, pny - 1 - v])
+    ramp = feather * min(pnx, pny)
+    if ramp > 0:
+        s = np.clip(edge / ramp, 0.0, 1.0)
+        w: FloatArray = 1e-3 + s * s * (3.0 - 2.0 * s)
+        return w
+    return np.ones_like(edge)

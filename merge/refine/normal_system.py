@@ -68,6 +68,21 @@ class NormalSystem:
     signal_vals: FloatArray | None = None
     line_design: float = 1.0
 
+    @classmethod
+    def empty(cls, n: int) -> NormalSystem:
+        """The system of ``n`` patches without a single correspondence."""
+        none = np.empty(0, dtype=np.intp)
+        return cls(
+            none,
+            none,
+            np.empty(0),
+            np.zeros((n, 6)),
+            np.zeros(n),
+            np.zeros(n),
+            np.zeros((n, 6, 6)),
+            0.0,
+        )
+
 
 def _blocks(starts: IntArray, rows: int) -> list[tuple[int, int]]:
     """Ranges ``[first, last)`` of runs holding about ``rows`` rows each (at least one run)."""
@@ -117,17 +132,7 @@ def build_normal_system(
     blocks = _blocks(starts, block_rows)
     rows = None if len(idx) == 0 else _scored_rows(bank, cand, state, noise, blocks)
     if rows is None:
-        empty_i = np.empty(0, dtype=np.intp)
-        return NormalSystem(
-            empty_i,
-            empty_i,
-            np.empty(0),
-            np.zeros((n, 6)),
-            np.zeros(n),
-            np.zeros(n),
-            np.zeros((n, 6, 6)),
-            0.0,
-        )
+        return NormalSystem.empty(n)
     # the residuals of one source line share its offset (merge.refine.lines); no groups, none
     line = bank.line[idx]
     groups = line_groups(starts, line) if lines else np.empty(0, dtype=np.intp)

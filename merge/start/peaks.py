@@ -17,6 +17,7 @@ from numpy.typing import NDArray
 from scipy import ndimage
 
 FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.intp]
 
 
 @dataclass(frozen=True)
@@ -97,37 +98,12 @@ def find_peak(
         )[None, :] ** 2
         score = score - prior * d2
     flat_best = np.unravel_index(int(np.argmax(score)), score.shape)
-    iy, ix = int(flat_best[0]), int(flat_best[1])
+    best = (int(flat_best[0]), int(flat_best[1]))
     ridge: list[tuple[int, int]] = []
     if ambiguity > 0:
-        best = score[iy, ix]
-        local = (score == ndimage.maximum_filter(score, size=3, mode="constant", cval=-np.inf)) & (
-            score >= best - ambiguity
-        )
-        cy, cx = np.nonzero(local)
-        if len(cy) > 1:
-            dist2 = (ky[cy] - expected[0]) ** 2 + (kx[cx] - expected[1]) ** 2
-            for k in np.argsort(dist2, kind="stable").tolist():
-                if _alike(score, (iy, ix), (int(cy[k]), int(cx[k])), ambiguity):
-                    iy, ix = int(cy[k]), int(cx[k])
-                    break
-            # the chosen peak's alike neighbours on its own ridge: no valley between them, and
-            # the peak does not rise above the path to them (bumps of noise along a stripe)
-            for y, x in zip(cy.tolist(), cx.tolist(), strict=True):
-                if (y, x) != (iy, ix) and _on_one_ridge(score, (iy, ix), (y, x), ambiguity):
-                    ridge.append((y - iy, x - ix))
-    sub = [0.0, 0.0]
-    border = False
-    for axis, (i, n_axis) in enumerate(((iy, ncc.shape[0]), (ix, ncc.shape[1]))):
-        lo = (i - 1, ix) if axis == 0 else (iy, i - 1)
-        hi = (i + 1, ix) if axis == 0 else (iy, i + 1)
-        if i - 1 < 0 or i + 1 >= n_axis or not (ok[lo] and ok[hi]):
-            border = True
-            continue
-        f0, fm, fp = score[iy, ix], score[lo], score[hi]
-        curv = fm - 2 * f0 + fp
-        if curv < 0:
-            sub[axis] = float(np.clip(0.5 * (fm - fp) / curv, -0.5, 0.5))
+        best, ridge = _nearest_alike(score, best, ky, kx, expected, ambiguity)
+    iy, ix = best
+    sub, border = _subpixel(score, ok, best)
     dy, dx = int(ky[iy]), int(kx[ix])
     return CorrelationPeak(
         shift=(dy + sub[0], dx + sub[1]),
@@ -138,6 +114,60 @@ def find_peak(
         window=ncc[ok],
         ridge=tuple(ridge),
     )
+
+
+def _nearest_alike(
+    score: FloatArray,
+    best: tuple[int, int],
+    ky: IntArray,
+    kx: IntArray,
+    expected: tuple[float, float],
+    ambiguity: float,
+) -> tuple[tuple[int, int], list[tuple[int, int]]]:
+    """Among the local maxima of ``score`` within ``ambiguity`` of its ``best``, the one
+    nearest the ``expected`` shift that is as likely (:func:`_alike`); and the offsets (dy, dx)
+    of the alike peaks on its own ridge. ``ky``, ``kx``: the shifts of the rows and columns."""
+    iy, ix = best
+    top = score[iy, ix]
+    local = (score == ndimage.maximum_filter(score, size=3, mode="constant", cval=-np.inf)) & (
+        score >= top - ambiguity
+    )
+    cy, cx = np.nonzero(local)
+    ridge: list[tuple[int, int]] = []
+    if len(cy) <= 1:
+        return best, ridge
+    dist2 = (ky[cy] - expected[0]) ** 2 + (kx[cx] - expected[1]) ** 2
+    for k in np.argsort(dist2, kind="stable").tolist():
+        if _alike(score, (iy, ix), (int(cy[k]), int(cx[k])), ambiguity):
+            iy, ix = int(cy[k]), int(cx[k])
+            break
+    # the chosen peak's alike neighbours on its own ridge: no valley between them, and the
+    # peak does not rise above the path to them (bumps of noise along a stripe)
+    for y, x in zip(cy.tolist(), cx.tolist(), strict=True):
+        if (y, x) != (iy, ix) and _on_one_ridge(score, (iy, ix), (y, x), ambiguity):
+            ridge.append((y - iy, x - ix))
+    return (iy, ix), ridge
+
+
+def _subpixel(
+    score: FloatArray, ok: NDArray[np.bool_], peak: tuple[int, int]
+) -> tuple[list[float], bool]:
+    """The sub-pixel offset (dy, dx) of ``peak`` from a parabola through it and its neighbours
+    along each axis, and whether it lies at the window's border (no neighbour on some side)."""
+    iy, ix = peak
+    sub = [0.0, 0.0]
+    border = False
+    for axis, (i, n_axis) in enumerate(((iy, score.shape[0]), (ix, score.shape[1]))):
+        lo = (i - 1, ix) if axis == 0 else (iy, i - 1)
+        hi = (i + 1, ix) if axis == 0 else (iy, i + 1)
+        if i - 1 < 0 or i + 1 >= n_axis or not (ok[lo] and ok[hi]):
+            border = True
+            continue
+        f0, fm, fp = score[iy, ix], score[lo], score[hi]
+        curv = fm - 2 * f0 + fp
+        if curv < 0:
+            sub[axis] = float(np.clip(0.5 * (fm - fp) / curv, -0.5, 0.5))
+    return sub, border
 
 
 def _excess(score: float, window: FloatArray) -> float:
