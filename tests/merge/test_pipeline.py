@@ -202,3 +202,34 @@ def test_levelled_patches_across_large_steps_merge() -> None:
     result = run(levelled)
     assert _xy_error(synth, result.transforms) < 2e-9
     assert all(p.residual_rms < 4e-9 for p in result.patches)
+
+
+def test_every_step_of_a_merge_is_timed_under_its_name(small_mosaic: Synthetic) -> None:
+    result = run(small_mosaic.patch_set)
+    assert set(result.timings) == {"start", "solve", "report", "render"}
+    assert all(v >= 0 for v in result.timings.values())
+
+
+def test_a_stopwatch_sums_the_repeats_of_a_step(monkeypatch: pytest.MonkeyPatch) -> None:
+    ticks = iter([1.0, 1.5, 10.0, 10.25, 20.0, 24.0])
+    monkeypatch.setattr(pipeline.time, "perf_counter", lambda: next(ticks))
+    watch = pipeline.Stopwatch()
+    for name in ("solve", "solve", "render"):
+        with watch.step(name):
+            pass
+    assert watch.timings == {"solve": 0.75, "render": 4.0}
+
+
+def test_the_start_step_keeps_nominal_places_where_nothing_is_estimated(
+    small_mosaic: Synthetic,
+) -> None:
+    ps = small_mosaic.patch_set
+    cfg = MergeConfig(method="nominal")
+    layout = pipeline._layout(ps, cfg)
+    assert layout.linked.all() and len(layout.pairs) > 0 and not layout.warnings
+    placed = pipeline._start(ps, layout, cfg)
+    assert all(np.array_equal(tr.t, np.zeros(3)) for tr in placed.transforms)
+    assert not placed.complete
+    started = pipeline._start(ps, layout, MergeConfig())
+    assert started.complete  # a textured 2 x 3 mosaic: every patch measured both ways
+    assert max(float(np.abs(tr.t[:2]).max()) for tr in started.transforms) > 10e-9

@@ -1,0 +1,50 @@
+"""Patch reports from the assessment's fits: what counts as XY held, and what is said of it."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from merge.core.patchset import Patch
+from merge.core.transforms import PatchTransform
+from merge.report import PatchFit, patch_reports
+
+
+def _patch(name: str, x0: float) -> Patch:
+    rng = np.random.default_rng(len(name))
+    return Patch(
+        id=name, heights=rng.normal(0, 1e-9, (8, 8)), origin=(x0, 0.0), pixel_size=(1e-8, 1e-8)
+    )
+
+
+def test_a_patch_whose_own_overlaps_do_not_hold_xy_is_flagged_and_warned_of() -> None:
+    patches = [_patch("held", 0.0), _patch("loose", 6e-8), _patch("alone", 1e-6)]
+    fits = [
+        PatchFit(
+            correspondences=40,
+            residual_rms=1e-9,
+            xy_sigma=1e-10,
+            z_sigma=1e-10,
+            xy_sigma_local=1e-10,
+        ),
+        PatchFit(
+            correspondences=40, residual_rms=1e-9, xy_sigma=5e-9, z_sigma=1e-10, xy_sigma_local=5e-9
+        ),
+        PatchFit(
+            correspondences=0,
+            residual_rms=np.nan,
+            xy_sigma=np.inf,
+            z_sigma=np.inf,
+            xy_sigma_local=np.inf,
+        ),
+    ]
+    shifted = PatchTransform(t=np.array([1e-9, -2e-9, 3e-9]))
+    transforms = [shifted, PatchTransform(), PatchTransform()]
+    linked = np.array([True, True, False])
+    reports, warnings = patch_reports(patches, transforms, fits, linked, registered=True)
+    assert [r.xy_constrained for r in reports] == [True, False, False]
+    assert [r.overlaps for r in reports] == [True, True, False]
+    np.testing.assert_array_equal(reports[0].translation, shifted.t)  # rigid: its own t
+    # only a patch with overlaps is warned of; one that overlaps nothing is the layout's business
+    assert len(warnings) == 1 and "'loose'" in warnings[0]
+    _, quiet = patch_reports(patches, transforms, fits, linked, registered=False)
+    assert quiet == []  # z-levelling never claimed XY
