@@ -18,7 +18,7 @@ then leak into both.
 
 Coarse to fine: the first two levels work on every second point of heights smoothed by two
 pixels, then one, which widens the basin of convergence; the last on the raw heights at every
-point. The widest level matters (and the engine asks for it) only where the coarse start left a
+point. The widest level matters (and the pipeline asks for it) only where the coarse start left a
 direction unmeasured: along the stripes of a 1-D grating a patch starts from its stage error,
 and only the stripes' slight bends and defects, tens of nanometres wide, can bring it in. So it
 moves only those patches (``first_free``), against their neighbours held where the start put

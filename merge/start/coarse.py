@@ -15,11 +15,12 @@ found nothing or disagree with the rest is then placed against all its neighbour
 around the shift the network, so mended, predicts. Scans levelled one by one before export get
 the planes their levelling took back first (:mod:`merge.start.tilts`).
 
-The steps, each a function over two small records: :func:`averaged_on_lattice` gives the
-:class:`Lattice` (grids, noise, texture, the pairs' nominal overlaps); :func:`_first_pass`
-fills :class:`Correlations` (a shift and its information per pair); the network solves them;
-:func:`_place_doubtful` places the patches in doubt (:mod:`merge.start.trust` names them);
-:func:`_measure` measures their pairs again; :func:`_z_offsets` levels them all.
+The steps, each a function over two small records:
+:func:`~merge.start.averaging.averaged_on_lattice` gives the :class:`Lattice` (grids, noise,
+texture, the pairs' nominal overlaps); :func:`_first_pass` fills :class:`Correlations` (a shift and
+its information per pair); the network solves them; :func:`_place_doubtful` places the patches in
+doubt (:mod:`merge.start.trust` names them); :func:`_measure` measures their pairs again;
+:func:`_z_offsets` levels them all.
 """
 
 from __future__ import annotations

@@ -2,8 +2,9 @@
 channels that are correlated (heights and slopes); how much texture a patch holds; and what the
 overlap of two patches at a shift measures (XY information, Z offset).
 
-Pure functions of arrays; :mod:`merge.start.coarse` averages the patches onto the lattice
-(:func:`merge.core.downsample.grid_downsample`) and correlates what these return.
+Pure functions of arrays; :mod:`merge.start.averaging` averages the patches onto the lattice
+(:func:`merge.core.downsample.grid_downsample`) and :mod:`merge.start.coarse` correlates what
+these return.
 """
 
 from __future__ import annotations
