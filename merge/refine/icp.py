@@ -179,6 +179,7 @@ def refine(
     progress: Progress | None = None,
     cancel: Callable[[], bool] | None = None,
     first_free: NDArray[np.bool_] | None = None,
+    held: NDArray[np.bool_] | None = None,
 ) -> RefineResult:
     """Refine all patch transforms at once.
 
@@ -207,6 +208,10 @@ def refine(
     first_free : (n,) bool, keyword-only
         The patches the first level moves (the others held, and only pairs with a free patch
         in the system); default all.
+    held : (n,) bool, keyword-only
+        Patches held at their start in every level (they hold the gauge; only pairs with a
+        patch not held enter the system): a neighbourhood refined against the mosaic around it
+        (:mod:`merge.live`). Default none.
     """
     pairs = np.asarray(pairs, dtype=np.intp).reshape(-1, 2)
     scale = float(np.median([min(p.pixel_size) for p in patches]))
@@ -216,7 +221,7 @@ def refine(
     plane_sigma = np.full(2, drift_prior / scale)  # the first level: as loose along both axes
     converged = False
     for li, level in enumerate(levels):
-        lv = _level_setup(patches, fit, pairs, li, level, first_free)
+        lv = _level_setup(patches, fit, pairs, li, level, first_free, held)
         if li == 1:
             plane_sigma = _plane_sigma(state.slope * lv.bank.radius[:, None], drift_prior / scale)
         lv = replace(lv, plane_sigma=plane_sigma, shift_sigma=shift_prior / scale)
@@ -239,6 +244,7 @@ def _level_setup(
     li: int,
     level: Level,
     first_free: NDArray[np.bool_] | None,
+    held: NDArray[np.bool_] | None,
 ) -> LevelSetup:
     """Level ``li``'s surfaces (smoothed and strided, continued beyond the borders as
     :data:`MIRROR_FROM` says) and, on the first, the patches it holds."""
@@ -250,10 +256,11 @@ def _level_setup(
         else SurfaceBank(patches, fit.scale, level.smooth, level.stride, border=border)
     )
     margin = 1.5 * float(max(bank.dx.max(), bank.dy.max()))
-    held, level_pairs = None, pairs
+    hold = held
     if li == 0 and first_free is not None and not first_free.all():
-        held, level_pairs = ~first_free, pairs[first_free[pairs].any(axis=1)]
-    return LevelSetup(bank, level_pairs, held, margin, raw, np.zeros(2))
+        hold = ~first_free if held is None else held | ~first_free
+    level_pairs = pairs if hold is None else pairs[(~hold)[pairs].any(axis=1)]
+    return LevelSetup(bank, level_pairs, hold, margin, raw, np.zeros(2))
 
 
 def _run_level(
