@@ -8,6 +8,7 @@ Pure numpy/scipy, laid out as its pipeline (:mod:`merge.pipeline` runs the stage
 * :mod:`merge.report` — per-patch quality and uncertainty, the result;
 * :mod:`merge.render` — the patches through their transforms onto one grid;
 * :mod:`merge.paper` — the paper's literal method, apart;
+* :mod:`merge.live` — the same stages patch by patch while a run scans, and the quality gate;
 * :mod:`merge.io` — patch-set and result files, at the edge.
 
 The entry points:

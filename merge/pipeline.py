@@ -19,7 +19,7 @@ corrected patches merged again.
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, replace
 
@@ -48,12 +48,12 @@ Cancel = Callable[[], bool]
 SHIFT_PRIOR_FRACTION = 0.25
 
 
-def default_cell(patch_set: PatchSet) -> float:
+def default_cell(patch_set: Iterable[Patch]) -> float:
     """The raster spacing: the larger pixel pitch over all patches (paper, III-C)."""
     return max(max(p.pixel_size) for p in patch_set)
 
 
-def default_max_shift(patch_set: PatchSet) -> float:
+def default_max_shift(patch_set: Iterable[Patch]) -> float:
     """Half the smaller side of the smallest patch."""
     return 0.5 * min(min(p.extent) for p in patch_set)
 

@@ -100,12 +100,12 @@ def render_mosaic(
     xmin, ymin, xmax, ymax = bounds if bounds is not None else mosaic_bounds(patches, trs)
     nx = int(np.floor((xmax - xmin) / dx + 1e-9)) + 1
     ny = int(np.floor((ymax - ymin) / dy + 1e-9)) + 1
-    grid = _Grid(xmin, ymin, dx, dy, nx, ny)
+    grid = MosaicGrid(xmin, ymin, dx, dy, nx, ny)
     acc = np.zeros((ny, nx))
     wsum = np.zeros((ny, nx))
     coverage = np.zeros((ny, nx), dtype=np.int32)
     for p, tr in zip(patches, trs, strict=True):
-        hit = _resample(p, tr, grid, feather)
+        hit = resample_patch(p, tr, grid, feather)
         if hit is None:
             continue
         ii, jj, wz, w = hit
@@ -119,9 +119,9 @@ def render_mosaic(
 
 
 @dataclass(frozen=True)
-class _Grid:
-    """The mosaic's lattice: node (0, 0) at ``(xmin, ymin)``, pitch ``(dx, dy)``, ``nx`` by
-    ``ny`` nodes (metres)."""
+class MosaicGrid:
+    """A mosaic's lattice: node (0, 0) at ``(xmin, ymin)``, pitch ``(dx, dy)`` (metres), ``nx``
+    by ``ny`` nodes."""
 
     xmin: float
     ymin: float
@@ -131,11 +131,16 @@ class _Grid:
     ny: int
 
 
-def _resample(
-    p: Patch, tr: PatchTransform, grid: _Grid, feather: float
+def resample_patch(
+    p: Patch, tr: PatchTransform, grid: MosaicGrid, feather: float
 ) -> tuple[IntArray, IntArray, FloatArray, FloatArray] | None:
     """Patch ``p`` through ``tr`` at the grid nodes it covers: their rows and columns, its
-    blending weight times height, and the weight; None where it covers none."""
+    blending weight times height, and the weight; None where it covers none.
+
+    One patch's share of :func:`render_mosaic`: the sums of the shares of all patches, divided
+    by the sums of their weights, are the mosaic (:class:`merge.live.LiveCanvas` keeps them
+    and replaces a patch's share when it moves).
+    """
     xmin, ymin, dx, dy = grid.xmin, grid.ymin, grid.dx, grid.dy
     R, t = tr.R, tr.t
     zc = float(np.nanmedian(p.heights))

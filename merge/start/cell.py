@@ -3,11 +3,12 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable
 
 import numpy as np
 
 from merge.core.downsample import grid_downsample
-from merge.core.patchset import PatchSet
+from merge.core.patchset import Patch
 from merge.start.lattice import coherence, fill_empty_lines
 
 #: The coarse start correlates patches of at least about this many cells along their shorter
@@ -21,7 +22,7 @@ COARSE_BUDGET = 150_000
 ONE_DIMENSIONAL = 0.95
 
 
-def coarse_cell(patch_set: PatchSet, cell: float) -> float:
+def coarse_cell(patch_set: Iterable[Patch], cell: float) -> float:
     """The cell of the coarse start: the finer of ``cell`` and the finest pixel pitch (so that
     texture along the fine axis of oblong pixels survives) times a whole factor.
 
@@ -47,7 +48,7 @@ def coarse_cell(patch_set: PatchSet, cell: float) -> float:
     return base * coarsest
 
 
-def _one_dimensional(patch_set: PatchSet, cell: float) -> bool:
+def _one_dimensional(patch_set: Iterable[Patch], cell: float) -> bool:
     """Whether the patches, averaged onto ``cell``, show one-dimensional structure (stripes)."""
     grids = [
         fill_empty_lines(grid_downsample(p.heights, p.pixel_size, cell=cell, origin=p.origin))

@@ -83,6 +83,9 @@ class CoarseStart:
     translation : (n, 3) metres, ``t`` of ``q = p + t`` per patch.
     xy_measured : (n,) bool, whether any pair measured the patch's XY.
     xy_complete : (n,) bool, whether its pairs measured XY along both axes.
+    xy_measurable : (n,) bool, whether any of its pairs could be correlated (both patches
+        textured, enough nominal overlap): where this holds and ``xy_measured`` does not, the
+        overlaps should have registered and did not.
     tilt : (n, 2) dz/dx, dz/dy of the plane each patch lost when it was levelled on its own
         before export (zero for raw scans, :mod:`merge.start.tilts`); Z in ``translation`` is
         then at the patch's centre.
@@ -92,6 +95,7 @@ class CoarseStart:
     xy_measured: NDArray[np.bool_]
     xy_complete: NDArray[np.bool_]
     tilt: FloatArray
+    xy_measurable: NDArray[np.bool_]
 
 
 @dataclass
@@ -148,8 +152,15 @@ def coarse_start(
     translation[:, 2] = _z_offsets(lat, translation)
     measured = np.zeros(n, dtype=bool)
     measured[pairs[np.trace(corr.xy_w, axis1=1, axis2=2) > 0].ravel()] = True
+    measurable = np.zeros(n, dtype=bool)
+    can = np.array([lat.measurable(i) for i in range(len(pairs))], dtype=bool)
+    measurable[pairs[can].ravel()] = True
     return CoarseStart(
-        translation=translation, xy_measured=measured, xy_complete=complete, tilt=lat.tilt
+        translation=translation,
+        xy_measured=measured,
+        xy_complete=complete,
+        tilt=lat.tilt,
+        xy_measurable=measurable,
     )
 
 
