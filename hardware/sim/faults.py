@@ -5,7 +5,10 @@ surface dilated by a blunter tip), a loop that parachutes (after a step down it 
 surface and falls back at its slew rate), a block of lines the controller loses, and a sudden
 Z jump (the sample or the scanner slips). Each acts from a line on, as in time.
 
-:func:`spoil` applies one to a recorded image (rows are scan lines, in time order).
+:func:`spoil` applies one to a recorded image (rows are scan lines, in time order); the
+simulated instrument spoils its own scans line by line with the same physics
+(:meth:`hardware.sim.instrument.SimulatedAFM.spoil_next_scan`: a blunter tip, a slower loop,
+lines lost, the sample lifted).
 """
 
 from __future__ import annotations

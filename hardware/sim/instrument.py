@@ -17,7 +17,7 @@ edges and fast scans show tracking error.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -26,6 +26,7 @@ from scipy.signal import lfilter
 from hardware.errors import CrashError, ProcedureError
 from hardware.mcs_axis import FineCalibration, MCSAxis
 from hardware.sim.clock import SimClock
+from hardware.sim.faults import BLUNT_TIP, LOST_SHARE, SPOILING, Z_JUMP, strike_line
 from hardware.sim.mcs_channel import ChannelParams
 from hardware.sim.mcs_device import MCSDevice
 from hardware.sim.mcs_server import MCSServer
@@ -50,6 +51,19 @@ _TIP_OFFSETS = _tip_offsets()
 
 #: Largest approach the loop makes per update off the surface, metres (its slew-rate limit).
 MAX_LOOP_STEP = 20e-9
+#: The slew-rate limit of a loop that parachutes (a spoiled patch, :mod:`hardware.sim.faults`).
+PARACHUTE_STEP = 0.4e-9
+
+
+@dataclass
+class _Spoiling:
+    """A fault armed for one scan: its kind, the scan's lines, the line it strikes on, and
+    how many lines have been recorded since it was armed."""
+
+    kind: str
+    lines: int
+    strike: int
+    recorded: int = 0
 
 
 @dataclass(frozen=True)
@@ -134,6 +148,9 @@ class SimulatedAFM:
         self.sample_z = 0.0
         #: where every sample of every recorded line truly was (simulator-only truth)
         self.line_positions: list[FloatArray] = []
+        #: the fault armed for the next scan (:meth:`spoil_next_scan`), if any
+        self._spoiling: _Spoiling | None = None
+        self._max_loop_step = MAX_LOOP_STEP
 
     # -- lifecycle --------------------------------------------------------------------------
 
@@ -302,7 +319,7 @@ class SimulatedAFM:
             dist = tip0 - ext - surf[k]
             error = dist - d_set
             if dist > branch_end:
-                error = min(error, MAX_LOOP_STEP)
+                error = min(error, self._max_loop_step)
             ext = min(max(ext + gain * error, 0.0), zrange)
             if ext in (0.0, zrange):
                 self._saturated = True
@@ -314,6 +331,41 @@ class SimulatedAFM:
                 )
             line[k // sub] += (tip0 - ext) / sub
         return line, ext
+
+    # -- spoiled scans ----------------------------------------------------------------------
+
+    def spoil_next_scan(self, kind: str, *, lines: int) -> None:
+        """Spoil the next scan of ``lines`` lines as fault ``kind`` does in real life, from
+        its strike line on (:func:`hardware.sim.faults.strike_line`): the tip turns blunt
+        (``tip_change``), the loop parachutes after steps down (``parachute``), a block of
+        lines is lost (``lost_lines``), or the sample jumps in Z (``z_jump``, for good)."""
+        if kind not in SPOILING:
+            raise ValueError(f"unknown fault {kind!r}; expected one of {', '.join(SPOILING)}")
+        if lines < 2:
+            raise ValueError(f"a spoiled scan needs at least 2 lines, got {lines}")
+        self._spoiling = _Spoiling(kind, lines, strike_line(lines))
+
+    @property
+    def spoiling(self) -> str | None:
+        """The fault armed for the scan under way or the next, if any."""
+        return None if self._spoiling is None else self._spoiling.kind
+
+    def _spoiled_line(self) -> tuple[str | None, bool]:
+        """The fault acting on the line about to be recorded (None: none), and whether its
+        data are lost; counts the line."""
+        sp = self._spoiling
+        if sp is None:
+            return None, False
+        k = sp.recorded
+        sp.recorded += 1
+        if sp.recorded >= sp.lines:
+            self._spoiling = None
+        if k < sp.strike:
+            return None, False
+        if sp.kind == "z_jump" and k == sp.strike:
+            self.sample_z += Z_JUMP
+        lost = sp.kind == "lost_lines" and k < sp.strike + max(1, round(LOST_SHARE * sp.lines))
+        return sp.kind, lost
 
     # -- LineRecorder -----------------------------------------------------------------------
 
@@ -329,6 +381,25 @@ class SimulatedAFM:
             raise ProcedureError("engage the force loop before recording")
         if samples < 1 or not duration > 0:
             raise ValueError("need at least one sample and a positive duration")
+        kind, lost = self._spoiled_line()
+        params, step = self.params, self._max_loop_step
+        if kind == "tip_change":
+            self.params = replace(params, tip_radius=BLUNT_TIP)
+        elif kind == "parachute":
+            self._max_loop_step = PARACHUTE_STEP
+        try:
+            line, t0 = self._record(samples, duration)
+        finally:
+            self.params, self._max_loop_step = params, step
+        if lost:
+            line = np.full(samples, np.nan)
+        return line, t0
+
+    def _record(self, samples: int, duration: float) -> tuple[FloatArray, float]:
+        """:meth:`record_line` itself (a spoiling fault set up around it)."""
+        setpoint = self._setpoint
+        if setpoint is None:
+            raise ProcedureError("engage the force loop before recording")
         t0 = self.clock.now()
         self._settle_loop(t0)
         z = self.robot_device.axes[2]
@@ -352,7 +423,7 @@ class SimulatedAFM:
         surf = self.surface_height(xs, ys, t0)
         ext = z.extension(t0)
         tip0 = self.params.z_top - (z.true_position(t0) - ext)
-        d_set = self.probe.distance_at(self._setpoint - self.charging_offset(t0))
+        d_set = self.probe.distance_at(setpoint - self.charging_offset(t0))
         # On the repulsive branch Δf maps one to one onto distance, so the loop acts as a
         # distance regulator of finite bandwidth: a first-order filter of the extension that
         # puts the tip at the set-point, run at once over the line. Where it would leave that
@@ -363,7 +434,7 @@ class SimulatedAFM:
         exts = lfilter([gain], [1.0, gain - 1.0], target, zi=[(1.0 - gain) * ext])[0]
         before = tip0 - np.concatenate([[ext], exts[:-1]]) - surf
         linear = (
-            not np.any((before > branch_end) & (before - d_set > MAX_LOOP_STEP))
+            not np.any((before > branch_end) & (before - d_set > self._max_loop_step))
             and exts.min() > 0.0
             and exts.max() < zrange
             and (tip0 - exts - surf).min() >= crash_depth

@@ -9,6 +9,7 @@ import pytest
 
 from hardware.procedures import CrashError, LandingConfig, NoSurfaceError, acquire_patch, land
 from hardware.protocols import ForceLoop, LineRecorder, ProbeSignal
+from hardware.sim.faults import LOST_SHARE, Z_JUMP, strike_line
 from hardware.sim.instrument import SimulatedAFM, WorldParams
 from hardware.sim.probe import ProbeModel
 from hardware.sim.surfaces import FoldedSurface
@@ -96,3 +97,64 @@ def test_drift_grows_with_simulated_time(afm: SimulatedAFM) -> None:
     d2 = np.linalg.norm(afm.drift(600.0))
     assert d0 == 0.0 < d1 < d2
     assert d2 == pytest.approx(10 * d1)
+
+
+def _scan_against_truth(afm: SimulatedAFM) -> tuple[np.ndarray, np.ndarray]:
+    """A 30 x 30 scan, and its heights less what a sharp tip touches where each pixel truly
+    was (simulator truth), each line's own offset left in."""
+    result = acquire_patch(
+        stage_x=afm.stage_x,
+        stage_y=afm.stage_y,
+        x=afm.robot_x,
+        y=afm.robot_y,
+        z=afm.robot_z,
+        loop=afm,
+        probe=afm,
+        recorder=afm,
+        origin=(1e-6, 2e-6),
+        size=(0.6e-6, 0.6e-6),
+        pixels=(30, 30),
+        line_rate=2.0,
+    )
+    h: np.ndarray = result.lines.heights
+    where = np.array(afm.line_positions[-30:])
+    return h, h - afm.surface_height(where[..., 0], where[..., 1], 0.0)
+
+
+@pytest.fixture
+def still(folded: FoldedSurface) -> Iterator[SimulatedAFM]:
+    """An instrument without drift or charging."""
+    params = WorldParams(thermal_xy=0.0, thermal_z=0.0, charging=0.0)
+    with SimulatedAFM(folded, seed=3, params=params) as instrument:
+        yield instrument
+
+
+@pytest.mark.filterwarnings("ignore:All-NaN slice:RuntimeWarning")  # the lost lines
+@pytest.mark.filterwarnings("ignore:Degrees of freedom:RuntimeWarning")
+@pytest.mark.parametrize("kind", ["tip_change", "parachute", "lost_lines", "z_jump"])
+def test_a_spoiled_scan_is_spoiled_from_its_strike_line_on_and_the_next_is_clean(
+    still: SimulatedAFM, kind: str
+) -> None:
+    afm = still
+    afm.spoil_next_scan(kind, lines=30)
+    assert afm.spoiling == kind
+    heights, off = _scan_against_truth(afm)
+    assert afm.spoiling is None  # one scan only
+    k = strike_line(30)
+    line = np.nanmedian(off, axis=1)  # per line: the set-point distance (and any jump)
+    spread = np.nanstd(off - line[:, None], axis=1)  # within a line: tracking, tip, noise
+    # rows are straightened by the Y sensor, which spreads a lost line into its neighbours
+    assert np.all(np.isfinite(heights[: k - 1]))
+    if kind == "lost_lines":
+        assert np.isnan(heights[k : k + round(LOST_SHARE * 30)]).all()
+    elif kind == "z_jump":  # the truth is read after the jump: lines before it lie below
+        jump = np.median(line[k + 1 :]) - np.median(line[: k - 1])
+        assert jump == pytest.approx(Z_JUMP, abs=3e-9)
+    else:  # a blunt tip fills valleys, a parachuting loop hangs over steps down
+        assert np.median(spread[k + 1 :]) > 3 * np.median(spread[: k - 1])
+    clean, off_clean = _scan_against_truth(afm)
+    line = np.median(off_clean, axis=1)
+    assert np.all(np.isfinite(clean)) and np.ptp(line) < 6e-9
+    assert np.std(off_clean - line[:, None]) < 4e-9
+    with pytest.raises(ValueError, match="unknown fault"):
+        afm.spoil_next_scan("gremlins", lines=30)
