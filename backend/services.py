@@ -18,6 +18,7 @@ from backend.db.models import MergeJob, Run
 from backend.db.patch_store import read_merge, read_patch
 from backend.db.session import make_engine, migrate, session_factory
 from backend.events import EventBus
+from backend.live_merge import LiveMergeService
 from backend.merge_jobs import MergeService
 from backend.settings import Settings
 from backend.status_cache import StatusCache
@@ -98,6 +99,7 @@ class Services:
             data_dir=settings.data_dir,
             reserve=settings.disk_reserve,
         )
+        runner.live = LiveMergeService(events, on_verdict=runner.tell_verdict)
         if settings.auto_merge:
             runner.on_completed = lambda run_id: _auto_merge(merges, run_id)
         viewer = None
@@ -126,6 +128,8 @@ class Services:
 
     def close(self) -> None:
         self.runner.close()
+        if self.runner.live is not None:
+            self.runner.live.close()
         self.merges.close()
         self.events.close()
         if self.viewer is not None:
@@ -178,4 +182,15 @@ class ViewerFeed:
 
 
 def _auto_merge(merges: MergeService, run_id: int) -> None:
-    merges.submit(run_id, method="default", parameters={}, patches=None)
+    """The completed run's merge: every stored patch but those the quality gate flagged (when
+    re-scans are on: with them off, nothing is left out)."""
+    with merges.sessions() as session:
+        run = session.get(Run, run_id)
+        flagged = (
+            {p.index for p in run.patches if p.quality == "flagged"}
+            if run is not None and run.rescan_enabled
+            else set()
+        )
+        stored = [p.index for p in run.patches if p.step == "stored"] if run is not None else []
+    chosen = [i for i in stored if i not in flagged] if flagged else None
+    merges.submit(run_id, method="default", parameters={}, patches=chosen)

@@ -21,6 +21,7 @@ import logging
 import shutil
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -31,6 +32,7 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from backend.acquisition.control import Abort, Conflict, Control, NotFound, describe
 from backend.acquisition.journal import journaled_patch, journaled_run
+from backend.acquisition.rescans import Rescans, Verdict
 from backend.acquisition.state import (
     ACTIVE,
     STARTABLE,
@@ -40,14 +42,19 @@ from backend.acquisition.state import (
 )
 from backend.acquisition.status import read_instrument
 from backend.db.models import PatchRecord, Run
-from backend.db.patch_store import reconcile, write_patch
+from backend.db.patch_store import LIVE_GROUP, read_patch, reconcile, write_mosaic, write_patch
 from backend.db.space import StorageFull, check_space, full_message, is_full
 from backend.events import EventBus
+from backend.live_merge import LiveMergeService, LiveRecord, lost_lines
+from backend.merge_jobs import PatchInput
 from hardware.errors import Interrupted, SafeStateError
 from hardware.microscope import Microscope
 from hardware.procedures import move_stage, retract, safe_state, sample_origin
 
 log = logging.getLogger("mosaic_afm.runner")
+
+#: Seconds the end of a run waits for the live merge to judge its last patches.
+LIVE_DRAIN = 120.0
 
 
 class Runner:
@@ -93,6 +100,26 @@ class Runner:
         self.patch_bytes = 0
         self._supervisor: threading.Thread | None = None
         self._stopping = threading.Event()
+        #: the gate's verdicts to act on, and the faults armed for simulated patches
+        self.rescans = Rescans(events)
+        #: where stored patches are merged live and judged (None: nowhere)
+        self.live: LiveMergeService | None = None
+
+    def tell_verdict(self, run_id: int, index: int, passed: bool, reason: str) -> None:
+        """The live merge's word on a patch (any thread): acted on at the next patch."""
+        self.rescans.tell(Verdict(run_id, index, passed, reason))
+
+    def request_rescan(self, run_id: int, index: int, *, actor: str) -> None:
+        """The operator marks a stored patch of the active run for re-scan."""
+        self._active_control(run_id, "re-scan a patch of")
+        with self.sessions() as session:
+            run = self._get(session, run_id)
+            patch = next((p for p in run.patches if p.index == index), None)
+            if patch is None:
+                raise NotFound(f"run {run_id} has no patch {index}")
+            if patch.step != PatchStep.STORED.value:
+                raise Conflict(f"patch {index} of run {run_id} is {patch.step}, not stored")
+        self.rescans.tell(Verdict(run_id, index, False, "marked for re-scan", operator=actor))
 
     # -- start-up ---------------------------------------------------------------------------
 
@@ -374,6 +401,7 @@ class Runner:
             problem = self._try_safe_state()
             if problem is not None:
                 target, reason = RunState.FAULT, f"{reason}; {problem}"
+        self._end_live(run_id)
         with self._lock:
             self._unrecorded[run_id] = (target, reason, actor)
         if not self._record(run_id):
@@ -385,6 +413,26 @@ class Runner:
                 self.on_completed(run_id)
             except Exception:
                 log.exception("run %s: starting its merge failed", run_id)
+
+    def _end_live(self, run_id: int) -> None:
+        """Stop the run's live merge and keep its last mosaic in the run's file."""
+        if self.live is None:
+            return
+        self.live.stop(run_id)
+        last = self.live.mosaic(run_id)
+        if last is None:
+            return
+        heights, document = last
+        try:
+            # HDF5 must never meet a full disk (it may crash): room first, or nothing written
+            check_space(self.data_dir, need=2 * heights.nbytes + (1 << 20), reserve=self.reserve)
+            with self.sessions() as session:
+                path = self._get(session, run_id).file
+            write_mosaic(path, LIVE_GROUP, heights, document)
+        except StorageFull:
+            log.warning("run %s: no room to keep its live mosaic in its file", run_id)
+        except Exception:  # the run's end is recorded all the same
+            log.exception("run %s: keeping its live mosaic failed", run_id)
 
     def _record(self, run_id: int, *, attempts: int = 3, pause: float = 0.2) -> bool:
         """Write a concluded run's end to the database (retried); True once it is."""
@@ -472,67 +520,129 @@ class Runner:
             self._transition(session, run, RunState.RUNNING, "resumed", control.actor)
 
     def _run_patches(self, session: Session, run: Run, control: Control) -> None:
+        """Every pending patch in order; a patch the quality gate fails is scanned again next
+        (:mod:`backend.acquisition.rescans`); at the end, the last verdicts are waited for."""
+        records = {p.index: p for p in run.patches}
+        todo = deque(p.index for p in run.patches if p.step != PatchStep.STORED.value)
+        self._seed_live(run)
+        while True:
+            while todo:
+                self._scan_patch(session, run, control, records[todo.popleft()])
+                self._act_on_verdicts(session, run, todo)
+            if self.live is None or not self.live.drain(run.id, LIVE_DRAIN):
+                return
+            self._act_on_verdicts(session, run, todo)
+            if not todo:
+                return
+
+    def _seed_live(self, run: Run) -> None:
+        """A run started again: its patches already stored go into the live merge first."""
+        if self.live is None:
+            return
+        for patch in run.patches:
+            if patch.step == PatchStep.STORED.value and patch.quality != "flagged":
+                stored = read_patch(run.file, patch.index)
+                self.live.submit(
+                    run.id,
+                    PatchInput(
+                        f"p{patch.index:03d}",
+                        stored.heights,
+                        stored.origin,
+                        stored.pixel_size,
+                        patch.index,
+                        patch.row,
+                        patch.col,
+                    ),
+                    LiveRecord(lines=run.pixels_y, lost=lost_lines(stored.heights)),
+                )
+
+    def _act_on_verdicts(self, session: Session, run: Run, todo: deque[int]) -> None:
+        """Act on the quality gate's verdicts (a re-scan keeps the failed scan aside in the
+        file, so the disk is checked first: HDF5 must never meet a full disk)."""
+        check_space(self.data_dir, need=self.patch_bytes, reserve=self.reserve)
+        for index in self.rescans.apply(session, run, todo):
+            if self.live is not None:
+                self.live.remove(run.id, index)
+
+    def _scan_patch(self, session: Session, run: Run, control: Control, patch: PatchRecord) -> None:
+        """One patch: move, land, scan, retract, store; then hand it to the live merge."""
         m = self.microscope
         _, loop, scanner = m.require_afm()
         size = (run.patch_width, run.patch_height)
         pixels = (run.pixels_x, run.pixels_y)
         total = len(run.patches)
-        for patch in run.patches:
-            if patch.step == PatchStep.STORED.value:
-                continue
-            machine = self._patch_machine(session, run, patch)
-            planned = (patch.origin_x, patch.origin_y)
-            self._checkpoint(session, run, control, may_pause=True)
-            check_space(self.data_dir, need=self.patch_bytes, reserve=self.reserve)
-            run.current_patch = patch.index
-            machine.go(PatchStep.MOVE)
-            move_stage(m.stage_x, m.stage_y, m.robot_x, m.robot_y, origin=planned, size=size)
-            scanner.prepare(size=size, pixels=pixels)
-            self._checkpoint(session, run, control, may_pause=True)
-            machine.go(PatchStep.LAND)
-            landing = m.land()
-            self._checkpoint(session, run, control, may_pause=False)
-            machine.go(PatchStep.SCAN)
-            lines = scanner.scan(
-                size=size, pixels=pixels, line_rate=run.line_rate, stop=lambda: control.abort
-            )
-            machine.go(PatchStep.RETRACT)
-            retract(m.robot_z, loop)
-            origin = sample_origin(
-                lines, m.stage_x, m.stage_y, planned=planned, size=size, x=m.robot_x, y=m.robot_y
-            )
-            name = write_patch(
-                run.file,
-                patch.index,
-                lines.heights,
-                origin=origin,
-                pixel_size=lines.pixel_size,
-                line_times=lines.line_times,
-                attrs={
-                    "planned_origin": planned,
-                    "row": patch.row,
-                    "col": patch.col,
-                    "frequency_shift": landing.frequency_shift,
-                    "landing_cycles": landing.cycles,
-                    "line_rate": run.line_rate,
-                    "instrument": m.description,
-                    "row_readings": lines.row_readings
-                    if lines.row_readings is not None
-                    else np.zeros(0),
-                },
-            )
-            patch.dataset = name
-            machine.go(PatchStep.STORED)
-            self._snapshot = {
-                **read_instrument(self.microscope),
-                "last_patch": patch.index,
-            }
-            stored = sum(p.step == PatchStep.STORED.value for p in run.patches)
-            self.events.emit(
-                "progress",
-                f"run {run.id}: patch {patch.index} stored ({stored}/{total})",
-                run_id=run.id,
-                data={"stored": stored, "total": total, "patch": patch.index},
+        machine = self._patch_machine(session, run, patch)
+        planned = (patch.origin_x, patch.origin_y)
+        self._checkpoint(session, run, control, may_pause=True)
+        check_space(self.data_dir, need=self.patch_bytes, reserve=self.reserve)
+        run.current_patch = patch.index
+        patch.tries += 1
+        machine.go(PatchStep.MOVE)
+        move_stage(m.stage_x, m.stage_y, m.robot_x, m.robot_y, origin=planned, size=size)
+        scanner.prepare(size=size, pixels=pixels)
+        self._checkpoint(session, run, control, may_pause=True)
+        machine.go(PatchStep.LAND)
+        landing = m.land()
+        self._checkpoint(session, run, control, may_pause=False)
+        spoil = self.rescans.spoiling(patch.index) if m.sim is not None else None
+        if spoil is not None and m.sim is not None:
+            m.sim.spoil_next_scan(spoil, lines=run.pixels_y)
+        machine.go(PatchStep.SCAN, reason=f"spoiled by a simulated {spoil}" if spoil else "")
+        lines = scanner.scan(
+            size=size, pixels=pixels, line_rate=run.line_rate, stop=lambda: control.abort
+        )
+        machine.go(PatchStep.RETRACT)
+        retract(m.robot_z, loop)
+        origin = sample_origin(
+            lines, m.stage_x, m.stage_y, planned=planned, size=size, x=m.robot_x, y=m.robot_y
+        )
+        name = write_patch(
+            run.file,
+            patch.index,
+            lines.heights,
+            origin=origin,
+            pixel_size=lines.pixel_size,
+            line_times=lines.line_times,
+            attrs={
+                "planned_origin": planned,
+                "row": patch.row,
+                "col": patch.col,
+                "frequency_shift": landing.frequency_shift,
+                "landing_cycles": landing.cycles,
+                "line_rate": run.line_rate,
+                "instrument": m.description,
+                "try": patch.tries,
+                "row_readings": lines.row_readings
+                if lines.row_readings is not None
+                else np.zeros(0),
+            },
+        )
+        patch.dataset = name
+        machine.go(PatchStep.STORED)
+        self._snapshot = {
+            **read_instrument(self.microscope),
+            "last_patch": patch.index,
+        }
+        stored = sum(p.step == PatchStep.STORED.value for p in run.patches)
+        self.events.emit(
+            "progress",
+            f"run {run.id}: patch {patch.index} stored ({stored}/{total})",
+            run_id=run.id,
+            data={"stored": stored, "total": total, "patch": patch.index},
+        )
+        if self.live is not None:
+            self.live.submit(
+                run.id,
+                PatchInput(
+                    id=f"p{patch.index:03d}",
+                    heights=lines.heights,
+                    origin=origin,
+                    pixel_size=lines.pixel_size,
+                    order=patch.index,
+                    row=patch.row,
+                    col=patch.col,
+                ),
+                LiveRecord(lines=run.pixels_y, lost=lost_lines(lines.heights)),
             )
 
     def _patch_machine(

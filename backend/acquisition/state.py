@@ -78,7 +78,8 @@ PATCH_TRANSITIONS: Mapping[PatchStep, frozenset[PatchStep]] = {
     PatchStep.LAND: frozenset({PatchStep.SCAN, PatchStep.PENDING}),
     PatchStep.SCAN: frozenset({PatchStep.RETRACT, PatchStep.PENDING}),
     PatchStep.RETRACT: frozenset({PatchStep.STORED, PatchStep.PENDING}),
-    PatchStep.STORED: frozenset(),
+    # a re-scan: the quality gate (or the operator) failed the stored patch
+    PatchStep.STORED: frozenset({PatchStep.PENDING}),
 }
 
 #: Run states from which a run can (re)start.

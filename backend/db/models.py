@@ -8,6 +8,7 @@ from typing import Any
 
 from sqlalchemy import (
     JSON,
+    Boolean,
     DateTime,
     Dialect,
     Float,
@@ -72,6 +73,11 @@ class Run(Base):
     message: Mapped[str | None] = mapped_column(String(2000), nullable=True)
     #: the run's HDF5 file, relative to the data directory (absolute in older databases)
     data_file: Mapped[str] = mapped_column(String(512))
+    #: whether patches the quality gate fails are scanned again, and how often at most
+    rescan_enabled: Mapped[bool] = mapped_column(Boolean, default=True)
+    rescan_max_tries: Mapped[int] = mapped_column(Integer, default=2)
+    #: every re-scan: ``{"index", "try", "reason"}``, in the order they were decided
+    rescans: Mapped[list[dict[str, Any]]] = mapped_column(JSON, default=list)
 
     patches: Mapped[list[PatchRecord]] = relationship(
         back_populates="run", order_by="PatchRecord.index", cascade="all, delete-orphan"
@@ -107,6 +113,12 @@ class PatchRecord(Base):
     step: Mapped[str] = mapped_column(String(16), default="pending")
     stored_at: Mapped[datetime | None] = mapped_column(UTCDateTime(), nullable=True)
     dataset: Mapped[str | None] = mapped_column(String(128), nullable=True)
+    #: the quality gate's word: ``ok``, ``rescanned`` (failed, scanned again), ``flagged``
+    #: (failed every try: left out of the mosaic); None until judged
+    quality: Mapped[str | None] = mapped_column(String(16), nullable=True)
+    quality_reason: Mapped[str | None] = mapped_column(String(500), nullable=True)
+    #: scans of this patch so far
+    tries: Mapped[int] = mapped_column(Integer, default=0)
 
     run: Mapped[Run] = relationship(back_populates="patches")
 

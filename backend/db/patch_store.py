@@ -103,6 +103,25 @@ def write_patch(
     return name
 
 
+def reject_patch(path: Path, index: int, attempt: int) -> str | None:
+    """Keep a stored patch the quality gate failed out of the way of its re-scan: its dataset
+    moves to ``rejected/<index>-try<attempt>`` (nothing is deleted; a crash before the re-scan
+    is stored leaves the patch pending, not the rejected scan adopted). Return where it went
+    (None if the patch was not stored)."""
+    name = dataset_name(index)
+    target = f"rejected/{index:05d}-try{attempt}"
+    with locked(path), h5py.File(path, "a") as f:
+        if name not in f:
+            return None
+        if target in f:
+            del f[target]
+        f.require_group("rejected")
+        f.move(name, target)
+        f.flush()
+    _fsync(path)
+    return target
+
+
 def read_patch(path: Path, index: int) -> StoredPatch:
     """Read a complete patch; KeyError when it is not stored."""
     with locked(path), h5py.File(path, "r") as f:
@@ -179,10 +198,18 @@ def mark_stored(session: Session, patch: PatchRecord, dataset: str) -> None:
     session.commit()
 
 
+#: The group of a run's live mosaic, as the live merge left it when the run ended.
+LIVE_GROUP = "live"
+
+
 def write_merge(path: Path, job_id: int, heights: FloatArray, document: dict[str, Any]) -> str:
     """Store a merge result (mosaic heights and its ``mosaic.json`` document) durably."""
+    return write_mosaic(path, merge_group(job_id), heights, document)
+
+
+def write_mosaic(path: Path, name: str, heights: FloatArray, document: dict[str, Any]) -> str:
+    """Store mosaic heights and their document durably as group ``name``."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    name = merge_group(job_id)
     with locked(path), h5py.File(path, "a") as f:
         if name in f:
             del f[name]

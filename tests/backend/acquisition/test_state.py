@@ -74,8 +74,9 @@ def test_patch_steps_go_in_order_and_a_fault_returns_to_pending() -> None:
         PatchStep.STORED,
     ):
         patch.go(step)
-    with pytest.raises(TransitionError, match="nothing"):
-        patch.go(PatchStep.PENDING)  # stored is final: no patch is scanned twice
+    with pytest.raises(TransitionError, match="pending"):
+        patch.go(PatchStep.MOVE)  # a stored patch is scanned again only through pending
+    patch.go(PatchStep.PENDING, reason="re-scan: the quality gate failed it")
     again = patch_machine("run 1 patch 4", PatchStep.LAND)
     again.go(PatchStep.PENDING, reason="no surface")
     with pytest.raises(TransitionError):
