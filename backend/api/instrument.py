@@ -126,21 +126,28 @@ def sim_surface(
 @router.post("/sim/fault", status_code=204)
 def sim_fault(body: SimFaultIn, services: ServicesDep, operator: OperatorDep) -> Response:
     """Make the simulated instrument misbehave: a serial link goes silent, answers garbage
-    or an error code, or drops; or the sample goes out of reach (``no_surface``).
+    or an error code, or drops; the sample goes out of reach (``no_surface``); or the scans
+    of chosen patches are spoiled (``tip_change``, ``parachute``, ``lost_lines``, ``z_jump``).
     ``none`` heals everything."""
     sim = _sim(services)
+    where = f"on the {body.link} link"
     if body.fault == "none":
         sim.stage_server.inject(None)
         sim.robot_server.inject(None)
         sim.sample_z = 0.0
+        services.runner.rescans.disarm()
     elif body.fault == "no_surface":
         sim.sample_z = -NO_SURFACE_DROP
-    else:
+    elif body.fault in ("silent", "garbage", "error", "drop"):
         server = sim.stage_server if body.link == "stage" else sim.robot_server
         server.inject(body.fault, code=body.code, count=body.count)
+    else:  # a spoiling fault: the schema made sure it names patches
+        services.runner.rescans.arm(body.fault, body.patches or [], body.count)
+        times = f"{body.count} time(s) each" if body.count else "every try"
+        where = f"on patches {body.patches} of the active or next run, {times}"
     services.events.emit(
         "simulation",
-        f"simulated fault {body.fault!r} on the {body.link} link ({operator})",
+        f"simulated fault {body.fault!r} {where} ({operator})",
         data=body.model_dump(),
     )
     return Response(status_code=204)

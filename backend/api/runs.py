@@ -21,12 +21,14 @@ from backend.api.schemas import (
     PlanIn,
     PlanOut,
     ProgressOut,
+    RescanIn,
+    RescanOut,
     RoiIn,
     RunId,
     RunOut,
 )
 from backend.db.models import MergeJob, PatchRecord, Run, SemImageRecord
-from backend.db.patch_store import StoredPatch, read_patch
+from backend.db.patch_store import LIVE_GROUP, StoredPatch, read_merge, read_patch
 from backend.services import Services
 from hardware.protocols import SEMImage
 from merge.io.png import encode_png
@@ -91,6 +93,9 @@ def _patch_out(p: PatchRecord) -> PatchOut:
         origin=(p.origin_x, p.origin_y),
         step=p.step,
         stored_at=p.stored_at,
+        quality=p.quality,  # type: ignore[arg-type]
+        reason=p.quality_reason,
+        tries=p.tries,
     )
 
 
@@ -123,6 +128,8 @@ def run_out(run: Run, services: Services, session: Session, *, patches: bool) ->
         pending_request=services.runner.pending_request(run.id),
         message=message,
         merges=list(merges),
+        rescan=RescanIn(enabled=run.rescan_enabled, max_tries=run.rescan_max_tries),
+        rescans=[RescanOut.model_validate(r) for r in run.rescans or []],
         patches=[_patch_out(p) for p in run.patches] if patches else None,
     )
 
@@ -192,6 +199,9 @@ def create_run(
         rows=plan.rows,
         cols=plan.cols,
         line_rate=body.line_rate,
+        rescan_enabled=body.rescan.enabled,
+        rescan_max_tries=body.rescan.max_tries,
+        rescans=[],
         instrument=services.microscope.description,
         message=f"planned by {operator}",
         data_file="",
@@ -327,6 +337,57 @@ def patch_preview(
         media_type="image/png",
         headers={"X-Height-Range": f"{lo * 1e9:.1f},{hi * 1e9:.1f}"},
     )
+
+
+def _live(run_id: int, services: Services, session: Session) -> tuple[np.ndarray, dict[str, Any]]:
+    """The run's live mosaic: the live merge's newest, or the one its end kept in its file."""
+    run = get_run(session, run_id)
+    live = services.runner.live
+    held = live.mosaic(run_id) if live is not None else None
+    if held is not None:
+        return held
+    try:
+        return read_merge(run.file, LIVE_GROUP)
+    except (KeyError, OSError):
+        raise HTTPException(
+            404,
+            f"run {run_id} has no live mosaic yet: it appears once the run stores its first patch",
+        ) from None
+
+
+@router.get(
+    "/{run_id}/live/mosaic.npy",
+    response_class=Response,
+    responses={200: {"content": {NPY: {}}, "description": "live mosaic heights, metres"}},
+)
+def live_mosaic(run_id: RunId, services: ServicesDep, session: SessionDep) -> Response:
+    """The live mosaic while the run scans (and after it ends): heights (ny, nx), metres, NaN
+    where no patch covers; 404 before its first patch."""
+    heights, _ = _live(run_id, services, session)
+    return npy_response(heights, f"run{run_id}-live.npy")
+
+
+@router.get("/{run_id}/live/mosaic.json")
+def live_document(run_id: RunId, services: ServicesDep, session: SessionDep) -> dict[str, Any]:
+    """The live mosaic's document (the result contract of DESIGN.md: origin, pixel size,
+    shape, every patch's transform) and ``patches_merged``, how many stored patches it holds."""
+    _, document = _live(run_id, services, session)
+    return document
+
+
+@router.post("/{run_id}/patches/{index}/rescan", response_model=RunOut, status_code=202)
+def rescan_patch(
+    run_id: RunId,
+    index: PatchIndex,
+    services: ServicesDep,
+    session: SessionDep,
+    operator: OperatorDep,
+) -> RunOut:
+    """Mark a stored patch of the active run for re-scan: it is scanned again next (whatever
+    its tries), the scan it replaces kept aside in the run's file."""
+    get_run(session, run_id)
+    services.runner.request_rescan(run_id, index, actor=operator)
+    return _current(run_id, services, session)
 
 
 def _stored(session: Session, run_id: int, index: int) -> StoredPatch:

@@ -51,6 +51,13 @@ class PatchIn(Strict):
     pixels: tuple[int, int] = Field(description="[nx, ny] pixels per patch")
 
 
+class RescanIn(Strict):
+    """Whether patches the quality gate fails are scanned again, and how often at most."""
+
+    enabled: bool = True
+    max_tries: int = Field(default=2, ge=1, le=10, description="scans of one patch at most")
+
+
 class PlanIn(Strict):
     """A mosaic to plan: an ROI (stage metres, or SEM pixels), the patch and the overlaps."""
 
@@ -59,6 +66,7 @@ class PlanIn(Strict):
     patch: PatchIn
     overlap: tuple[FiniteFloat, FiniteFloat] = Field(description="[ox, oy] fractions in [0, 0.9)")
     line_rate: FiniteFloat = Field(default=2.0, gt=0, le=50, description="scan lines per second")
+    rescan: RescanIn = Field(default_factory=RescanIn)
 
     @model_validator(mode="after")
     def _one_roi(self) -> PlanIn:
@@ -103,18 +111,42 @@ class SemAcquireIn(Strict):
     pixels: int = Field(default=512, ge=8, le=4096)
 
 
-SimFault = Literal["silent", "garbage", "error", "drop", "no_surface", "none"]
+LinkFault = Literal["silent", "garbage", "error", "drop"]
+#: Faults that spoil the scans of chosen patches (:mod:`hardware.sim.faults`).
+SpoilingFault = Literal["tip_change", "parachute", "lost_lines", "z_jump"]
+SimFault = LinkFault | SpoilingFault | Literal["no_surface", "none"]
 
 
 class SimFaultIn(Strict):
-    """Make the simulated instrument misbehave (``none`` heals everything)."""
+    """Make the simulated instrument misbehave (``none`` heals everything).
+
+    A link fault (``silent``, ``garbage``, ``error``, ``drop``) acts on the ``link``'s next
+    ``count`` commands; a spoiling fault (``tip_change``, ``parachute``, ``lost_lines``,
+    ``z_jump``) spoils the scans of the ``patches`` (indices) of the active or next run,
+    ``count`` times each (default: every try)."""
 
     fault: SimFault
     link: Literal["stage", "robot"] = "robot"
     count: int | None = Field(
-        default=None, ge=1, le=100000, description="commands to misbehave on; default: until healed"
+        default=None,
+        ge=1,
+        le=100000,
+        description="commands (link faults) or scans per patch (spoiling faults) to misbehave "
+        "on; default: until healed",
     )
     code: int = Field(default=150, ge=1, le=65535, description="controller error code to answer")
+    patches: list[Annotated[int, Field(ge=0, le=MAX_ID)]] | None = Field(
+        default=None, max_length=10000, description="patch indices a spoiling fault spoils"
+    )
+
+    @model_validator(mode="after")
+    def _patches_for_spoiling(self) -> SimFaultIn:
+        spoiling = self.fault in ("tip_change", "parachute", "lost_lines", "z_jump")
+        if spoiling and not self.patches:
+            raise ValueError(f"fault {self.fault!r} spoils chosen patches: give patches, e.g. [12]")
+        if not spoiling and self.patches is not None:
+            raise ValueError(f"fault {self.fault!r} acts on a link, not on patches: drop patches")
+        return self
 
 
 # -- responses ---------------------------------------------------------------------------------
@@ -127,6 +159,23 @@ class PatchOut(BaseModel):
     origin: tuple[float, float]
     step: str
     stored_at: datetime | None = None
+    quality: Literal["ok", "rescanned", "flagged"] | None = Field(
+        default=None,
+        description="the quality gate's word: ok, rescanned (failed, scanned again) or flagged "
+        "(failed every try: left out of the mosaic); null until judged",
+    )
+    reason: str | None = Field(default=None, description="why it was re-scanned or flagged")
+    tries: int = Field(default=0, description="scans of this patch so far")
+
+
+class RescanOut(BaseModel):
+    """One re-scan decided: the patch, the try it starts (2: the first re-scan) and why."""
+
+    model_config = ConfigDict(validate_by_name=True, serialize_by_alias=True)
+
+    index: int
+    try_: int = Field(alias="try")
+    reason: str
 
 
 class ProgressOut(BaseModel):
@@ -161,6 +210,8 @@ class RunOut(BaseModel):
     pending_request: str | None = Field(description="pause or abort asked, not yet in effect")
     message: str | None
     merges: list[int]
+    rescan: RescanIn
+    rescans: list[RescanOut] = Field(description="every re-scan decided: patch, try, reason")
     patches: list[PatchOut] | None = None
 
 

@@ -71,17 +71,22 @@ class LiveCanvas:
             self._add(*drawn, -1)
 
     def mosaic(self) -> Mosaic:
-        """The mosaic the sums stand for (NaN where no patch covers)."""
+        """The mosaic the sums stand for, cut to the patches' extent (NaN where no patch
+        covers)."""
         if self.origin is None:
             raise ValueError("the canvas holds no patch yet")
         covered = self.coverage > 0
+        rows, cols = np.flatnonzero(covered.any(axis=1)), np.flatnonzero(covered.any(axis=0))
+        if not len(rows):
+            raise ValueError("the canvas holds no patch")
+        box = (slice(rows[0], rows[-1] + 1), slice(cols[0], cols[-1] + 1))
         with np.errstate(invalid="ignore", divide="ignore"):
-            heights = np.where(covered, self.acc / self.wsum, np.nan)
+            heights = np.where(covered[box], self.acc[box] / self.wsum[box], np.nan)
         return Mosaic(
             heights=heights,
-            origin=self.origin,
+            origin=(self.origin[0] + cols[0] * self.dx, self.origin[1] + rows[0] * self.dy),
             pixel_size=(self.dx, self.dy),
-            coverage=self.coverage.copy(),
+            coverage=self.coverage[box].copy(),
         )
 
     def _add(self, patch: Patch, transform: PatchTransform, sign: int) -> None:

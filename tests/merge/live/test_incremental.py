@@ -73,11 +73,11 @@ def test_the_live_canvas_is_the_render_of_the_current_transforms(small_mosaic: S
     live = LiveMerge()
     _in_scan_order(live, small_mosaic)
     live.remove(small_mosaic.patch_set.patches[0].id)  # a share taken out as well
-    mosaic = live.mosaic()
-    assert live.canvas is not None
-    g = live.canvas.grid
-    bounds = (g.xmin, g.ymin, g.xmin + (g.nx - 1) * g.dx, g.ymin + (g.ny - 1) * g.dy)
-    reference = render_mosaic(live.patches, live.transforms, pixel_size=(g.dx, g.dy), bounds=bounds)
+    mosaic = live.mosaic()  # cut to the patches' extent on the canvas's lattice
+    (x0, y0), (dx, dy) = mosaic.origin, mosaic.pixel_size
+    ny, nx = mosaic.heights.shape
+    bounds = (x0, y0, x0 + (nx - 1) * dx, y0 + (ny - 1) * dy)
+    reference = render_mosaic(live.patches, live.transforms, pixel_size=(dx, dy), bounds=bounds)
     np.testing.assert_array_equal(np.isfinite(mosaic.heights), np.isfinite(reference.heights))
     both = np.isfinite(reference.heights)
     np.testing.assert_allclose(mosaic.heights[both], reference.heights[both], atol=1e-15)
