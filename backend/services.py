@@ -99,13 +99,14 @@ class Services:
             data_dir=settings.data_dir,
             reserve=settings.disk_reserve,
         )
-        runner.live = LiveMergeService(events, on_verdict=runner.tell_verdict)
+        if settings.live_merge:
+            runner.live = LiveMergeService(events, on_verdict=runner.tell_verdict)
         if settings.auto_merge:
             runner.on_completed = lambda run_id: _auto_merge(merges, run_id)
         viewer = None
         if settings.viewer:
             viewer = Viewer(host=settings.host, port=settings.viewer_port)
-            events.listen(ViewerFeed(viewer, sessions))
+            events.listen(ViewerFeed(viewer, sessions, runner.live))
         status = StatusCache()
         events.listen(status)
         runner.recover()
@@ -139,11 +140,15 @@ class Services:
 
 
 class ViewerFeed:
-    """Event listener: stored patches and finished merges go to the 3D viewer."""
+    """Event listener: stored patches, the live mosaic and finished merges go to the 3D
+    viewer."""
 
-    def __init__(self, viewer: Viewer, sessions: sessionmaker[Session]) -> None:
+    def __init__(
+        self, viewer: Viewer, sessions: sessionmaker[Session], live: LiveMergeService | None = None
+    ) -> None:
         self.viewer = viewer
         self.sessions = sessions
+        self.live = live
 
     def __call__(self, event: dict[str, Any]) -> None:
         data = event.get("data") or {}
@@ -153,6 +158,18 @@ class ViewerFeed:
         elif event["kind"] == "merge" and data.get("state") == "done":
             job_id = int(data["job"])
             self.viewer.submit(lambda: self._mosaic(job_id))
+        elif event["kind"] == "live" and "patches_merged" in data and event.get("run_id"):
+            run_id = int(event["run_id"])
+            self.viewer.submit(lambda: self._live(run_id))
+
+    def _live(self, run_id: int) -> None:
+        held = self.live.mosaic(run_id) if self.live is not None else None
+        if held is None:
+            return
+        heights, document = held
+        origin = (float(document["origin"][0]), float(document["origin"][1]))
+        pixel = (float(document["pixel_size"][0]), float(document["pixel_size"][1]))
+        self.viewer.show_live(run_id, HeightMap(heights, origin, pixel))
 
     def _patch(self, run_id: int, index: int, total: int) -> None:
         with self.sessions() as session:

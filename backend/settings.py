@@ -23,6 +23,10 @@ class Settings(BaseSettings):
     viewer_port: int = Field(default=8080, ge=1, le=65535)
     viewer: bool = Field(default=True, description="serve the viser 3D viewer")
     auto_merge: bool = True
+    live_merge: bool = Field(
+        default=True,
+        description="merge every stored patch live and re-scan those the quality gate fails",
+    )
     cors_origins: list[str] = Field(
         default_factory=list, description="origins allowed cross-site (none: CORS closed)"
     )

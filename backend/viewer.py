@@ -92,6 +92,7 @@ class Viewer:
         self._lock = threading.Lock()
         self.raw: dict[tuple[int, int], Any] = {}  # (run, patch index) -> node
         self.merged: dict[int, Any] = {}  # job id -> node
+        self.live: dict[int, Any] = {}  # run id -> its live mosaic's node
         self.run_id: int | None = None
         self.zero: float | None = None  # heights are shown relative to the first one
         self.shown_at: dict[str, float] = {}  # node name -> monotonic time it was sent
@@ -135,21 +136,35 @@ class Viewer:
             self._style(node, merged=False)
 
     def show_mosaic(self, job_id: int, hmap: HeightMap) -> None:
-        """A merged mosaic, beside the raw patches; it replaces the previous one."""
+        """A merged mosaic, beside the raw patches; it replaces the previous one (and the live
+        mosaic it was merged from)."""
         with self._lock:
-            for old in self.merged.values():
+            for old in [*self.merged.values(), *self.live.values()]:
                 old.remove()
             self.merged.clear()
-            if self.zero is None:
-                self.zero = float(np.nanmedian(hmap.heights))
-            # beside the raw patches (to their right), so "both" compares them side by side
-            width = hmap.heights.shape[1] * hmap.pixel_size[0]
-            beside = HeightMap(
-                hmap.heights, (hmap.origin[0] + width + BESIDE_GAP, hmap.origin[1]), hmap.pixel_size
-            )
-            node = self._add(f"/merged/job{job_id}", beside, MERGED_BUDGET)
+            self.live.clear()
+            node = self._add(f"/merged/job{job_id}", self._beside(hmap), MERGED_BUDGET)
             self.merged[job_id] = node
             self._style(node, merged=True)
+
+    def show_live(self, run_id: int, hmap: HeightMap) -> None:
+        """A run's live mosaic, beside its raw patches, growing as the run stores patches."""
+        with self._lock:
+            old = self.live.pop(run_id, None)
+            if old is not None:
+                old.remove()
+            node = self._add(f"/merged/live{run_id}", self._beside(hmap), MERGED_BUDGET)
+            self.live[run_id] = node
+            self._style(node, merged=True)
+
+    def _beside(self, hmap: HeightMap) -> HeightMap:
+        """``hmap`` moved beside the raw patches (to their right), so "both" compares them."""
+        if self.zero is None:
+            self.zero = float(np.nanmedian(hmap.heights))
+        width = hmap.heights.shape[1] * hmap.pixel_size[0]
+        return HeightMap(
+            hmap.heights, (hmap.origin[0] + width + BESIDE_GAP, hmap.origin[1]), hmap.pixel_size
+        )
 
     def reset_camera(self) -> None:
         """Every browser's camera back to a view of everything shown, from the -y side."""
@@ -157,7 +172,7 @@ class Viewer:
             self._aim(client)
 
     def _aim(self, client: Any) -> None:
-        nodes = [*self.raw.values(), *self.merged.values()]
+        nodes = [*self.raw.values(), *self.merged.values(), *self.live.values()]
         xs = [float(n.position[0]) for n in nodes] or [0.0]
         ys = [float(n.position[1]) for n in nodes] or [0.0]
         centre = np.array([np.mean(xs), np.mean(ys), 0.0])
@@ -168,11 +183,12 @@ class Viewer:
         client.camera.up_direction = (0.0, 0.0, 1.0)
 
     def node_names(self) -> dict[str, list[str]]:
-        """Names of the nodes shown: ``{"raw": [...], "merged": [...]}``."""
+        """Names of the nodes shown: ``{"raw": [...], "merged": [...], "live": [...]}``."""
         with self._lock:
             return {
                 "raw": sorted(n.name for n in self.raw.values()),
                 "merged": sorted(n.name for n in self.merged.values()),
+                "live": sorted(n.name for n in self.live.values()),
             }
 
     def wait_idle(self, timeout: float = 30.0) -> bool:
@@ -222,5 +238,5 @@ class Viewer:
         with self._lock:
             for node in self.raw.values():
                 self._style(node, merged=False)
-            for node in self.merged.values():
+            for node in [*self.merged.values(), *self.live.values()]:
                 self._style(node, merged=True)

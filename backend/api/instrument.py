@@ -159,5 +159,5 @@ def viewer(services: ServicesDep) -> dict[str, object]:
     what it shows."""
     v = services.viewer
     if v is None:
-        return {"enabled": False, "port": None, "nodes": {"raw": [], "merged": []}}
+        return {"enabled": False, "port": None, "nodes": {"raw": [], "merged": [], "live": []}}
     return {"enabled": True, "port": v.port, "nodes": v.node_names()}

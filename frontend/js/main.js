@@ -3,7 +3,7 @@
 
 import { ApiError, get, post, setToken, token } from "./api.js";
 import { duration, nm, um } from "./format.js";
-import { buildPatchGrid, showPatch } from "./patches.js";
+import { buildPatchGrid, markQuality, showPatch } from "./patches.js";
 import { plotResiduals } from "./plot.js";
 import { SemView } from "./sem.js";
 
@@ -215,7 +215,10 @@ async function loadRun(id) {
     buildPatchGrid($("patch-grid"), run);
     state.startedAt = null;
   }
-  for (const p of run.patches) if (p.step === "stored") showPatch($("patch-grid"), run.id, p.index, act);
+  for (const p of run.patches) {
+    markQuality($("patch-grid"), p.index, p.quality, p.reason);
+    if (p.step === "stored") showPatch($("patch-grid"), run.id, p.index, act);
+  }
   renderRun();
   $("merge-start").disabled = run.progress.stored < 2;
 }
@@ -352,7 +355,8 @@ function logEvent(event) {
 
 function onEvent(event) {
   state.lastEvent = Math.max(state.lastEvent, event.id);
-  if (event.kind !== "merge" || event.data.state !== "running") logEvent(event);
+  const chatter = (event.kind === "merge" && event.data.state === "running") || (event.kind === "live" && event.data.patches_merged !== undefined);
+  if (!chatter) logEvent(event);
   const mine = state.run && event.run_id === state.run.id;
   if (event.kind === "run" && event.run_id) {
     act(() => (mine ? loadRun(event.run_id) : refreshRuns(event.run_id)));
@@ -363,7 +367,8 @@ function onEvent(event) {
     renderRun();
   } else if (event.kind === "progress" && mine) {
     state.run.progress = { stored: event.data.stored, total: event.data.total };
-    showPatch($("patch-grid"), event.run_id, event.data.patch, act);
+    const cell = $("patch-grid").querySelector(`[data-index="${event.data.patch}"]`);
+    showPatch($("patch-grid"), event.run_id, event.data.patch, act, cell?.dataset.quality === "rescanned");
     renderRun();
     $("merge-start").disabled = event.data.stored < 2;
   } else if (event.kind === "merge" && event.data.job) {
@@ -373,6 +378,10 @@ function onEvent(event) {
     }
     if (event.data.iteration !== undefined) state.residuals.push([event.data.iteration, event.data.residual]);
     renderMerge({ state: event.data.state, progress: event.data.progress, message: event.data.message });
+  } else if (event.kind === "live" && mine && event.data.passed !== undefined) {
+    markQuality($("patch-grid"), event.data.patch, event.data.passed ? "ok" : "failed", event.data.reason);
+  } else if (event.kind === "rescan" && mine) {
+    markQuality($("patch-grid"), event.data.patch, event.data.quality || "rescanned", event.data.reason);
   } else if (event.kind === "fault" || event.kind === "simulation") {
     act(loadInstrument);
   }

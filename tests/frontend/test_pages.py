@@ -271,3 +271,47 @@ def test_a_plan_made_with_the_keyboard_alone(page: tuple[Any, list[str]]) -> Non
 def test_the_api_token_header_works_for_scripts_too(server: ServerProcess) -> None:
     r = httpx.post(server.url + "/api/runs/999/start", headers=AUTH)
     assert r.status_code == 404
+
+
+def test_the_live_mosaic_grows_in_the_viewer_and_a_rescanned_patch_shows_on_the_page(
+    page: tuple[Any, list[str]], server: ServerProcess
+) -> None:
+    pg, errors = page
+    api = httpx.Client(base_url=server.url, headers=AUTH, timeout=30)
+    spoil = {"fault": "z_jump", "patches": [4], "count": 1}
+    assert api.post("/api/instrument/sim/fault", json=spoil).status_code == 204
+    body = {
+        "roi": {"x": -1e-6, "y": -1e-6, "width": 2e-6, "height": 2e-6},
+        "patch": {"width": 0.8e-6, "height": 0.8e-6, "pixels": [32, 32]},
+        "overlap": [0.3, 0.3],
+    }
+    run = api.post("/api/runs", json=body).json()
+    rid = run["id"]
+    pg.reload()  # the page lists the runs there are, the newest shown
+    pg.wait_for_selector(f"#run-select option[value='{rid}']", state="attached")
+    if pg.input_value("#run-select") != str(rid):
+        pg.select_option("#run-select", str(rid))
+    pg.wait_for_function("document.querySelector('#run-state').textContent.includes('planned')")
+    assert api.post(f"/api/runs/{rid}/start").status_code == 202
+    # the viewer shows the live mosaic while the run still scans
+    live_while_scanning = False
+    for _ in range(1200):
+        nodes = api.get("/api/instrument/viewer").json()["nodes"]
+        state = api.get(f"/api/runs/{rid}").json()["state"]
+        if nodes["live"] and state == "running":
+            live_while_scanning = nodes["live"] == [f"/merged/live{rid}"]
+            break
+        if state not in ("planned", "running"):
+            break
+        pg.wait_for_timeout(50)
+    assert live_while_scanning
+    # the spoiled patch is re-scanned, and the page shows it as such
+    _wait(pg, "document.querySelector('#patch-grid [data-quality=\"rescanned\"]') !== null")
+    _wait(pg, "document.querySelector('#run-state').textContent.includes('completed')")
+    rescanned = pg.locator('#patch-grid [data-quality="rescanned"]')
+    assert "re-scanned" in (rescanned.first.get_attribute("title") or "")
+    indices = {int(i) for i in rescanned.evaluate_all("els => els.map(e => e.dataset.index)")}
+    assert 4 in indices
+    assert pg.locator('#patch-grid [data-quality="ok"]').count() >= 16 - len(indices)
+    _shot(pg, "4-rescanned")
+    assert errors == [], errors
