@@ -67,6 +67,7 @@ bench: install
 	$(BIN)/python benchmarks/nanonis_bench.py
 	$(BIN)/python benchmarks/server_bench.py
 	$(BIN)/python benchmarks/viewer_bench.py
+	$(BIN)/python benchmarks/live_bench.py
 
 clean:
 	rm -rf $(VENV) $(OUT) .mypy_cache .ruff_cache .pytest_cache

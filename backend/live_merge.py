@@ -223,6 +223,12 @@ class LiveMergeService:
             process.join(5)
         relay.join(5)
 
+    def forget(self, run_id: int) -> None:
+        """Drop what is held of a stopped run (its last mosaic kept elsewhere)."""
+        with self._lock:
+            if run_id not in self._workers:
+                self._runs.pop(run_id, None)
+
     def close(self) -> None:
         for run_id in list(self._workers):
             self.stop(run_id)
@@ -271,6 +277,11 @@ class LiveMergeService:
                 message = outbox.get(timeout=0.5)
             except queue.Empty:
                 if not process.is_alive():
+                    with self._lock:
+                        state = self._runs[run_id]
+                        stopping = run_id not in self._workers
+                        if not stopping and state.failed is None:
+                            state.failed = "the live merge process ended unexpectedly"
                     return
                 continue
             try:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import threading
 from dataclasses import dataclass, field
 from typing import Any
 from urllib.parse import parse_qs, urlsplit
@@ -149,6 +150,9 @@ class ViewerFeed:
         self.viewer = viewer
         self.sessions = sessions
         self.live = live
+        #: runs whose live mosaic waits in the viewer's queue: one update in flight at most
+        self._live_queued: set[int] = set()
+        self._lock = threading.Lock()
 
     def __call__(self, event: dict[str, Any]) -> None:
         data = event.get("data") or {}
@@ -160,9 +164,15 @@ class ViewerFeed:
             self.viewer.submit(lambda: self._mosaic(job_id))
         elif event["kind"] == "live" and "patches_merged" in data and event.get("run_id"):
             run_id = int(event["run_id"])
+            with self._lock:  # the viewer draws the newest; updates that come meanwhile wait
+                if run_id in self._live_queued:
+                    return
+                self._live_queued.add(run_id)
             self.viewer.submit(lambda: self._live(run_id))
 
     def _live(self, run_id: int) -> None:
+        with self._lock:
+            self._live_queued.discard(run_id)
         held = self.live.mosaic(run_id) if self.live is not None else None
         if held is None:
             return

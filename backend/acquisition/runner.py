@@ -21,43 +21,36 @@ import logging
 import shutil
 import threading
 import time
-from collections import deque
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
 from backend.acquisition.control import Abort, Conflict, Control, NotFound, describe
-from backend.acquisition.journal import journaled_patch, journaled_run
+from backend.acquisition.patch_loop import PatchLoop
 from backend.acquisition.rescans import Rescans, Verdict
 from backend.acquisition.state import (
     ACTIVE,
     STARTABLE,
     PatchStep,
     RunState,
-    StateMachine,
 )
 from backend.acquisition.status import read_instrument
-from backend.db.models import PatchRecord, Run
-from backend.db.patch_store import LIVE_GROUP, read_patch, reconcile, write_mosaic, write_patch
+from backend.db.models import Run
+from backend.db.patch_store import LIVE_GROUP, reconcile, write_mosaic
 from backend.db.space import StorageFull, check_space, full_message, is_full
 from backend.events import EventBus
-from backend.live_merge import LiveMergeService, LiveRecord, lost_lines
-from backend.merge_jobs import PatchInput
+from backend.live_merge import LiveMergeService
 from hardware.errors import Interrupted, SafeStateError
 from hardware.microscope import Microscope
-from hardware.procedures import move_stage, retract, safe_state, sample_origin
+from hardware.procedures import safe_state
 
 log = logging.getLogger("mosaic_afm.runner")
 
-#: Seconds the end of a run waits for the live merge to judge its last patches.
-LIVE_DRAIN = 120.0
 
-
-class Runner:
+class Runner(PatchLoop):
     """Runs acquisitions on one instrument, one run at a time.
 
     Parameters
@@ -429,6 +422,7 @@ class Runner:
             with self.sessions() as session:
                 path = self._get(session, run_id).file
             write_mosaic(path, LIVE_GROUP, heights, document)
+            self.live.forget(run_id)  # from now on read from the run's file
         except StorageFull:
             log.warning("run %s: no room to keep its live mosaic in its file", run_id)
         except Exception:  # the run's end is recorded all the same
@@ -505,155 +499,6 @@ class Runner:
             m.loop, m.robot_z, (m.stage_x, m.stage_y, m.robot_x, m.robot_y), scanner=m.scanner
         )
         self._snapshot = {**self._snapshot, "safe_state": True, "loop_engaged": False}
-
-    def _checkpoint(self, session: Session, run: Run, control: Control, *, may_pause: bool) -> None:
-        """Between steps: honour an abort; a pause where ``may_pause`` (tip off the surface)."""
-        with control.wake:
-            if control.abort:
-                raise Abort
-            if not (control.pause and may_pause):
-                return
-            self._transition(session, run, RunState.PAUSED, "paused", control.actor)
-            control.wake.wait_for(lambda: not control.pause or control.abort)
-            if control.request() == "abort":
-                raise Abort
-            self._transition(session, run, RunState.RUNNING, "resumed", control.actor)
-
-    def _run_patches(self, session: Session, run: Run, control: Control) -> None:
-        """Every pending patch in order; a patch the quality gate fails is scanned again next
-        (:mod:`backend.acquisition.rescans`); at the end, the last verdicts are waited for."""
-        records = {p.index: p for p in run.patches}
-        todo = deque(p.index for p in run.patches if p.step != PatchStep.STORED.value)
-        self._seed_live(run)
-        while True:
-            while todo:
-                self._scan_patch(session, run, control, records[todo.popleft()])
-                self._act_on_verdicts(session, run, todo)
-            if self.live is None or not self.live.drain(run.id, LIVE_DRAIN):
-                return
-            self._act_on_verdicts(session, run, todo)
-            if not todo:
-                return
-
-    def _seed_live(self, run: Run) -> None:
-        """A run started again: its patches already stored go into the live merge first."""
-        if self.live is None:
-            return
-        for patch in run.patches:
-            if patch.step == PatchStep.STORED.value and patch.quality != "flagged":
-                stored = read_patch(run.file, patch.index)
-                self.live.submit(
-                    run.id,
-                    PatchInput(
-                        f"p{patch.index:03d}",
-                        stored.heights,
-                        stored.origin,
-                        stored.pixel_size,
-                        patch.index,
-                        patch.row,
-                        patch.col,
-                    ),
-                    LiveRecord(lines=run.pixels_y, lost=lost_lines(stored.heights)),
-                )
-
-    def _act_on_verdicts(self, session: Session, run: Run, todo: deque[int]) -> None:
-        """Act on the quality gate's verdicts (a re-scan keeps the failed scan aside in the
-        file, so the disk is checked first: HDF5 must never meet a full disk)."""
-        check_space(self.data_dir, need=self.patch_bytes, reserve=self.reserve)
-        for index in self.rescans.apply(session, run, todo):
-            if self.live is not None:
-                self.live.remove(run.id, index)
-
-    def _scan_patch(self, session: Session, run: Run, control: Control, patch: PatchRecord) -> None:
-        """One patch: move, land, scan, retract, store; then hand it to the live merge."""
-        m = self.microscope
-        _, loop, scanner = m.require_afm()
-        size = (run.patch_width, run.patch_height)
-        pixels = (run.pixels_x, run.pixels_y)
-        total = len(run.patches)
-        machine = self._patch_machine(session, run, patch)
-        planned = (patch.origin_x, patch.origin_y)
-        self._checkpoint(session, run, control, may_pause=True)
-        check_space(self.data_dir, need=self.patch_bytes, reserve=self.reserve)
-        run.current_patch = patch.index
-        patch.tries += 1
-        machine.go(PatchStep.MOVE)
-        move_stage(m.stage_x, m.stage_y, m.robot_x, m.robot_y, origin=planned, size=size)
-        scanner.prepare(size=size, pixels=pixels)
-        self._checkpoint(session, run, control, may_pause=True)
-        machine.go(PatchStep.LAND)
-        landing = m.land()
-        self._checkpoint(session, run, control, may_pause=False)
-        spoil = self.rescans.spoiling(patch.index) if m.sim is not None else None
-        if spoil is not None and m.sim is not None:
-            m.sim.spoil_next_scan(spoil, lines=run.pixels_y)
-        machine.go(PatchStep.SCAN, reason=f"spoiled by a simulated {spoil}" if spoil else "")
-        lines = scanner.scan(
-            size=size, pixels=pixels, line_rate=run.line_rate, stop=lambda: control.abort
-        )
-        machine.go(PatchStep.RETRACT)
-        retract(m.robot_z, loop)
-        origin = sample_origin(
-            lines, m.stage_x, m.stage_y, planned=planned, size=size, x=m.robot_x, y=m.robot_y
-        )
-        name = write_patch(
-            run.file,
-            patch.index,
-            lines.heights,
-            origin=origin,
-            pixel_size=lines.pixel_size,
-            line_times=lines.line_times,
-            attrs={
-                "planned_origin": planned,
-                "row": patch.row,
-                "col": patch.col,
-                "frequency_shift": landing.frequency_shift,
-                "landing_cycles": landing.cycles,
-                "line_rate": run.line_rate,
-                "instrument": m.description,
-                "try": patch.tries,
-                "row_readings": lines.row_readings
-                if lines.row_readings is not None
-                else np.zeros(0),
-            },
-        )
-        patch.dataset = name
-        machine.go(PatchStep.STORED)
-        self._snapshot = {
-            **read_instrument(self.microscope),
-            "last_patch": patch.index,
-        }
-        stored = sum(p.step == PatchStep.STORED.value for p in run.patches)
-        self.events.emit(
-            "progress",
-            f"run {run.id}: patch {patch.index} stored ({stored}/{total})",
-            run_id=run.id,
-            data={"stored": stored, "total": total, "patch": patch.index},
-        )
-        if self.live is not None:
-            self.live.submit(
-                run.id,
-                PatchInput(
-                    id=f"p{patch.index:03d}",
-                    heights=lines.heights,
-                    origin=origin,
-                    pixel_size=lines.pixel_size,
-                    order=patch.index,
-                    row=patch.row,
-                    col=patch.col,
-                ),
-                LiveRecord(lines=run.pixels_y, lost=lost_lines(lines.heights)),
-            )
-
-    def _patch_machine(
-        self, session: Session, run: Run, patch: PatchRecord
-    ) -> StateMachine[PatchStep]:
-        return journaled_patch(session, self.events, run, patch)
-
-    def _transition(
-        self, session: Session, run: Run, target: RunState, reason: str, actor: str
-    ) -> None:
-        journaled_run(session, self.events, run).go(target, reason=reason, actor=actor)
 
     # -- helpers ----------------------------------------------------------------------------
 

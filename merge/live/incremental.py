@@ -6,7 +6,9 @@ Adding patch ``c`` (:meth:`LiveMerge.add`):
    error;
 2. its coarse start against them (:func:`merge.start.coarse_start` on ``c`` and its
    neighbours), placed where its neighbours now are: the start's translations are relative,
-   so ``c`` goes where the neighbours' refined places say, their centres' offsets averaged;
+   so ``c`` goes where the neighbours' refined places say, their centres' offsets averaged
+   (a neighbour that its own start measured along one axis only, an edge's, and that this
+   start measures along both is placed again the same way);
 3. a refinement of the neighbourhood it touches: ``c`` and its neighbours move, the patches
    around them are held where they are (:func:`merge.refine.refine` with ``held``);
 4. every ``full_every`` patches (:meth:`LiveMerge.polish`, when the caller has time) and at
@@ -37,7 +39,7 @@ from merge.core.patchset import Patch
 from merge.core.transforms import PatchTransform
 from merge.live.canvas import LiveCanvas
 from merge.pipeline import SHIFT_PRIOR_FRACTION, Stopwatch, default_cell, default_max_shift
-from merge.refine import DEFAULT_LEVELS, Level, refine
+from merge.refine import DEFAULT_LEVELS, Level, RefineResult, refine
 from merge.render import Mosaic, render_mosaic
 from merge.report import MergeResult, PatchFit, assess, patch_reports
 from merge.report.misfit import PairMisfit, pair_misfits
@@ -192,7 +194,7 @@ class LiveMerge:
             raise ValueError(f"need at least 2 patches to merge, have {len(self.patches)}")
         watch = Stopwatch()
         with watch.step("solve"):
-            self._refine_all(DEFAULT_LEVELS[1:])
+            fit = self._refine_all(DEFAULT_LEVELS[1:])
         cell = self.config.cell or default_cell(self.patches)
         max_shift = self.config.max_shift or default_max_shift(self.patches)
         boxes = np.array([p.footprint for p in self.patches])
@@ -216,27 +218,28 @@ class LiveMerge:
             patches=reports,
             method="default",
             config=self.config,
-            iterations=0,
-            converged=True,
-            history=[],
+            iterations=fit.iterations if fit is not None else 0,
+            converged=fit.converged if fit is not None else True,
+            history=list(fit.history) if fit is not None else [],
             warnings=warnings,
             timings=watch.timings,
         )
 
     def _refine_all(
         self, levels: Sequence[Level], *, cancel: Callable[[], bool] | None = None
-    ) -> None:
+    ) -> RefineResult | None:
         """Every patch refined at once from where it is, over ``levels`` (a cancel raises
-        :class:`merge.MergeCancelled` and changes nothing)."""
+        :class:`merge.MergeCancelled` and changes nothing); what it did (None: nothing to
+        refine)."""
         if len(self.patches) < 2:
-            return
+            return None
         cell = self.config.cell or default_cell(self.patches)
         max_shift = self.config.max_shift or default_max_shift(self.patches)
         boxes = np.array([p.footprint for p in self.patches])
         near = overlapping_pairs(moved_boxes(boxes, self.transforms), margin=4.0 * cell)
         if not len(near):  # nothing overlaps: nothing to refine
             self._since_full = 0
-            return
+            return None
         fit = refine(
             self.patches,
             near,
@@ -247,6 +250,7 @@ class LiveMerge:
         )
         self.transforms = list(fit.transforms)
         self._since_full = 0
+        return fit
 
     def _draw(self, which: IntArray) -> None:
         """The patches ``which`` drawn on the canvas at their current transforms."""
