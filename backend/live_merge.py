@@ -59,6 +59,9 @@ class LiveState:
     #: seconds from a patch handed over to the live mosaic holding it, in order
     latencies: list[float] = field(default_factory=list)
     failed: str | None = None
+    #: final looks asked for and answered (:meth:`LiveMergeService.final`)
+    finals_asked: int = 0
+    finals_done: int = 0
 
 
 def patch_id(index: int) -> str:
@@ -92,6 +95,16 @@ def _live_child(inbox: Any, outbox: Any, parent: int | None = None) -> None:
         if kind == "stop":
             return
         try:
+            if kind == "final":
+                looks = gate.final({pid: live.misfits_of(pid) for pid in live.ids})
+                said = {_index(pid): (False, v.reason) for pid, v in looks.items() if not v.ok}
+                for index in said:
+                    live.remove(patch_id(index))
+                    gate.forget(patch_id(index))
+                outbox.put(("final", said))
+                if said and len(live):
+                    outbox.put(("mosaic", None, *_snapshot(live)))
+                continue
             if kind == "remove":
                 pid = patch_id(message[1])
                 if pid in live.ids:
@@ -120,8 +133,8 @@ def _live_child(inbox: Any, outbox: Any, parent: int | None = None) -> None:
                 if not verdict.ok:
                     live.remove(pid)
                     gate.forget(pid)
-            said = {_index(pid): (v.ok, v.reason) for pid, v in verdicts.items()}
-            outbox.put(("judged", p.order, said, update.seconds))
+            judged = {_index(pid): (v.ok, v.reason) for pid, v in verdicts.items()}
+            outbox.put(("judged", p.order, judged, update.seconds))
             if len(live):
                 outbox.put(("mosaic", p.order, *_snapshot(live)))
         except Exception as exc:  # reported; the run goes on without a live mosaic
@@ -205,6 +218,25 @@ class LiveMergeService:
             with self._lock:
                 state = self._runs.get(run_id)
                 if state is None or state.failed or state.judged >= state.submitted:
+                    return True
+            time.sleep(0.02)
+        return False
+
+    def final(self, run_id: int, timeout: float) -> bool:
+        """Ask for the gate's last look at every patch of the run (each neighbour there now);
+        its verdicts come as the others do. Whether it answered within ``timeout`` s."""
+        with self._lock:
+            worker = self._workers.get(run_id)
+            state = self._runs.get(run_id)
+            if worker is None or state is None:
+                return True
+            state.finals_asked += 1
+            asked = state.finals_asked
+        worker[0].put(("final",))
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            with self._lock:
+                if state.failed or state.finals_done >= asked:
                     return True
             time.sleep(0.02)
         return False
@@ -319,6 +351,19 @@ class LiveMergeService:
                 run_id=run_id,
                 data={"patches_merged": document["patches_merged"], "patch": index},
             )
+        elif kind == "final":
+            _, said = message
+            for index, (ok, reason) in said.items():
+                self.events.emit(
+                    "live",
+                    f"run {run_id}: patch {index} fails the quality gate's last look: {reason}",
+                    run_id=run_id,
+                    data={"patch": index, "passed": ok, "reason": reason, "final": True},
+                )
+                if self.on_verdict is not None:
+                    self.on_verdict(run_id, index, ok, reason)
+            with self._lock:
+                self._runs[run_id].finals_done += 1
         elif kind == "error":
             with self._lock:
                 self._runs[run_id].failed = str(message[1])

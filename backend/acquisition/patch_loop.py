@@ -30,6 +30,9 @@ from hardware.procedures import move_stage, retract, sample_origin
 
 #: Seconds the end of a run waits for the live merge to judge its last patches.
 LIVE_DRAIN = 120.0
+#: Last looks of the quality gate at the whole mosaic, each after the re-scans of the one
+#: before.
+FINAL_LOOKS = 2
 
 
 class PatchLoop:
@@ -63,12 +66,21 @@ class PatchLoop:
         records = {p.index: p for p in run.patches}
         todo = deque(p.index for p in run.patches if p.step != PatchStep.STORED.value)
         self._seed_live(run)
+        looks = 0
         while True:
             while todo:
                 self._scan_patch(session, run, control, records[todo.popleft()])
                 self._act_on_verdicts(session, run, todo)
-            if self.live is None or not self._await_verdicts(self.live, session, run, control):
+            live = self.live
+            if live is None or not self._await_verdicts(live, session, run, control):
                 return
+            self._act_on_verdicts(session, run, todo)
+            if todo:
+                continue
+            # every patch judged: the gate's last look, each with all its neighbours there
+            if looks >= FINAL_LOOKS or not live.final(run.id, LIVE_DRAIN):
+                return
+            looks += 1
             self._act_on_verdicts(session, run, todo)
             if not todo:
                 return

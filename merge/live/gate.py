@@ -135,6 +135,29 @@ class Gate:
             self._failed_over.setdefault(c, set()).update(bad)
         return verdicts
 
+    def final(self, misfits: dict[str, dict[str, PairMisfit]]) -> dict[str, Verdict]:
+        """The last look at the whole mosaic, every neighbour there: ``misfits`` says how each
+        patch lies over each of its own (:meth:`merge.live.LiveMerge.misfits_of`, by id).
+        Every patch that lies badly over at least two neighbours, more of them than any of
+        those lies badly over, fails (it is what the bad pairs share); the others pass. A
+        spoiled patch whose spoiled lines met only later patches, each of which lies well
+        over the rest, is caught here."""
+        usual = self.usual
+        bad: dict[str, dict[str, str]] = {}
+        for c, pairs in misfits.items():
+            judged = {j: m for j, m in pairs.items() if m.points >= MIN_PAIR_POINTS}
+            bad[c] = {j: why for j, m in judged.items() if (why := _misfit(m, usual))}
+        verdicts = {}
+        for c, mine in bad.items():
+            count = len(mine)
+            if count >= 2 and all(len(bad.get(j, {})) < count for j in mine):
+                worst = max(mine, key=lambda j: misfits[c][j].rms)
+                reason = f"over {count} of its neighbours, e.g. {worst}: {mine[worst]}"
+                verdicts[c] = Verdict(False, reason)
+            else:
+                verdicts[c] = Verdict(True)
+        return verdicts
+
     def _blame(
         self, c: str, pairs: dict[str, PairMisfit], bad: dict[str, str]
     ) -> dict[str, Verdict]:

@@ -166,6 +166,22 @@ class LiveMerge:
             seconds=watch.timings,
         )
 
+    def misfits_of(self, patch_id: str) -> dict[str, PairMisfit]:
+        """How patch ``patch_id`` lies now over each patch it overlaps, by their ids (the final
+        look of the quality gate, once every neighbour is there)."""
+        c = self.ids.index(patch_id)
+        cell = self.config.cell or default_cell(self.patches)
+        boxes = moved_boxes(np.array([p.footprint for p in self.patches]), self.transforms)
+        pairs = overlapping_pairs(boxes, margin=cell)
+        near = np.unique(pairs[(pairs == c).any(axis=1)])
+        members = np.concatenate([[c], near[near != c]]).astype(np.intp)
+        index = {int(j): k for k, j in enumerate(members)}
+        sub = [(index[int(a)], index[int(b)]) for a, b in pairs if a in index and b in index]
+        local = [self.patches[int(j)] for j in members]
+        placed = [self.transforms[int(j)] for j in members]
+        found = pair_misfits(local, placed, np.array(sub, dtype=np.intp).reshape(-1, 2), 0)
+        return {local[m.other].id: m for m in found}
+
     def remove(self, patch_id: str) -> None:
         """Leave out the patch ``patch_id`` (a flagged patch, or one about to be re-scanned)."""
         k = self.ids.index(patch_id)

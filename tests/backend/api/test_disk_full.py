@@ -142,7 +142,7 @@ def test_enospc_at_each_write_site_ends_safe_and_the_run_resumes(
     """The same, with the disk's refusal injected at one write site of the worker."""
     full = threading.Event()
     if site == "patch write":
-        import backend.acquisition.runner as runner_module
+        import backend.acquisition.patch_loop as runner_module
 
         real = runner_module.write_patch
 

@@ -101,3 +101,21 @@ def test_the_scan_record_speaks_first() -> None:
         ScanRecord(lines=10, lost=11)
     with pytest.raises(ValueError, match="at least one line"):
         ScanRecord(lines=0)
+
+
+def test_the_last_look_fails_a_patch_that_lies_badly_over_most_of_its_neighbours(
+    grid: Synthetic,
+) -> None:
+    # every patch added unjudged (as if the gate had been blind so far): the last look, each
+    # patch with all its neighbours there, fails the spoiled one and only it
+    spoiled = _spoiled(grid, 4, "z_jump")
+    live, gate = LiveMerge(), Gate()
+    for p in sorted(grid.patch_set.patches, key=lambda p: p.order):
+        p = spoiled.get(p.order, p)
+        update = live.add(p)
+        if p.order != 4:
+            gate.judge(update, noise=estimate_noise(p.heights))
+    verdicts = gate.final({pid: live.misfits_of(pid) for pid in live.ids})
+    failed = [pid for pid, v in verdicts.items() if not v.ok]
+    assert failed == [spoiled[4].id]
+    assert "neighbours" in verdicts[spoiled[4].id].reason
