@@ -18,7 +18,7 @@ import queue
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -26,6 +26,7 @@ from numpy.typing import NDArray
 
 from backend.events import EventBus
 from backend.merge_jobs import WORKER_NICENESS, PatchInput, die_with_parent
+from merge.live.gate import ScanRecord
 
 log = logging.getLogger("mosaic_afm.live_merge")
 
@@ -33,17 +34,6 @@ log = logging.getLogger("mosaic_afm.live_merge")
 OnVerdict = Callable[[int, int, bool, str], None]
 #: Seconds the worker waits for a patch before it polishes the mosaic.
 IDLE = 0.05
-
-
-@dataclass(frozen=True)
-class LiveRecord:
-    """What the scan recorded of a patch, for the gate (see :class:`merge.live.ScanRecord`)."""
-
-    lines: int
-    lost: int = 0
-    saturated: int = 0
-    mistracked: int = 0
-    pll_unlocked: bool = False
 
 
 @dataclass
@@ -79,9 +69,8 @@ def _live_child(inbox: Any, outbox: Any, parent: int | None = None) -> None:
         die_with_parent(parent)
     if hasattr(os, "nice"):
         os.nice(WORKER_NICENESS)
-    import merge
     from merge.core.noise import estimate_noise
-    from merge.live import Gate, LiveMerge, ScanRecord
+    from merge.live import Gate, LiveMerge
 
     live, gate = LiveMerge(), Gate()
     while True:
@@ -114,20 +103,12 @@ def _live_child(inbox: Any, outbox: Any, parent: int | None = None) -> None:
                         outbox.put(("mosaic", None, *_snapshot(live)))
                 continue
             _, p, record = message
-            patch = merge.Patch(
-                id=patch_id(p.order),
-                heights=p.heights,
-                origin=p.origin,
-                pixel_size=p.pixel_size,
-                order=p.order,
-                row=p.row,
-                col=p.col,
-            )
+            patch = p.to_patch()
             update = live.add(patch)
             verdicts = gate.judge(
                 update,
                 noise=float(estimate_noise(patch.heights)),
-                record=ScanRecord(**asdict(record)),
+                record=record,
             )
             for pid, verdict in verdicts.items():
                 if not verdict.ok:
@@ -194,7 +175,7 @@ class LiveMergeService:
 
     # -- the runner's side --------------------------------------------------------------------
 
-    def submit(self, run_id: int, patch: PatchInput, record: LiveRecord) -> None:
+    def submit(self, run_id: int, patch: PatchInput, record: ScanRecord) -> None:
         """Hand a stored patch (``patch.order`` is its index) to the run's live merge; never
         waits for it."""
         inbox = self._worker(run_id)[0]

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 from datetime import UTC, datetime
 from multiprocessing.synchronize import Event as MpEvent
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -31,6 +31,9 @@ from backend.db.models import MergeJob, Run
 from backend.db.patch_store import read_patch, write_merge
 from backend.db.space import full_message, is_full
 from backend.events import EventBus
+
+if TYPE_CHECKING:
+    from merge import Patch
 
 log = logging.getLogger("mosaic_afm.merge_jobs")
 
@@ -49,6 +52,8 @@ class JobError(RuntimeError):
 
 @dataclass(frozen=True)
 class PatchInput:
+    """A stored patch as a worker process gets it (picklable, no merge import needed)."""
+
     id: str
     heights: NDArray[np.float64]
     origin: tuple[float, float]
@@ -56,6 +61,20 @@ class PatchInput:
     order: int
     row: int
     col: int
+
+    def to_patch(self) -> Patch:
+        """The merge's :class:`merge.Patch` (imported here: only workers need it)."""
+        from merge import Patch
+
+        return Patch(
+            id=self.id,
+            heights=self.heights,
+            origin=self.origin,
+            pixel_size=self.pixel_size,
+            order=self.order,
+            row=self.row,
+            col=self.col,
+        )
 
 
 #: The worker's pid file in the data dir, while a merge runs: start-up reaps what it names.
@@ -134,18 +153,7 @@ def _merge_child(
     from merge.io.result import result_document
 
     try:
-        patch_set = merge.PatchSet(
-            merge.Patch(
-                id=p.id,
-                heights=p.heights,
-                origin=p.origin,
-                pixel_size=p.pixel_size,
-                order=p.order,
-                row=p.row,
-                col=p.col,
-            )
-            for p in patches
-        )
+        patch_set = merge.PatchSet(p.to_patch() for p in patches)
         config = merge.MergeConfig(**options)
         result = merge.run(
             patch_set,

@@ -23,10 +23,11 @@ from backend.db.models import PatchRecord, Run
 from backend.db.patch_store import read_patch, write_patch
 from backend.db.space import check_space
 from backend.events import EventBus
-from backend.live_merge import LiveMergeService, LiveRecord, lost_lines
+from backend.live_merge import LiveMergeService, lost_lines
 from backend.merge_jobs import PatchInput
 from hardware.microscope import Microscope
 from hardware.procedures import move_stage, retract, sample_origin
+from merge.live.gate import ScanRecord
 
 #: Seconds the end of a run waits for the live merge to judge its last patches.
 LIVE_DRAIN = 120.0
@@ -115,7 +116,7 @@ class PatchLoop:
                         patch.row,
                         patch.col,
                     ),
-                    LiveRecord(lines=run.pixels_y, lost=lost_lines(stored.heights)),
+                    ScanRecord(lines=run.pixels_y, lost=lost_lines(stored.heights)),
                 )
 
     def _act_on_verdicts(self, session: Session, run: Run, todo: deque[int]) -> None:
@@ -204,7 +205,7 @@ class PatchLoop:
                     row=patch.row,
                     col=patch.col,
                 ),
-                LiveRecord(lines=run.pixels_y, lost=lost_lines(lines.heights)),
+                ScanRecord(lines=run.pixels_y, lost=lost_lines(lines.heights)),
             )
 
     def _patch_machine(

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Iterator
+from typing import Any
 
 import numpy as np
 import pytest
@@ -64,8 +65,9 @@ def test_a_crash_is_detected(afm: SimulatedAFM) -> None:
     assert afm.crashed
 
 
-def test_a_scan_reproduces_the_surface_within_noise_and_dilation(afm: SimulatedAFM) -> None:
-    result = acquire_patch(
+def _acquire(afm: SimulatedAFM) -> Any:
+    """A 30 x 30 patch of 0.6 µm at (1, 2) µm, through the real procedure."""
+    return acquire_patch(
         stage_x=afm.stage_x,
         stage_y=afm.stage_y,
         x=afm.robot_x,
@@ -79,6 +81,10 @@ def test_a_scan_reproduces_the_surface_within_noise_and_dilation(afm: SimulatedA
         pixels=(30, 30),
         line_rate=2.0,
     )
+
+
+def test_a_scan_reproduces_the_surface_within_noise_and_dilation(afm: SimulatedAFM) -> None:
+    result = _acquire(afm)
     h = result.lines.heights
     where = np.array(afm.line_positions[-30:])  # where each pixel truly was (simulator truth)
     ideal = afm.surface_height(where[..., 0], where[..., 1], 0.0)  # what a 10 nm tip can touch
@@ -102,21 +108,7 @@ def test_drift_grows_with_simulated_time(afm: SimulatedAFM) -> None:
 def _scan_against_truth(afm: SimulatedAFM) -> tuple[np.ndarray, np.ndarray]:
     """A 30 x 30 scan, and its heights less what a sharp tip touches where each pixel truly
     was (simulator truth), each line's own offset left in."""
-    result = acquire_patch(
-        stage_x=afm.stage_x,
-        stage_y=afm.stage_y,
-        x=afm.robot_x,
-        y=afm.robot_y,
-        z=afm.robot_z,
-        loop=afm,
-        probe=afm,
-        recorder=afm,
-        origin=(1e-6, 2e-6),
-        size=(0.6e-6, 0.6e-6),
-        pixels=(30, 30),
-        line_rate=2.0,
-    )
-    h: np.ndarray = result.lines.heights
+    h: np.ndarray = _acquire(afm).lines.heights
     where = np.array(afm.line_positions[-30:])
     return h, h - afm.surface_height(where[..., 0], where[..., 1], 0.0)
 
