@@ -25,7 +25,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from backend.events import EventBus
-from backend.merge_jobs import WORKER_NICENESS, PatchInput, die_with_parent
+from backend.merge_jobs import WORKER_NICENESS, PatchInput, die_with_parent, patch_id
 from merge.live.gate import ScanRecord
 
 log = logging.getLogger("mosaic_afm.live_merge")
@@ -54,11 +54,6 @@ class LiveState:
     finals_done: int = 0
 
 
-def patch_id(index: int) -> str:
-    """The live merge's id of patch ``index`` (as the merge jobs name them)."""
-    return f"p{index:03d}"
-
-
 def _index(pid: str) -> int:
     return int(pid[1:])
 
@@ -85,7 +80,7 @@ def _live_child(inbox: Any, outbox: Any, parent: int | None = None) -> None:
             return
         try:
             if kind == "final":
-                looks = gate.final({pid: live.misfits_of(pid) for pid in live.ids})
+                looks = gate.final(live.misfits())
                 said = {_index(pid): (False, v.reason) for pid, v in looks.items() if not v.ok}
                 for index in said:
                     live.remove(patch_id(index))

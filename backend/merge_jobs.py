@@ -50,6 +50,11 @@ class JobError(RuntimeError):
     """A job request that cannot be done (HTTP 409/422 at the API); says why."""
 
 
+def patch_id(index: int) -> str:
+    """The merge's id of a run's patch ``index`` (a merge job's and the live merge's alike)."""
+    return f"p{index:03d}"
+
+
 @dataclass(frozen=True)
 class PatchInput:
     """A stored patch as a worker process gets it (picklable, no merge import needed)."""
@@ -334,7 +339,7 @@ class MergeService:
                 rec = records[index]
                 inputs.append(
                     PatchInput(
-                        id=f"p{index:03d}",
+                        id=patch_id(index),
                         heights=stored.heights,
                         origin=stored.origin,
                         pixel_size=stored.pixel_size,

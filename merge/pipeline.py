@@ -3,13 +3,13 @@ and quality out.
 
 One merge is five steps over small records, each timed on its own (``MergeResult.timings``):
 
-1. :func:`_layout` -> :class:`Layout`: which patches can overlap (the stage's error margin), the
+1. :func:`layout_of` -> :class:`Layout`: which patches can overlap (the stage's error margin), the
    cell, and warnings for patches and groups nothing ties to the rest;
 2. :func:`_start` -> :class:`Placement`: the coarse start (:mod:`merge.start`), or nominal;
 3. :func:`_solve` -> :class:`Solution`: the simultaneous refinement (:mod:`merge.refine`) or the
    paper's loop (:mod:`merge.paper`);
 4. report: the assessment of the final transforms (:mod:`merge.report`);
-5. render: one height map (:mod:`merge.render`).
+5. render: one height map (:mod:`merge.render`) (:func:`finish` does both).
 
 Self-calibration (``MergeConfig.self_calibrate``) wraps it: a first merge, the scanner's bend
 measured from it (:mod:`merge.refine.scanner`), and where the bend stands out of the noise the
@@ -186,10 +186,22 @@ def merge_once(
     patches = patch_set.patches
     watch = Stopwatch()
     with watch.step("start"):
-        layout = _layout(patch_set, cfg)
+        layout = layout_of(patch_set, cfg)
         placed = _start(patch_set, layout, cfg)
     with watch.step("solve"):
         solution = _solve(patches, layout, placed, cfg, progress=progress, cancel=cancel)
+    return finish(patches, layout, solution, cfg, watch)
+
+
+def finish(
+    patches: Sequence[Patch],
+    layout: Layout,
+    solution: Solution,
+    cfg: MergeConfig,
+    watch: Stopwatch,
+) -> MergeResult:
+    """Steps 4 and 5: the report on the transforms the solver settled on and the render, as
+    the result (the live merge ends with them too)."""
     transforms = solution.transforms
     with watch.step("report"):
         final_pairs = overlapping_pairs(moved_boxes(layout.boxes, transforms), margin=layout.cell)
@@ -212,7 +224,7 @@ def merge_once(
     )
 
 
-def _layout(patch_set: PatchSet, cfg: MergeConfig) -> Layout:
+def layout_of(patch_set: PatchSet, cfg: MergeConfig) -> Layout:
     """Step 1: the pairs that can overlap, and warnings for what nothing ties to the rest."""
     patches = patch_set.patches
     n = len(patches)

@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 from sqlalchemy.orm import Session
 
 from backend.acquisition.control import Abort, Control
@@ -24,10 +25,12 @@ from backend.db.patch_store import read_patch, write_patch
 from backend.db.space import check_space
 from backend.events import EventBus
 from backend.live_merge import LiveMergeService, lost_lines
-from backend.merge_jobs import PatchInput
+from backend.merge_jobs import PatchInput, patch_id
 from hardware.microscope import Microscope
 from hardware.procedures import move_stage, retract, sample_origin
 from merge.live.gate import ScanRecord
+
+FloatArray = NDArray[np.float64]
 
 #: Seconds the end of a run waits for the live merge to judge its last patches.
 LIVE_DRAIN = 120.0
@@ -105,19 +108,32 @@ class PatchLoop:
         for patch in run.patches:
             if patch.step == PatchStep.STORED.value and patch.quality != "flagged":
                 stored = read_patch(run.file, patch.index)
-                self.live.submit(
-                    run.id,
-                    PatchInput(
-                        f"p{patch.index:03d}",
-                        stored.heights,
-                        stored.origin,
-                        stored.pixel_size,
-                        patch.index,
-                        patch.row,
-                        patch.col,
-                    ),
-                    ScanRecord(lines=run.pixels_y, lost=lost_lines(stored.heights)),
-                )
+                self._to_live(run, patch, stored.heights, stored.origin, stored.pixel_size)
+
+    def _to_live(
+        self,
+        run: Run,
+        patch: PatchRecord,
+        heights: FloatArray,
+        origin: tuple[float, float],
+        pixel_size: tuple[float, float],
+    ) -> None:
+        """Hand a stored patch, with what its scan recorded, to the run's live merge."""
+        if self.live is None:
+            return
+        self.live.submit(
+            run.id,
+            PatchInput(
+                patch_id(patch.index),
+                heights,
+                origin,
+                pixel_size,
+                patch.index,
+                patch.row,
+                patch.col,
+            ),
+            ScanRecord(lines=run.pixels_y, lost=lost_lines(heights)),
+        )
 
     def _act_on_verdicts(self, session: Session, run: Run, todo: deque[int]) -> None:
         """Act on the quality gate's verdicts (a re-scan keeps the failed scan aside in the
@@ -193,20 +209,7 @@ class PatchLoop:
             run_id=run.id,
             data={"stored": stored, "total": total, "patch": patch.index},
         )
-        if self.live is not None:
-            self.live.submit(
-                run.id,
-                PatchInput(
-                    id=f"p{patch.index:03d}",
-                    heights=lines.heights,
-                    origin=origin,
-                    pixel_size=lines.pixel_size,
-                    order=patch.index,
-                    row=patch.row,
-                    col=patch.col,
-                ),
-                ScanRecord(lines=run.pixels_y, lost=lost_lines(lines.heights)),
-            )
+        self._to_live(run, patch, lines.heights, origin, lines.pixel_size)
 
     def _patch_machine(
         self, session: Session, run: Run, patch: PatchRecord

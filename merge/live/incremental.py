@@ -35,13 +35,22 @@ from numpy.typing import NDArray
 from merge.config import MergeConfig
 from merge.core.errors import MergeCancelled
 from merge.core.overlap import moved_boxes, overlapping_pairs
-from merge.core.patchset import Patch
+from merge.core.patchset import Patch, PatchSet
 from merge.core.transforms import PatchTransform
 from merge.live.canvas import LiveCanvas
-from merge.pipeline import SHIFT_PRIOR_FRACTION, Stopwatch, default_cell, default_max_shift
+from merge.live.neighbourhood import frame_offset, within
+from merge.pipeline import (
+    SHIFT_PRIOR_FRACTION,
+    Solution,
+    Stopwatch,
+    default_cell,
+    default_max_shift,
+    finish,
+    layout_of,
+)
 from merge.refine import DEFAULT_LEVELS, Level, RefineResult, refine
-from merge.render import Mosaic, render_mosaic
-from merge.report import MergeResult, PatchFit, assess, patch_reports
+from merge.render import Mosaic
+from merge.report import MergeResult, PatchFit, assess
 from merge.report.misfit import PairMisfit, pair_misfits
 from merge.start import coarse_cell, coarse_start
 
@@ -169,17 +178,25 @@ class LiveMerge:
     def misfits_of(self, patch_id: str) -> dict[str, PairMisfit]:
         """How patch ``patch_id`` lies now over each patch it overlaps, by their ids (the final
         look of the quality gate, once every neighbour is there)."""
-        c = self.ids.index(patch_id)
+        return self._misfits(self.ids.index(patch_id), self._overlaps_now())
+
+    def misfits(self) -> dict[str, dict[str, PairMisfit]]:
+        """:meth:`misfits_of` every patch, the overlaps found once for all."""
+        pairs = self._overlaps_now()
+        return {p.id: self._misfits(c, pairs) for c, p in enumerate(self.patches)}
+
+    def _overlaps_now(self) -> IntArray:
+        """The pairs of patches that overlap at their current transforms."""
         cell = self.config.cell or default_cell(self.patches)
         boxes = moved_boxes(np.array([p.footprint for p in self.patches]), self.transforms)
-        pairs = overlapping_pairs(boxes, margin=cell)
+        return overlapping_pairs(boxes, margin=cell)
+
+    def _misfits(self, c: int, pairs: IntArray) -> dict[str, PairMisfit]:
         near = np.unique(pairs[(pairs == c).any(axis=1)])
         members = np.concatenate([[c], near[near != c]]).astype(np.intp)
-        index = {int(j): k for k, j in enumerate(members)}
-        sub = [(index[int(a)], index[int(b)]) for a, b in pairs if a in index and b in index]
         local = [self.patches[int(j)] for j in members]
         placed = [self.transforms[int(j)] for j in members]
-        found = pair_misfits(local, placed, np.array(sub, dtype=np.intp).reshape(-1, 2), 0)
+        found = pair_misfits(local, placed, within(members, pairs), 0)
         return {local[m.other].id: m for m in found}
 
     def remove(self, patch_id: str) -> None:
@@ -211,35 +228,13 @@ class LiveMerge:
         watch = Stopwatch()
         with watch.step("solve"):
             fit = self._refine_all(DEFAULT_LEVELS[1:])
-        cell = self.config.cell or default_cell(self.patches)
-        max_shift = self.config.max_shift or default_max_shift(self.patches)
-        boxes = np.array([p.footprint for p in self.patches])
-        linked = np.zeros(len(self.patches), dtype=bool)
-        linked[overlapping_pairs(boxes, margin=max_shift).ravel()] = True
-        with watch.step("report"):
-            final = overlapping_pairs(moved_boxes(boxes, self.transforms), margin=cell)
-            fits = assess(self.patches, final, self.transforms)
-            reports, warnings = patch_reports(
-                self.patches, self.transforms, fits, linked, registered=True
+        solution = Solution(list(self.transforms))
+        if fit is not None:
+            solution = Solution(
+                fit.transforms, fit.iterations, fit.converged, tuple(fit.history), fit.bank
             )
-        with watch.step("render"):
-            mosaic = render_mosaic(
-                self.patches,
-                self.transforms,
-                pixel_size=self.config.pixel_size,
-                feather=self.config.feather,
-            )
-        return MergeResult(
-            mosaic=mosaic,
-            patches=reports,
-            method="default",
-            config=self.config,
-            iterations=fit.iterations if fit is not None else 0,
-            converged=fit.converged if fit is not None else True,
-            history=list(fit.history) if fit is not None else [],
-            warnings=warnings,
-            timings=watch.timings,
-        )
+        layout = layout_of(PatchSet(self.patches), self.config)
+        return finish(self.patches, layout, solution, self.config, watch)
 
     def _refine_all(
         self, levels: Sequence[Level], *, cancel: Callable[[], bool] | None = None
@@ -324,7 +319,7 @@ class LiveMerge:
         if not (~moving & known).any():  # no neighbour measured both ways holds the frame
             moving[:-1] = False
         reference = ~moving & known if (~moving & known).any() else ~moving
-        shift = _frame_offset(
+        shift = frame_offset(
             [local[k] for k in np.flatnonzero(reference)],
             start.translation[reference],
             [self.transforms[int(members[k])] for k in np.flatnonzero(reference)],
@@ -352,9 +347,7 @@ class LiveMerge:
         if not len(ring):  # nothing around to hold the gauge: the oldest neighbour holds it
             ring, free = free[:1], free[1:]
         members = np.concatenate([free, ring])
-        index = {int(j): k for k, j in enumerate(members)}
-        sub = [(index[int(a)], index[int(b)]) for a, b in near if a in index and b in index]
-        sub_pairs = np.array(sub, dtype=np.intp).reshape(-1, 2)
+        sub_pairs = within(members, near)
         held = np.zeros(len(members), dtype=bool)
         held[len(free) :] = True
         # the widest level for patches no start measured both ways, as the batch merge does
@@ -390,17 +383,3 @@ class LiveMerge:
         own = int(np.flatnonzero(members == c)[0])
         misfits = {patches[m.other].id: m for m in pair_misfits(patches, transforms, pairs, own)}
         return by_id, misfits
-
-
-def _frame_offset(
-    patches: Sequence[Patch], translation: FloatArray, placed: Sequence[PatchTransform]
-) -> FloatArray:
-    """How far (x, y, z, metres) the mosaic's frame lies from a coarse start's, as the
-    ``patches`` already placed say: the mean, over them, of where their centres now are less
-    where the start's ``translation`` (n, 3) put them."""
-    offsets = []
-    for p, t0, tr in zip(patches, translation, placed, strict=True):
-        centre = np.array([*p.center, float(np.nanmedian(p.heights))])
-        offsets.append(tr.apply(centre[None])[0] - (centre + t0))
-    out: FloatArray = np.mean(offsets, axis=0)
-    return out

@@ -225,7 +225,7 @@ def test_the_start_step_keeps_nominal_places_where_nothing_is_estimated(
 ) -> None:
     ps = small_mosaic.patch_set
     cfg = MergeConfig(method="nominal")
-    layout = pipeline._layout(ps, cfg)
+    layout = pipeline.layout_of(ps, cfg)
     assert layout.linked.all() and len(layout.pairs) > 0 and not layout.warnings
     placed = pipeline._start(ps, layout, cfg)
     assert all(np.array_equal(tr.t, np.zeros(3)) for tr in placed.transforms)
