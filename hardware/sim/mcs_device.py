@@ -70,7 +70,7 @@ class MCSDevice:
             return f":E{rej.channel},{rej.code}"
 
     def busy_until(self, t: float) -> float:
-        """When the last running motion of any channel ends (for fast simulated time)."""
+        """When the last running motion of any channel ends (a read waits for it)."""
         return max(axis.busy_until(t) for axis in self.axes)
 
     def _check_watchdog(self, t: float) -> None:

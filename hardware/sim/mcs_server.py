@@ -76,11 +76,15 @@ class MCSServer(TCPService[Fault]):
             if mode == "drop":
                 close_connection(conn)
                 return
+            # Time moves on demand (hardware.sim.clock): a command takes a millisecond, and a
+            # read first waits for what the device is busy with, the device not held meanwhile
+            # (a stop from another link is heard).
             with self.lock:
-                if self.clock.fast:
-                    self.clock.advance(0.001)
-                    if line[1:].startswith(_READS):
-                        self.clock.advance_to(self.device.busy_until(self.clock.now()))
+                self.clock.advance(0.001)
+                busy = self.device.busy_until(self.clock.now())
+            if line[1:].startswith(_READS):
+                self.clock.advance_to(busy)
+            with self.lock:
                 reply = self.device.handle(line, self.clock.now())
                 self.log.append((line, reply))
             if mode == "silent":
