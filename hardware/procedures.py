@@ -281,5 +281,6 @@ def acquire_patch(
         lines = scanner.scan(size=size, pixels=pixels, line_rate=line_rate)
     finally:
         retract(z, loop)
+    lines.require_unsaturated()
     nominal = sample_origin(lines, stage_x, stage_y, planned=origin, size=size, x=x, y=y)
     return PatchResult(lines, nominal)

@@ -14,9 +14,16 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 from numpy.typing import NDArray
 
+from hardware.errors import SaturationError
 from hardware.smaract_mcs import AxisStatus
 
 FloatArray = NDArray[np.float64]
+BoolArray = NDArray[np.bool_]
+
+#: A line whose loop error (:meth:`ForceLoop.tracking_error`) is above this, metres, is
+#: mistracked: a loop that follows the surface lags by a few nm, briefly more past a step
+#: down; a tip that lost the surface (parachuting) stays tens to hundreds of nm off.
+TRACKING_BOUND = 20e-9
 
 
 @runtime_checkable
@@ -90,6 +97,12 @@ class ForceLoop(Protocol):
         """True when Z hit an end of its fine range while engaged."""
         ...
 
+    def tracking_error(self) -> float:
+        """The loop's error over the last line recorded, as distance from the set-point's,
+        metres: the size it kept for a quarter of the line (NaN where the controller does not
+        report it)."""
+        ...
+
 
 @dataclass(frozen=True)
 class ScanLines:
@@ -109,6 +122,32 @@ class ScanLines:
     #: (ny,) the Y sensor's reading at each row, metres (NaN without a sensor); the heights
     #: are already resampled from these positions to the even pitch
     row_readings: FloatArray | None = None
+    #: (ny,) whether Z stood at an end of its range on each line (None: not known)
+    saturated: BoolArray | None = None
+    #: (ny,) the loop's error on each line, metres (None: not reported)
+    tracking: FloatArray | None = None
+
+    def saturated_lines(self) -> int:
+        """How many lines Z saturated on (their heights are clipped there)."""
+        return 0 if self.saturated is None else int(np.count_nonzero(self.saturated))
+
+    def mistracked_lines(self, bound: float = TRACKING_BOUND) -> int:
+        """How many lines the loop's error exceeded ``bound`` metres on (the tip lost the
+        surface: parachuting after a step down, or a scan too fast for the loop)."""
+        if self.tracking is None:
+            return 0
+        return int(np.count_nonzero(self.tracking > bound))
+
+    def require_unsaturated(self) -> None:
+        """Raise :class:`~hardware.errors.SaturationError` if Z saturated on any line (for
+        callers with no quality gate to judge the patch)."""
+        count = self.saturated_lines()
+        if count:
+            raise SaturationError(
+                f"Z reached a limit of its range on {count} of {len(self.heights)} lines: the "
+                "patch is too tall or tilted for one scan, or the surface fell away; use "
+                "smaller patches or level the sample"
+            )
 
 
 @runtime_checkable

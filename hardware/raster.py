@@ -13,7 +13,7 @@ from collections.abc import Callable
 import numpy as np
 from numpy.typing import NDArray
 
-from hardware.errors import Interrupted, ProcedureError, SaturationError
+from hardware.errors import Interrupted, ProcedureError
 from hardware.protocols import ForceLoop, LineRecorder, PositionerAxis, ScanLines
 from hardware.smaract_mcs import AxisStatus
 
@@ -58,6 +58,7 @@ def raster_patch(
     pixels: tuple[int, int],
     line_rate: float,
     stop: Callable[[], bool] | None = None,
+    loop: ForceLoop | None = None,
 ) -> ScanLines:
     """Raster a patch in fine mode, trace only, with the force loop engaged.
 
@@ -65,6 +66,7 @@ def raster_patch(
     to its start (waiting until both stop), then X ramps across at the line speed while the
     recorder samples the tip height, one line every ``1 / line_rate`` seconds. ``stop`` is
     polled before every line; when it returns true the scan ends with :class:`Interrupted`.
+    With the force ``loop``, each line's saturation and tracking error are recorded too.
     """
     nx, ny = pixels
     w, h = size
@@ -86,6 +88,8 @@ def raster_patch(
     heights = np.full((ny, nx), np.nan)
     times = np.zeros(ny)
     row_y = np.full(ny, np.nan)  # where the Y sensor says each row was
+    saturated = np.zeros(ny, dtype=bool)
+    tracking = np.full(ny, np.nan)
     for i in range(ny):
         if stop is not None and stop():
             raise Interrupted(f"scan stopped on request after {i} of {ny} lines")
@@ -97,12 +101,16 @@ def raster_patch(
         row_y[i] = np.nan if reading is None else reading
         x.fine_to(start_x + w, speed=w / line_time)
         heights[i], times[i] = recorder.record_line(nx, line_time)
+        if loop is not None:
+            saturated[i], tracking[i] = loop.saturated(), loop.tracking_error()
     return ScanLines(
         heights=linearize_rows(heights, row_y, dy),
         line_times=times,
         origin=(x0, y0),
         pixel_size=(dx, dy),
         row_readings=row_y,
+        saturated=saturated if loop is not None else None,
+        tracking=tracking if loop is not None else None,
     )
 
 
@@ -133,7 +141,7 @@ def linearize_rows(heights: FloatArray, row_y: FloatArray, dy: float) -> FloatAr
 
 class FineRaster:
     """:class:`~hardware.protocols.PatchScanner` on fine axes ``x``, ``y`` and a line
-    ``recorder``; ``loop`` tells whether Z saturated during a scan."""
+    ``recorder``; ``loop`` tells, line by line, whether Z saturated and how well it tracked."""
 
     def __init__(
         self, x: PositionerAxis, y: PositionerAxis, recorder: LineRecorder, loop: ForceLoop
@@ -155,17 +163,19 @@ class FineRaster:
         line_rate: float,
         stop: Callable[[], bool] | None = None,
     ) -> ScanLines:
-        """:func:`raster_patch`, then fail if Z saturated on the way (the data would be
-        clipped)."""
-        lines = raster_patch(
-            self.x, self.y, self.recorder, size=size, pixels=pixels, line_rate=line_rate, stop=stop
+        """:func:`raster_patch`, each line's saturation and tracking error recorded (the
+        caller judges them: :meth:`~hardware.protocols.ScanLines.require_unsaturated`, or a
+        quality gate)."""
+        return raster_patch(
+            self.x,
+            self.y,
+            self.recorder,
+            size=size,
+            pixels=pixels,
+            line_rate=line_rate,
+            stop=stop,
+            loop=self.loop,
         )
-        if self.loop.saturated():
-            raise SaturationError(
-                "Z ran out of its fine range during the scan: the patch is too tall or tilted "
-                "for one scan; use smaller patches or level the sample"
-            )
-        return lines
 
     def stop(self) -> None:
         self.x.stop()

@@ -9,6 +9,7 @@ runs from 0 to the range, so ``extension = XY + range / 2``.
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass
 
@@ -107,6 +108,10 @@ class NanonisZLoop:
 
     def saturated(self) -> bool:
         return self.engaged() and self.z.at_limit(self.client.z_position())
+
+    def tracking_error(self) -> float:
+        """Not reported: the scan module records Z, not the loop's error."""
+        return math.nan
 
 
 class NanonisZAxis:

@@ -16,7 +16,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from hardware.errors import CrashError, Interrupted, ProcedureError, SaturationError
+from hardware.errors import CrashError, Interrupted, ProcedureError
 from hardware.nanonis.client import SCAN_START, SCAN_STOP, NanonisClient
 from hardware.nanonis.roles import NanonisProbe, ZPiezo
 from hardware.protocols import ScanLines
@@ -128,6 +128,7 @@ class NanonisScanner:
             line_times=started + period * np.arange(ny, dtype=np.float64),
             origin=origin,
             pixel_size=(dx, dy),
+            saturated=self._saturated(heights),
         )
 
     def _wait(self, duration: float, period: float, stop: Callable[[], bool] | None) -> None:
@@ -155,16 +156,14 @@ class NanonisScanner:
         if data.shape != shape:
             raise ProcedureError(f"the frame came back {data.shape}, expected {shape} (ny, nx)")
         heights = data if up else data[::-1]
-        finite = heights[np.isfinite(heights)]
-        if finite.size and (
-            finite.max() >= self.z.high - 2e-3 * self.z.range
-            or finite.min() <= self.z.low + 2e-3 * self.z.range
-        ):
-            raise SaturationError(
-                "Z reached its limit during the scan: the patch is too tall or tilted for one "
-                "scan, or the surface fell away; use smaller patches or level the sample"
-            )
         return np.ascontiguousarray(heights, dtype=np.float64)
+
+    def _saturated(self, heights: np.ndarray) -> np.ndarray:
+        """(ny,) whether a line has a pixel at a Z limit (the loop saturated there)."""
+        margin = 2e-3 * self.z.range
+        with np.errstate(invalid="ignore"):
+            at = (heights >= self.z.high - margin) | (heights <= self.z.low + margin)
+        return np.asarray(at.any(axis=1))
 
     def stop(self) -> None:
         self.client.scan_action(SCAN_STOP)

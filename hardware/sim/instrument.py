@@ -140,6 +140,7 @@ class SimulatedAFM:
         )
         self._setpoint: float | None = None
         self._saturated = False
+        self._tracking = 0.0
         self.crashed = False
         #: the PLL has lost the resonance (an injected fault): no amplitude, no lock
         self.pll_lost = False
@@ -286,6 +287,13 @@ class SimulatedAFM:
     def saturated(self) -> bool:
         return self._saturated
 
+    def tracking_error(self) -> float:
+        """The loop's error over the last line recorded, metres: the tip's distance from the
+        set-point's after each update (what the loop could not follow), as the size it kept
+        for a quarter of the line (a step edge's brief lag does not count, a tip that lost
+        the surface does)."""
+        return self._tracking
+
     def _required_extension(self, height: FloatArray | float, t: float) -> FloatArray:
         """Fine Z extension that puts the tip at the set-point distance above ``height``."""
         z = self.robot_device.axes[2]
@@ -315,6 +323,7 @@ class SimulatedAFM:
         branch_end = self.probe.attraction_minimum()
         crash_depth = self.probe.crash_distance()
         line = np.zeros(samples)
+        lags = np.empty(samples * sub)
         for k in range(samples * sub):
             dist = tip0 - ext - surf[k]
             error = dist - d_set
@@ -330,6 +339,8 @@ class SimulatedAFM:
                     "loop here (lower the line rate)"
                 )
             line[k // sub] += (tip0 - ext) / sub
+            lags[k] = tip0 - ext - surf[k] - d_set  # what the loop's update left
+        self._tracking = _held_error(lags)
         return line, ext
 
     # -- spoiled scans ----------------------------------------------------------------------
@@ -442,8 +453,14 @@ class SimulatedAFM:
         if linear:
             line = (tip0 - exts).reshape(samples, sub).mean(axis=1)
             ext = float(exts[-1])
+            self._tracking = _held_error(tip0 - exts - surf - d_set)
         else:
             line, ext = self._integrate_line(surf, tip0, ext, d_set, gain, samples)
         self.clock.advance_to(t0 + duration)
         z.drive_extension(ext, self.clock.now())
         return line + self.rng.normal(0.0, self.params.z_noise, samples), t0
+
+
+def _held_error(lags: FloatArray) -> float:
+    """The error a loop's updates ``lags`` (metres) stood at or above for a quarter of them."""
+    return float(np.quantile(np.abs(lags), 0.75))

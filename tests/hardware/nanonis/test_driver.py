@@ -34,6 +34,7 @@ def patch(m: Microscope, origin: tuple[float, float]) -> tuple[ScanLines, tuple[
         lines = scanner.scan(size=SIZE, pixels=PIXELS, line_rate=2.0)
     finally:
         retract(m.robot_z, loop)
+    lines.require_unsaturated()
     nominal = sample_origin(
         lines, m.stage_x, m.stage_y, planned=origin, size=SIZE, x=m.robot_x, y=m.robot_y
     )

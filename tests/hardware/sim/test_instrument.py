@@ -8,8 +8,17 @@ from typing import Any
 import numpy as np
 import pytest
 
-from hardware.procedures import CrashError, LandingConfig, NoSurfaceError, acquire_patch, land
-from hardware.protocols import ForceLoop, LineRecorder, ProbeSignal
+from hardware.procedures import (
+    CrashError,
+    LandingConfig,
+    NoSurfaceError,
+    SaturationError,
+    acquire_patch,
+    land,
+    retract,
+)
+from hardware.protocols import TRACKING_BOUND, ForceLoop, LineRecorder, ProbeSignal
+from hardware.raster import FineRaster
 from hardware.sim.faults import LOST_SHARE, Z_JUMP, strike_line
 from hardware.sim.instrument import SimulatedAFM, WorldParams
 from hardware.sim.probe import ProbeModel
@@ -150,3 +159,48 @@ def test_a_spoiled_scan_is_spoiled_from_its_strike_line_on_and_the_next_is_clean
     assert np.std(off_clean - line[:, None]) < 4e-9
     with pytest.raises(ValueError, match="unknown fault"):
         afm.spoil_next_scan("gremlins", lines=30)
+
+
+def test_each_line_records_how_the_loop_tracked(still: SimulatedAFM) -> None:
+    """A clean scan tracks within the bound on every line; a parachuting loop, from its
+    strike line on, strays far past it on many lines (the quality gate's record)."""
+    afm = still
+    clean = _acquire(afm).lines
+    assert clean.tracking is not None and clean.saturated is not None
+    assert clean.saturated_lines() == 0 and clean.mistracked_lines() == 0
+    assert np.all(clean.tracking >= 0) and np.all(clean.tracking < TRACKING_BOUND)
+    afm.spoil_next_scan("parachute", lines=30)
+    spoiled = _acquire(afm).lines
+    k = strike_line(30)
+    assert spoiled.mistracked_lines() > 0.05 * 30
+    assert spoiled.tracking is not None and np.all(spoiled.tracking[: k - 1] < TRACKING_BOUND)
+
+
+class _FallingSample:
+    """A line recorder under which the sample falls beyond Z's reach after ``after`` lines."""
+
+    def __init__(self, afm: SimulatedAFM, after: int) -> None:
+        self.afm, self.after, self.lines = afm, after, 0
+
+    def record_line(self, samples: int, duration: float) -> tuple[np.ndarray, float]:
+        self.lines += 1
+        if self.lines > self.after:
+            self.afm.sample_z = -1.2e-6
+        return self.afm.record_line(samples, duration)
+
+
+def test_lines_with_z_saturated_are_counted_and_a_caller_without_a_gate_stops(
+    still: SimulatedAFM,
+) -> None:
+    afm = still
+    raster = FineRaster(afm.robot_x, afm.robot_y, _FallingSample(afm, after=20), afm)
+    raster.prepare(size=(0.6e-6, 0.6e-6), pixels=(30, 30))
+    land(afm.robot_z, afm, afm)
+    try:
+        lines = raster.scan(size=(0.6e-6, 0.6e-6), pixels=(30, 30), line_rate=2.0)
+    finally:
+        retract(afm.robot_z, afm)
+    assert lines.saturated is not None
+    assert not lines.saturated[:20].any() and lines.saturated[21:].all()
+    with pytest.raises(SaturationError, match=r"on (9|10) of 30 lines"):
+        lines.require_unsaturated()
