@@ -352,6 +352,12 @@ class LiveMergeService:
             )
 
 
-def lost_lines(heights: NDArray[np.float64]) -> int:
-    """Lines of a stored patch without a single height (data the controller lost)."""
-    return int((~np.isfinite(heights)).all(axis=1).sum())
+def scan_record(heights: NDArray[np.float64], *, saturated: int, mistracked: int) -> ScanRecord:
+    """What a patch's scan recorded of itself, for the quality gate: its lines, those without
+    a single height (data the controller lost), and the counts the scanner kept of lines with
+    Z saturated and with the loop mistracking."""
+    lost = int((~np.isfinite(heights)).all(axis=1).sum())
+    lines = heights.shape[0]
+    return ScanRecord(
+        lines=lines, lost=lost, saturated=min(saturated, lines), mistracked=min(mistracked, lines)
+    )

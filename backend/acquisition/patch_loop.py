@@ -17,18 +17,19 @@ from sqlalchemy.orm import Session
 
 from backend.acquisition.control import Abort, Control
 from backend.acquisition.journal import journaled_patch, journaled_run
-from backend.acquisition.rescans import Rescans
+from backend.acquisition.rescans import Rescans, Verdict
 from backend.acquisition.state import PatchStep, RunState, StateMachine
 from backend.acquisition.status import read_instrument
 from backend.db.models import PatchRecord, Run
 from backend.db.patch_store import read_patch, write_patch
 from backend.db.space import check_space
 from backend.events import EventBus
-from backend.live_merge import LiveMergeService, lost_lines
+from backend.live_merge import LiveMergeService, scan_record
 from backend.merge_jobs import PatchInput, patch_id
+from hardware.errors import ProcedureError
 from hardware.microscope import Microscope
 from hardware.procedures import move_stage, retract, sample_origin
-from merge.live.gate import ScanRecord
+from merge.live.gate import ScanRecord, record_verdict
 
 FloatArray = NDArray[np.float64]
 
@@ -37,6 +38,9 @@ LIVE_DRAIN = 120.0
 #: Last looks of the quality gate at the whole mosaic, each after the re-scans of the one
 #: before.
 FINAL_LOOKS = 2
+#: Scans in a row whose own record fails them by lines lost or Z saturated stop the run: the
+#: tip or the sample needs a look, not more scans.
+BAD_SCANS_IN_A_ROW = 3
 
 
 class PatchLoop:
@@ -50,6 +54,8 @@ class PatchLoop:
     rescans: Rescans
     live: LiveMergeService | None
     _snapshot: dict[str, Any]
+    #: scans in a row of the run under way that their own record failed
+    _bad_scans: int = 0
 
     def _checkpoint(self, session: Session, run: Run, control: Control, *, may_pause: bool) -> None:
         """Between steps: honour an abort; a pause where ``may_pause`` (tip off the surface)."""
@@ -69,6 +75,7 @@ class PatchLoop:
         (:mod:`backend.acquisition.rescans`); at the end, the last verdicts are waited for."""
         records = {p.index: p for p in run.patches}
         todo = deque(p.index for p in run.patches if p.step != PatchStep.STORED.value)
+        self._bad_scans = 0
         self._seed_live(run)
         looks = 0
         while True:
@@ -108,7 +115,12 @@ class PatchLoop:
         for patch in run.patches:
             if patch.step == PatchStep.STORED.value and patch.quality != "flagged":
                 stored = read_patch(run.file, patch.index)
-                self._to_live(run, patch, stored.heights, stored.origin, stored.pixel_size)
+                record = scan_record(
+                    stored.heights,
+                    saturated=int(stored.attrs.get("saturated_lines", 0)),
+                    mistracked=int(stored.attrs.get("mistracked_lines", 0)),
+                )
+                self._to_live(run, patch, stored.heights, stored.origin, stored.pixel_size, record)
 
     def _to_live(
         self,
@@ -117,6 +129,7 @@ class PatchLoop:
         heights: FloatArray,
         origin: tuple[float, float],
         pixel_size: tuple[float, float],
+        record: ScanRecord,
     ) -> None:
         """Hand a stored patch, with what its scan recorded, to the run's live merge."""
         if self.live is None:
@@ -132,7 +145,7 @@ class PatchLoop:
                 patch.row,
                 patch.col,
             ),
-            ScanRecord(lines=run.pixels_y, lost=lost_lines(heights)),
+            record,
         )
 
     def _act_on_verdicts(self, session: Session, run: Run, todo: deque[int]) -> None:
@@ -172,6 +185,8 @@ class PatchLoop:
         )
         machine.go(PatchStep.RETRACT)
         retract(m.robot_z, loop)
+        if self.live is None:  # no quality gate to judge clipped lines: as before, stop
+            lines.require_unsaturated()
         origin = sample_origin(
             lines, m.stage_x, m.stage_y, planned=planned, size=size, x=m.robot_x, y=m.robot_y
         )
@@ -191,6 +206,8 @@ class PatchLoop:
                 "line_rate": run.line_rate,
                 "instrument": m.description,
                 "try": patch.tries,
+                "saturated_lines": lines.saturated_lines(),
+                "mistracked_lines": lines.mistracked_lines(),
                 "row_readings": lines.row_readings
                 if lines.row_readings is not None
                 else np.zeros(0),
@@ -209,7 +226,25 @@ class PatchLoop:
             run_id=run.id,
             data={"stored": stored, "total": total, "patch": patch.index},
         )
-        self._to_live(run, patch, lines.heights, origin, lines.pixel_size)
+        record = scan_record(
+            lines.heights,
+            saturated=lines.saturated_lines(),
+            mistracked=lines.mistracked_lines(),
+        )
+        said = record_verdict(record)
+        if said.ok or self.live is None:  # no gate: no re-scans (Z saturated stopped above)
+            self._bad_scans = 0
+            self._to_live(run, patch, lines.heights, origin, lines.pixel_size, record)
+            return
+        # a run stops on the instrument's unambiguous signs only (lines lost, Z saturated)
+        bad = not record_verdict(record, tracking=False).ok
+        self._bad_scans = self._bad_scans + 1 if bad else 0
+        if self._bad_scans >= BAD_SCANS_IN_A_ROW:
+            raise ProcedureError(
+                f"{self._bad_scans} scans in a row failed their own record (the last, patch "
+                f"{patch.index}: {said.reason}): check the tip and the sample before going on"
+            )
+        self.rescans.tell(Verdict(run.id, patch.index, False, said.reason))
 
     def _patch_machine(
         self, session: Session, run: Run, patch: PatchRecord

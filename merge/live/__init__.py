@@ -8,7 +8,7 @@ same :class:`merge.report.MergeResult` a batch merge gives.
 """
 
 from merge.live.canvas import LiveCanvas
-from merge.live.gate import Gate, ScanRecord, Verdict
+from merge.live.gate import Gate, ScanRecord, Verdict, record_verdict
 from merge.live.incremental import FULL_EVERY, LiveMerge, LiveUpdate
 
 __all__ = [
@@ -19,4 +19,5 @@ __all__ = [
     "LiveUpdate",
     "ScanRecord",
     "Verdict",
+    "record_verdict",
 ]

@@ -18,8 +18,12 @@ import numpy as np
 from merge.live.incremental import LiveUpdate
 from merge.report.misfit import PairMisfit
 
-#: A share of lines above this, saturated, mistracked or lost, spoils a patch.
+#: A share of lines above this, saturated or lost, spoils a patch.
 LINE_SHARE = 0.05
+#: A share of lines above this with the loop off the surface spoils a patch. A coarse scan
+#: may briefly parachute past a step down on a line or two in ten (physics, not a fault); a
+#: loop that lost the surface does it on most lines after the fault.
+MISTRACKED_SHARE = 0.3
 #: A pair's residual RMS above this many times the mosaic's usual (the median over the pairs
 #: of the patches passed, and at least the noise of two overlapping scans) is a bad pair.
 RESIDUAL_FACTOR = 2.5
@@ -119,7 +123,7 @@ class Gate:
         """
         c = update.id
         if record is not None:
-            said = _record_verdict(record)
+            said = record_verdict(record)
             if not said.ok:
                 return {c: said}
         if update.measurable and not update.registered:
@@ -215,16 +219,18 @@ def _misfit(m: PairMisfit, usual: float) -> str:
     return ""
 
 
-def _record_verdict(record: ScanRecord) -> Verdict:
-    """The scan record's own witness."""
+def record_verdict(record: ScanRecord, *, tracking: bool = True) -> Verdict:
+    """The scan record's own witness (it needs no merge: the acquisition may act on it at
+    once); with ``tracking`` false, the loop's tracking is left out (the unambiguous signs of
+    the instrument's state only: the PLL, lines lost, Z saturated)."""
     if record.pll_unlocked:
         return Verdict(False, "the PLL lost the resonance during the scan")
-    for count, what in (
-        (record.lost, "lost"),
-        (record.saturated, "with Z saturated"),
-        (record.mistracked, "with a tracking error over its bound"),
+    for count, share, what in (
+        (record.lost, LINE_SHARE, "lost"),
+        (record.saturated, LINE_SHARE, "with Z at a limit of its range"),
+        (record.mistracked if tracking else 0, MISTRACKED_SHARE, "with the loop off the surface"),
     ):
-        if count > LINE_SHARE * record.lines:
+        if count > share * record.lines:
             return Verdict(False, f"{count} of {record.lines} lines {what}")
     return Verdict(True)
 

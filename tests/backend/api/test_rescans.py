@@ -78,6 +78,21 @@ def test_a_patch_spoiled_every_try_is_flagged_and_left_out_of_the_merge(merging:
     assert doc["patches_merged"] == total - 1
 
 
+def test_scans_failing_their_own_record_in_a_row_stop_the_run(merging: Server) -> None:
+    """Lines lost on every patch from 4 on is the instrument, not one patch: three such
+    scans in a row fail the run, in the safe state, saying why."""
+    fault = {"fault": "lost_lines", "patches": [4, 5, 6, 7]}
+    assert merging.post("/api/instrument/sim/fault", fault).status_code == 204
+    run = merging.create(_mosaic_plan(rescan={"enabled": True, "max_tries": 2}))
+    assert merging.post(f"/api/runs/{run['id']}/start").status_code == 202
+    done = merging.wait_state(run["id"], "completed", "failed", "fault", timeout=240)
+    assert done["state"] == "failed", done
+    assert "3 scans in a row failed their own record" in done["message"], done["message"]
+    assert "lines lost" in done["message"]
+    assert [r["index"] for r in done["rescans"]] == [4]
+    assert not merging.client.get("/api/instrument").json()["loop_engaged"]
+
+
 def _first_merge(server: Server, run_id: int) -> int:
     run = server.wait(run_id, lambda r: bool(r["merges"]), timeout=30)
     merges: list[int] = run["merges"]

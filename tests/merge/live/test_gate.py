@@ -13,7 +13,7 @@ from hardware.sim.surfaces import FoldedSurface
 from merge.core.noise import estimate_noise
 from merge.core.patchset import Patch
 from merge.live import LiveMerge
-from merge.live.gate import Gate, ScanRecord
+from merge.live.gate import Gate, ScanRecord, record_verdict
 from tests.conftest import Synthetic, make_synthetic
 
 
@@ -93,10 +93,21 @@ def test_the_scan_record_speaks_first() -> None:
     assert "PLL" in gate.judge(update, noise=1e-9, record=unlocked)["a"].reason
     saturated = ScanRecord(lines=20, saturated=2)
     assert (
-        "2 of 20 lines with Z saturated"
+        "2 of 20 lines with Z at a limit of its range"
         in gate.judge(update, noise=1e-9, record=saturated)["a"].reason
     )
     assert gate.judge(update, noise=1e-9, record=ScanRecord(lines=20, saturated=1))["a"].ok
+
+
+def test_a_loop_off_the_surface_on_many_lines_fails_a_scan_a_brief_lag_does_not() -> None:
+    """A coarse scan may parachute past a step down on a line or two; a loop that lost the
+    surface does on most lines. Left out on request (the run's stop rule looks at the
+    unambiguous signs only)."""
+    assert record_verdict(ScanRecord(lines=20, mistracked=3)).ok
+    lost_loop = record_verdict(ScanRecord(lines=20, mistracked=12))
+    assert not lost_loop.ok and "12 of 20 lines with the loop off the surface" in lost_loop.reason
+    assert record_verdict(ScanRecord(lines=20, mistracked=12), tracking=False).ok
+    assert not record_verdict(ScanRecord(lines=20, lost=2), tracking=False).ok
     with pytest.raises(ValueError, match="lost"):
         ScanRecord(lines=10, lost=11)
     with pytest.raises(ValueError, match="at least one line"):
