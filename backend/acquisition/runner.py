@@ -29,6 +29,7 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
 from backend.acquisition.control import Abort, Conflict, Control, NotFound, describe
+from backend.acquisition.ending import RunEnding
 from backend.acquisition.patch_loop import PatchLoop
 from backend.acquisition.rescans import Rescans, Verdict
 from backend.acquisition.state import (
@@ -39,7 +40,7 @@ from backend.acquisition.state import (
 )
 from backend.acquisition.status import read_instrument
 from backend.db.models import Run
-from backend.db.patch_store import LIVE_GROUP, reconcile, write_mosaic
+from backend.db.patch_store import reconcile
 from backend.db.space import StorageFull, check_space, full_message, is_full
 from backend.events import EventBus
 from backend.live_merge import LiveMergeService
@@ -50,7 +51,7 @@ from hardware.procedures import safe_state
 log = logging.getLogger("mosaic_afm.runner")
 
 
-class Runner(PatchLoop):
+class Runner(RunEnding, PatchLoop):
     """Runs acquisitions on one instrument, one run at a time.
 
     Parameters
@@ -383,102 +384,6 @@ class Runner(PatchLoop):
                 return RunState.FAILED, self._full_message(), "storage", True
             return RunState.FAILED, describe(exc), "instrument", True
         return RunState.COMPLETED, "every patch stored", "system", False
-
-    def _conclude(
-        self, run_id: int, target: RunState, reason: str, actor: str, *, safe: bool
-    ) -> None:
-        """Safety first, then bookkeeping: make the instrument safe (a run whose safe state
-        cannot be confirmed goes to ``fault``), then record the end; where the record cannot
-        be written (a full disk) the run holds that state in memory until it can."""
-        if safe:
-            problem = self._try_safe_state()
-            if problem is not None:
-                target, reason = RunState.FAULT, f"{reason}; {problem}"
-        self._end_live(run_id)
-        with self._lock:
-            self._unrecorded[run_id] = (target, reason, actor)
-        if not self._record(run_id):
-            message = f"run {run_id}: {target.value} ({reason}); the database cannot record it yet"
-            self.events.publish("fault", message, run_id=run_id, data={"state": target.value})
-            return
-        if target == RunState.COMPLETED and self.on_completed is not None:
-            try:
-                self.on_completed(run_id)
-            except Exception:
-                log.exception("run %s: starting its merge failed", run_id)
-
-    def _end_live(self, run_id: int) -> None:
-        """Stop the run's live merge and keep its last mosaic in the run's file."""
-        if self.live is None:
-            return
-        self.live.stop(run_id)
-        last = self.live.mosaic(run_id)
-        if last is None:
-            return
-        heights, document = last
-        try:
-            # HDF5 must never meet a full disk (it may crash): room first, or nothing written
-            check_space(self.data_dir, need=2 * heights.nbytes + (1 << 20), reserve=self.reserve)
-            with self.sessions() as session:
-                path = self._get(session, run_id).file
-            write_mosaic(path, LIVE_GROUP, heights, document)
-            self.live.forget(run_id)  # from now on read from the run's file
-        except StorageFull:
-            log.warning("run %s: no room to keep its live mosaic in its file", run_id)
-        except Exception:  # the run's end is recorded all the same
-            log.exception("run %s: keeping its live mosaic failed", run_id)
-
-    def _record(self, run_id: int, *, attempts: int = 3, pause: float = 0.2) -> bool:
-        """Write a concluded run's end to the database (retried); True once it is."""
-        with self._lock:
-            end = self._unrecorded.get(run_id)
-        if end is None:
-            return True
-        target, reason, actor = end
-        for attempt in range(attempts):
-            try:
-                with self.sessions() as session:
-                    run = session.get(Run, run_id)
-                    if run is not None:
-                        self._finish(session, run, target, reason, actor)
-                with self._lock:
-                    self._unrecorded.pop(run_id, None)
-                return True
-            except Exception:
-                log.warning("run %s: recording %s failed", run_id, target.value, exc_info=True)
-                if attempt + 1 < attempts:
-                    time.sleep(pause * (attempt + 1))
-        return False
-
-    def flush(self) -> None:
-        """Record every concluded run whose end is still only in memory (disk freed)."""
-        with self._lock:
-            pending = list(self._unrecorded)
-        for run_id in pending:
-            if self.active_run != run_id:
-                self._record(run_id, attempts=1)
-
-    def unrecorded(self, run_id: int) -> tuple[str, str] | None:
-        """A run's state and message while its end is held in memory only."""
-        with self._lock:
-            end = self._unrecorded.get(run_id)
-        if end is None or self.active_run == run_id:
-            return None
-        target, reason, actor = end
-        return target.value, f"{reason} ({actor})"
-
-    def _finish(
-        self, session: Session, run: Run, target: RunState, reason: str, actor: str
-    ) -> None:
-        for patch in run.patches:
-            if patch.step not in (PatchStep.PENDING.value, PatchStep.STORED.value):
-                self._patch_machine(session, run, patch).go(
-                    PatchStep.PENDING, reason="not stored: it will be scanned again"
-                )
-        if RunState(run.state) != target:
-            self._transition(session, run, target, reason, actor)
-        if target in (RunState.FAILED, RunState.FAULT):
-            self.events.emit("fault", reason, run_id=run.id, data={"state": target.value})
 
     def _try_safe_state(self) -> str | None:
         """The safe state; None when confirmed, else what went wrong (never raises)."""
