@@ -79,10 +79,11 @@ class MCSServer(TCPService[Fault]):
             # Time moves on demand (hardware.sim.clock): a command takes a millisecond, and a
             # read first waits for what the device is busy with, the device not held meanwhile
             # (a stop from another link is heard).
+            read = line[1:].startswith(_READS)
             with self.lock:
                 self.clock.advance(0.001)
-                busy = self.device.busy_until(self.clock.now())
-            if line[1:].startswith(_READS):
+                busy = self.device.busy_until(self.clock.now()) if read else 0.0
+            if read:
                 self.clock.advance_to(busy)
             with self.lock:
                 reply = self.device.handle(line, self.clock.now())
