@@ -8,7 +8,9 @@ gate's worth on spoiled patches (issue: live merge during acquisition).
    difference RMS, registration errors against the truth).
 2. Through the server on ``sim://`` (``mosaic-afm serve``, maximum simulated speed), the
    paper's 5 x 10 grid: patches scanned per second with the live merge on and off (the live
-   merge may cost the scan at most 5 %), and stored-to-live latency read from the events; at
+   merge may cost the scan at most 5 %; ``--repeat`` runs of each in turns, and the cost that
+   of the medians: a host's pace wanders by a few per cent from run to run, as much as the
+   cost), and stored-to-live latency read from the events; at
    the simulator's maximum speed (its physics then take a core of their own, and patches come
    faster than any instrument scans them: the latency there is mostly the queue), and with
    ``--speed`` also at that many times real time (the simulated instrument paces its own
@@ -261,6 +263,12 @@ def main(argv: list[str] | None = None) -> int:
         help="also measure the scan rate at this many simulated seconds per wall second (the "
         "scanner then waits on its lines as a real one does); default: only at 'max'",
     )
+    parser.add_argument(
+        "--repeat",
+        type=int,
+        default=3,
+        help="runs with the live merge off and on, in turns, for the scan rate (default 3)",
+    )
     parser.add_argument("--json", default=str(ROOT / "benchmarks" / "results" / "live_bench.json"))
     args = parser.parse_args(argv)
     sizes = [(5, 10)] if args.quick else [(5, 10), (20, 20)]
@@ -284,10 +292,17 @@ def main(argv: list[str] | None = None) -> int:
             flush=True,
         )
     speeds = ["max"] + ([args.speed] if args.speed else [])
-    cases = {}
+    cases: dict[str, dict[str, Any]] = {}
+    rates: dict[str, dict[bool, list[float]]] = {}
     for speed in speeds:
-        cases[f"live off, {_x(speed)}"] = server_run(live=False, speed=speed)
-        cases[f"live on, {_x(speed)}"] = server_run(live=True, speed=speed)
+        # off and on in turns: the host's own pace wanders by a few per cent from run to run,
+        # as much as the cost to measure, so the cost is that of the medians
+        rates[speed] = {False: [], True: []}
+        for _ in range(args.repeat):
+            for live in (False, True):
+                r = server_run(live=live, speed=speed)
+                cases.setdefault(f"live {'on' if live else 'off'}, {_x(speed)}", r)
+                rates[speed][live].append(r["scan_rate"])
     cases["spoiled, gate on"] = server_run(live=True, spoil=SPOILED)
     if args.speed:
         cases[f"spoiled, gate on, {_x(args.speed)}"] = server_run(
@@ -310,8 +325,13 @@ def main(argv: list[str] | None = None) -> int:
         )
     cost = {}
     for speed in speeds:
-        off, on = cases[f"live off, {_x(speed)}"], cases[f"live on, {_x(speed)}"]
-        cost[speed] = off["scan_rate"] / on["scan_rate"] - 1.0
+        off, on = rates[speed][False], rates[speed][True]
+        cost[speed] = float(np.median(off) / np.median(on) - 1.0)
+        print(
+            f"scan rate {_x(speed)} over {args.repeat} runs each, patch/s: live off "
+            f"{min(off):.3f}-{max(off):.3f} (median {np.median(off):.3f}), live on "
+            f"{min(on):.3f}-{max(on):.3f} (median {np.median(on):.3f})"
+        )
     clean = cases["live on, max"]["map_nm"]
     said = ", ".join(f"{_x(k)} {100 * v:+.1f} %" for k, v in cost.items())
     print(
@@ -322,7 +342,11 @@ def main(argv: list[str] | None = None) -> int:
     )
     Path(args.json).parent.mkdir(parents=True, exist_ok=True)
     Path(args.json).write_text(
-        json.dumps({"in_process": local, "server": cases, "scan_cost": cost}, indent=1) + "\n"
+        json.dumps(
+            {"in_process": local, "server": cases, "scan_rates": rates, "scan_cost": cost},
+            indent=1,
+        )
+        + "\n"
     )
     print(f"wrote {args.json}")
     return 0
