@@ -19,6 +19,14 @@ TOKEN = "server-process-token-0123456789"
 AUTH = {"Authorization": f"Bearer {TOKEN}", "X-Operator": "server_process"}
 
 
+#: Ports tried by :meth:`ServerProcess.start` when the one chosen is taken before the bind.
+BIND_TRIES = 3
+
+
+class PortTaken(RuntimeError):
+    """The port chosen was taken by another process before the server could bind it."""
+
+
 def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -31,6 +39,9 @@ class ServerProcess:
 
     def __init__(self, data_dir: Path, *, port: int | None = None, **env: str) -> None:
         self.data_dir = data_dir
+        #: a port of our own choosing may be taken between the choice and the server's bind (by
+        #: any process's outgoing connection): then another is chosen (:meth:`start`)
+        self._chosen = port is None
         self.port = port or free_port()
         self.env = {
             **os.environ,
@@ -45,7 +56,17 @@ class ServerProcess:
         self.log = data_dir / f"server-{self.port}.log"
 
     def start(self, timeout: float = 60.0) -> ServerProcess:
+        for _ in range(BIND_TRIES - 1):
+            try:
+                return self._start(timeout)
+            except PortTaken:
+                self.port = free_port()
+                self.url = f"http://127.0.0.1:{self.port}"
+        return self._start(timeout)
+
+    def _start(self, timeout: float) -> ServerProcess:
         self.data_dir.mkdir(parents=True, exist_ok=True)
+        self.log = self.data_dir / f"server-{self.port}.log"
         with self.log.open("ab") as log:
             self.proc = subprocess.Popen(
                 [sys.executable, "-m", "backend.cli", "serve", "--port", str(self.port)],
@@ -56,7 +77,10 @@ class ServerProcess:
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
             if self.proc.poll() is not None:
-                raise RuntimeError(f"the server exited: {self.log.read_text()[-2000:]}")
+                said = self.log.read_text()[-2000:]
+                if self._chosen and "address already in use" in said:
+                    raise PortTaken(said)
+                raise RuntimeError(f"the server exited: {said}")
             try:
                 if httpx.get(self.url + "/api/instrument", timeout=2).status_code == 200:
                     return self

@@ -35,9 +35,10 @@ def patch_set_from_synth(synth: Sequence[SynthPatch]) -> PatchSet:
 
 
 def _placed(
-    synth: Sequence[SynthPatch], transforms: Sequence[PatchTransform]
+    synth: Sequence[SynthPatch], transforms: Sequence[PatchTransform], stride: int = 1
 ) -> list[tuple[FloatArray, FloatArray]]:
-    """Per patch: where the merge puts every measured point, and where it truly is (m, 3)."""
+    """Per patch: where the merge puts every measured point (every ``stride``-th along both
+    axes), and where it truly is (m, 3)."""
     out = []
     for s, tr in zip(synth, transforms, strict=True):
         ny, nx = s.heights.shape
@@ -45,8 +46,8 @@ def _placed(
             s.origin[0] + np.arange(nx) * s.pixel_size[0],
             s.origin[1] + np.arange(ny) * s.pixel_size[1],
         )
-        p = np.stack([xx, yy, s.heights], axis=-1).reshape(-1, 3)
-        q = true_points(s).reshape(-1, 3)
+        p = np.stack([xx, yy, s.heights], axis=-1)[::stride, ::stride].reshape(-1, 3)
+        q = true_points(s)[::stride, ::stride].reshape(-1, 3)
         ok = np.isfinite(p).all(axis=1) & np.isfinite(q).all(axis=1)
         out.append((tr.apply(p[ok]), q[ok]))
     return out
@@ -61,11 +62,14 @@ def _gauge(
 
 
 def registration_error(
-    synth: Sequence[SynthPatch], transforms: Sequence[PatchTransform]
+    synth: Sequence[SynthPatch], transforms: Sequence[PatchTransform], *, stride: int = 1
 ) -> tuple[float, float, tuple[FloatArray, FloatArray]]:
     """RMS XY and Z error (metres) of where the merge puts every measured point, after the one
-    global rigid transform that fits best (the gauge), and that transform ``(G, g)``."""
-    P, Q, (G, g) = _gauge(_placed(synth, transforms))
+    global rigid transform that fits best (the gauge), and that transform ``(G, g)``.
+    ``stride``: every so many points along both axes of a patch (large mosaics)."""
+    if stride < 1:
+        raise ValueError(f"stride must be a positive integer, got {stride}")
+    P, Q, (G, g) = _gauge(_placed(synth, transforms, stride))
     e = P @ G.T + g - Q
     exy = float(np.sqrt(np.mean(np.sum(e[:, :2] ** 2, axis=1))))
     return exy, float(np.sqrt(np.mean(e[:, 2] ** 2))), (G, g)

@@ -182,3 +182,32 @@ def test_start_up_reaps_a_worker_a_previous_server_left(tmp_path: Path) -> None:
     finally:
         if leftover.poll() is None:
             leftover.kill()
+
+
+def test_a_port_taken_before_the_bind_is_given_up_for_another(tmp_path: Path) -> None:
+    import socket
+
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        server = ServerProcess(tmp_path)
+        server.port = taken.getsockname()[1]  # as if another process got there first
+        server.url = f"http://127.0.0.1:{server.port}"
+        server.start()
+        try:
+            assert server.port != taken.getsockname()[1]
+            with server.client() as client:
+                assert client.get("/api/instrument").status_code == 200
+        finally:
+            server.stop()
+
+
+def test_a_port_asked_for_and_taken_is_an_error(tmp_path: Path) -> None:
+    import socket
+
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        server = ServerProcess(tmp_path, port=taken.getsockname()[1])
+        with pytest.raises(RuntimeError, match="address already in use"):
+            server.start()

@@ -1,0 +1,231 @@
+"""The merge at scale: time, peak memory, iterations and accuracy from 100 to 10,000 patches
+(issue: the merge at scale).
+
+Folded surface, 1 µm patches of 64 x 64 px at 25 % overlap (``--big``: also 2,500 patches of
+256 x 256 px), the typical drift. For every size the patch set is written as the CLI reads it
+(``manifest.json`` and one ``.npy`` per patch); the CLI's own code (``mosaic-afm merge``,
+preview included) then runs in a fresh process, so its peak memory is its own. It reports its
+resident memory after its imports and at its peak: their difference over the input pixels is
+the merge's bytes per input pixel (target <= 60). The result is scored against the truth:
+registration error (every measured point against its true place, after the one global rigid
+motion of the gauge; every 4th point along both axes from 1,600 patches up) and map error (the
+mosaic against the true surface, same gauge; every few mosaic pixels on the large ones), and
+the floor (the map error of the true transforms through the same renderer). The time of each
+size against that of 400 patches, beside the ratio of patches, says whether the time is
+linear (equal ratios).
+
+Prints a table and writes JSON (``--json``, default ``benchmarks/results/merge_scale.json``).
+Run: ``python benchmarks/merge_scale.py [--sides 10,20,30,40] [--large] [--big]``
+(``--large``: also 2,500 and 10,000 patches of 64 x 64 px).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+#: Patch side, metres, and overlap of every case (the issue's measurements).
+PATCH_SIDE = 1e-6
+OVERLAP = 0.25
+
+
+def child(manifest: str, out: str) -> int:
+    """Run the CLI's merge in this process; print its wall time and memory as JSON."""
+    from backend.cli import main as cli_main
+
+    base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+    clock = time.perf_counter()
+    code = cli_main(["merge", manifest, "--out", out, "--quiet"])
+    wall = time.perf_counter() - clock
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+    print(json.dumps({"code": code, "wall_s": wall, "base_bytes": base, "peak_bytes": peak}))
+    return code
+
+
+def _merge_in_child(manifest: Path, out: Path) -> dict[str, Any]:
+    proc = subprocess.run(
+        [sys.executable, __file__, "--child", str(manifest), str(out)],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        check=False,
+    )
+    if proc.returncode != 0:
+        raise RuntimeError(f"the merge failed:\n{proc.stdout}\n{proc.stderr}")
+    said: dict[str, Any] = json.loads(proc.stdout.strip().splitlines()[-1])
+    return said
+
+
+def map_error(
+    heights: Any,
+    origin: tuple[float, float],
+    pixel: tuple[float, float],
+    surface: Any,
+    G: Any,
+    g: Any,
+    *,
+    stride: int = 1,
+) -> float:
+    """RMS (m) of the mosaic (every ``stride``-th pixel along both axes, read row block by row
+    block) against the true surface, the mosaic taken through ``q -> G q + g``."""
+    ny, nx = heights.shape
+    cols = np.arange(0, nx, stride)
+    total, count = 0.0, 0
+    for i0 in range(0, ny, 256 * stride):
+        rows = np.arange(i0, min(ny, i0 + 256 * stride), stride)
+        block = np.asarray(heights[rows][:, cols], dtype=np.float64)
+        xx, yy = np.meshgrid(origin[0] + cols * pixel[0], origin[1] + rows * pixel[1])
+        ok = np.isfinite(block)
+        q = np.column_stack([xx[ok], yy[ok], block[ok]]) @ G.T + g
+        d = q[:, 2] - surface.height(q[:, 0], q[:, 1])
+        d = d[np.isfinite(d)]
+        total += float(np.sum(d**2))
+        count += d.size
+    return float(np.sqrt(total / max(count, 1)))
+
+
+def floor_of(synth: list[Any], surface: Any, pixel: tuple[float, float], stride: int) -> float:
+    """Map error (m) of the true transforms through the same renderer: drift-free heights."""
+    from hardware.sim.synth import scan_fraction
+    from merge import Patch, PatchTransform, render_mosaic
+
+    fixed = [
+        Patch(
+            id=s.id,
+            heights=s.heights - s.z_drift * (scan_fraction(s.heights.shape) - 0.5),
+            origin=s.origin,
+            pixel_size=s.pixel_size,
+        )
+        for s in synth
+    ]
+    mosaic = render_mosaic(fixed, [PatchTransform(s.rotation, s.translation) for s in synth])
+    return map_error(
+        mosaic.heights,
+        mosaic.origin,
+        mosaic.pixel_size,
+        surface,
+        np.eye(3),
+        np.zeros(3),
+        stride=stride,
+    )
+
+
+def one_size(side: int, pixels: int, work: Path) -> dict[str, Any]:
+    """Synthesise, merge (in a fresh process) and score a ``side`` x ``side`` mosaic."""
+    from backend.synthetic import patch_set_from_synth, registration_error
+    from hardware.sim.drift import DriftModel
+    from hardware.sim.surfaces import FoldedSurface
+    from hardware.sim.synth import synthesize
+    from merge.core.transforms import PatchTransform
+    from merge.io.manifest import write_patch_set
+
+    surface = FoldedSurface(seed=3)
+    synth = synthesize(
+        surface,
+        rows=side,
+        cols=side,
+        patch_size=(PATCH_SIDE, PATCH_SIDE),
+        pixels=(pixels, pixels),
+        overlap=(OVERLAP, OVERLAP),
+        drift=DriftModel.typical(),
+        seed=1,
+    )
+    folder = work / f"{side}x{side}-{pixels}"
+    manifest = write_patch_set(patch_set_from_synth(synth), folder / "patches")
+    out = folder / "out"
+    ran = _merge_in_child(manifest, out)
+    doc = json.loads((out / "mosaic.json").read_text())
+    by_id = {
+        p["id"]: PatchTransform(
+            p["transform"]["rotation"],
+            p["transform"]["translation"],
+            p["transform"]["z_slope"],
+            p["transform"]["centre"],
+        )
+        for p in doc["patches"]
+    }
+    n = side * side
+    stride = 1 if n * pixels**2 < 5_000_000 else 4
+    exy, ez, (G, g) = registration_error(synth, [by_id[s.id] for s in synth], stride=stride)
+    heights = np.load(out / "mosaic.npy", mmap_mode="r")
+    origin = (float(doc["origin"][0]), float(doc["origin"][1]))
+    pixel = (float(doc["pixel_size"][0]), float(doc["pixel_size"][1]))
+    merr = map_error(heights, origin, pixel, surface, G, g, stride=stride)
+    floor = floor_of(synth, surface, pixel, stride) if n <= 1600 else float("nan")
+    input_pixels = n * pixels * pixels
+    return {
+        "patches": n,
+        "pixels": pixels,
+        "wall_s": ran["wall_s"],
+        "iterations": doc["iterations"],
+        "converged": doc["converged"],
+        "timings": doc["timings"],
+        "peak_gb": ran["peak_bytes"] / 1e9,
+        "bytes_per_pixel": (ran["peak_bytes"] - ran["base_bytes"]) / input_pixels,
+        "reg_xy_nm": exy * 1e9,
+        "reg_z_nm": ez * 1e9,
+        "map_nm": merr * 1e9,
+        "floor_nm": floor * 1e9,
+        "scored_every": stride,
+        "mosaic_shape": doc["shape"],
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--sides", default="10,20,30,40", help="mosaic sides (patches per row)")
+    parser.add_argument("--large", action="store_true", help="also 50 x 50 and 100 x 100")
+    parser.add_argument("--big", action="store_true", help="also 50 x 50 patches of 256 x 256")
+    parser.add_argument("--child", nargs=2, metavar=("MANIFEST", "OUT"), help=argparse.SUPPRESS)
+    parser.add_argument("--json", default=str(ROOT / "benchmarks" / "results" / "merge_scale.json"))
+    args = parser.parse_args(argv)
+    if args.child:
+        return child(*args.child)
+    try:
+        sizes = [(int(s), 64) for s in args.sides.split(",") if s.strip()]
+    except ValueError:
+        parser.error(f"--sides must be integers separated by commas, got {args.sides!r}")
+    if args.large:
+        sizes += [(50, 64), (100, 64)]
+    if args.big:
+        sizes += [(50, 256)]
+    rows = []
+    print(
+        f"{'patches':>8}{'px':>5}{'wall s':>9}{'iter':>6}{'peak GB':>9}{'B/px':>7}"
+        f"{'XY nm':>8}{'Z nm':>7}{'map nm':>8}{'floor':>7}{'t/t400':>8}{'n/n400':>8}"
+    )
+    with tempfile.TemporaryDirectory() as tmp:
+        for side, pixels in sizes:
+            r = one_size(side, pixels, Path(tmp))
+            rows.append(r)
+            ref = next((x for x in rows if x["patches"] == 400 and x["pixels"] == 64), None)
+            ratio = r["wall_s"] / ref["wall_s"] if ref else float("nan")
+            r["time_ratio_400"] = ratio
+            r["patch_ratio_400"] = r["patches"] / 400
+            print(
+                f"{r['patches']:>8}{pixels:>5}{r['wall_s']:>9.1f}{r['iterations']:>6}"
+                f"{r['peak_gb']:>9.2f}{r['bytes_per_pixel']:>7.0f}{r['reg_xy_nm']:>8.2f}"
+                f"{r['reg_z_nm']:>7.2f}{r['map_nm']:>8.2f}{r['floor_nm']:>7.2f}"
+                f"{ratio:>8.2f}{r['patch_ratio_400']:>8.2f}",
+                flush=True,
+            )
+            for stage, seconds in r["timings"].items():
+                print(f"{'':>13}{stage}: {seconds:.1f} s", flush=True)
+    Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+    Path(args.json).write_text(json.dumps({"sizes": rows}, indent=1) + "\n")
+    print(f"wrote {args.json}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
