@@ -81,6 +81,7 @@ def assess(
             gauge,
             rms=system.rms,
             z_design=system.line_design,
+            positions=state.s[:, :2],
         )
     pitch = np.column_stack([bank.dx, bank.dy])
     local = _local_fits(system, n, noise, pitch, bank.slope_noise)

@@ -21,10 +21,12 @@ from __future__ import annotations
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.linalg import qr
 from scipy.sparse import bmat, coo_matrix, csc_matrix
 from scipy.sparse.linalg import splu
 
 from merge.core.overlap import overlap_groups
+from merge.core.selected_inverse import diagonal_blocks, slabs
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
@@ -35,16 +37,20 @@ RIDGE = 1e-9
 UNSEEN = 1e-3
 #: Information (relative to ``A``'s largest diagonal entry) that holds a translation no data see.
 PIN = 1e6
+#: Information (relative to ``A``'s largest diagonal entry) that holds the patch fixing the gauge
+#: of the slab by slab solution (:func:`_translation_blocks`): its leak is the inverse.
+GAUGE_HOLD = 1e10
 #: Rounds of holding translations no data see.
 PASSES = 4
 #: Of the variances above the unseen level, those above this fraction of the largest are the
 #: unseen translations themselves; the rest are shares the gauge spread from them.
 SHARE = 0.25
-#: Systems up to this many unknowns are solved dense. The marginal covariances need as many
-#: right-hand sides as translations (half the unknowns); LAPACK solves them as one
-#: matrix-matrix problem, a sparse LU one column at a time: for 400 patches (2406 unknowns)
-#: 0.47 s against 1.40 s. Dense memory and time grow as the square and cube of the size, so
-#: larger systems stay sparse (4000 unknowns: a 128 MB matrix).
+#: Systems up to this many unknowns are solved dense: the marginal covariances need as many
+#: right-hand sides as translations (half the unknowns), and LAPACK solves them as one
+#: matrix-matrix problem (400 patches: 0.47 s). Its memory and time grow as the square and
+#: cube of the size, and so did a sparse LU's one column at a time (1,600 patches: 22 s), so
+#: larger systems get only the diagonal blocks, slab by slab
+#: (:mod:`merge.core.selected_inverse`: 1,600 patches in 1.2 s).
 DENSE_MAX = 4000
 
 
@@ -55,8 +61,7 @@ def tied_groups(rows: IntArray, cols: IntArray, n: int) -> IntArray:
     Patches that overlap no other (and groups that overlap no other group) have common
     motions of their own that no data see: each group needs a gauge of its own.
     """
-    pairs = np.column_stack([np.asarray(rows) // 6, np.asarray(cols) // 6])
-    return overlap_groups(np.unique(pairs, axis=0), n)
+    return overlap_groups(_unit_pairs(rows, cols, n), n)
 
 
 def gauge_modes(
@@ -95,7 +100,12 @@ def gauge_modes(
 
 
 def translation_covariances(
-    rows: IntArray, cols: IntArray, vals: FloatArray, gauge: FloatArray
+    rows: IntArray,
+    cols: IntArray,
+    vals: FloatArray,
+    gauge: FloatArray,
+    *,
+    positions: FloatArray | None = None,
 ) -> tuple[FloatArray, FloatArray]:
     """Marginal covariances of every patch's translation, in units of the residual variance.
 
@@ -105,6 +115,10 @@ def translation_covariances(
         Triplets of the information matrix ``A`` (6 n x 6 n), duplicates summed.
     gauge : (6 n, g) array
         The common motions (:func:`gauge_modes`), held fixed.
+    positions : (n, 2) array, keyword-only
+        Where the patches lie (any unit): large systems are cut into slabs along the longer
+        axis of the mosaic (:mod:`merge.core.selected_inverse`); default an order from the
+        links alone.
 
     Returns
     -------
@@ -119,9 +133,7 @@ def translation_covariances(
     top = max(float(A.diagonal().max(initial=0.0)), 1e-300)
     ridge = RIDGE * top
     unseen = UNSEEN / ridge
-    picks = (6 * np.arange(n)[:, None] + np.arange(3)).ravel()
-    rhs = np.zeros((size + gauge.shape[1], len(picks)))
-    rhs[picks, np.arange(len(picks))] = 1.0
+    parts = None if size <= DENSE_MAX else _slabs_of(rows, cols, n, positions)
     # a patch tied to no other (no gauge mode moves it) is held whole, spin and plane too: left
     # free, they would take up a share of the gauge (a mean spin of zero) from the others
     alone = np.asarray(~np.abs(gauge).reshape(n, 6, -1).any(axis=(1, 2)), dtype=bool)
@@ -134,12 +146,12 @@ def translation_covariances(
         pin = np.zeros((n, 6))
         pin[:, :3] = np.where(held, PIN * top, 0.0)
         pin[alone, 3:] = PIN * top
-        K = bmat(
-            [[A + _diagonal(ridge + pin.ravel()), csc_matrix(gauge)], [csc_matrix(gauge.T), None]],
-            format="csc",
-        )
-        X = _solve(K, rhs)[:size]
-        block = X[picks].reshape(n, 3, n, 3)[np.arange(n), :, np.arange(n), :]  # (n, 3, 3)
+        # held in its gauge, the slab by slab solution needs no ridge for its conditioning, and
+        # the ridge's bias grows with the distance from the patch held (400 patches: Z sigmas
+        # up to 1.1 % off the dense solution's; with a thousandth of it, 0.03 %)
+        slack = ridge if parts is None else 1e-3 * ridge
+        B = A + _diagonal(slack + pin.ravel())
+        block = _translation_blocks(B, gauge, parts, stiff=PIN * top)
         var = np.column_stack(
             [np.repeat(np.linalg.eigvalsh(block[:, :2, :2])[:, 1:], 2, axis=1), block[:, 2, 2]]
         )
@@ -155,13 +167,90 @@ def translation_covariances(
     return xy, z
 
 
-def _solve(K: csc_matrix, rhs: FloatArray) -> FloatArray:
-    """``K⁻¹ rhs``: dense up to :data:`DENSE_MAX` unknowns, sparse LU beyond."""
-    if K.shape[0] <= DENSE_MAX:
-        out: FloatArray = np.linalg.solve(K.toarray(), rhs)
-        return out
-    sparse: FloatArray = splu(K).solve(rhs)
-    return sparse
+def _slabs_of(
+    rows: IntArray, cols: IntArray, n: int, positions: FloatArray | None
+) -> list[IntArray]:
+    """The slabs of the selected inversion: the patches in order along the mosaic's longer
+    axis (or by their links alone)."""
+    order = None
+    if positions is not None:
+        along = int(np.argmax(np.ptp(positions, axis=0)))
+        order = np.lexsort((positions[:, 1 - along], positions[:, along])).astype(np.intp)
+    return slabs(_unit_pairs(rows, cols, n), n, order)
+
+
+def _translation_blocks(
+    B: csc_matrix, gauge: FloatArray, parts: list[IntArray] | None, *, stiff: float
+) -> FloatArray:
+    """The (n, 3, 3) translation blocks of the top-left block of ``[[B, G], [G', 0]]⁻¹``.
+
+    Dense (one LAPACK solve for every translation's column) without ``parts``. Else slab by
+    slab (:func:`merge.core.selected_inverse.diagonal_blocks`) in another gauge, which keeps
+    the matrix well conditioned: one patch of every group held (``stiff``) in as many of its
+    unknowns as the group has modes, ``C = (B + holds)⁻¹``. The mean-zero gauge's estimate is
+    the held one's moved along the modes, ``x = Π y`` with ``Π = I - G (G'G)⁻¹ G'``, so the
+    blocks are those of ``Π C Π'``: ``C`` less ``G K (CG)' + (CG) K G'`` plus
+    ``G K (G'CG) K G'`` (``K = (G'G)⁻¹``, one sparse LU for ``CG``, as many columns as modes).
+    The bordered form itself would subtract two numbers of the size of ``1 / ridge``.
+    """
+    size = B.shape[0]
+    n = size // 6
+    if parts is None:
+        K = bmat([[B, csc_matrix(gauge)], [csc_matrix(gauge.T), None]], format="csc")
+        picks = (6 * np.arange(n)[:, None] + np.arange(3)).ravel()
+        rhs = np.zeros((K.shape[0], len(picks)))
+        rhs[picks, np.arange(len(picks))] = 1.0
+        X = np.linalg.solve(K.toarray(), rhs)[:size]
+        dense: FloatArray = X[picks].reshape(n, 3, n, 3)[np.arange(n), :, np.arange(n), :]
+        return dense
+    if not gauge.shape[1]:
+        no_modes: FloatArray = diagonal_blocks(B, 6, parts)[:, :3, :3]
+        return no_modes
+    # unknowns held (the caller's pins: translations no data see) move with no mode, which
+    # leaves the cost unchanged only without them
+    gauge = np.where((B.diagonal() >= stiff)[:, None], 0.0, gauge)
+    held = B + _diagonal(GAUGE_HOLD / PIN * stiff * _gauge_holds(gauge))
+    C = diagonal_blocks(held, 6, parts)
+    CG = np.asarray(splu(held).solve(np.ascontiguousarray(gauge)))
+    Kg = np.linalg.pinv(gauge.T @ gauge, hermitian=True)
+    mid = Kg @ (gauge.T @ CG) @ Kg
+    Gt = gauge.reshape(n, 6, -1)[:, :3, :]
+    Ct = CG.reshape(n, 6, -1)[:, :3, :]
+    cross = np.einsum("nig,gh,njh->nij", Gt, Kg, Ct)
+    out: FloatArray = (
+        C[:, :3, :3] - cross - np.swapaxes(cross, 1, 2) + np.einsum("nig,gh,njh->nij", Gt, mid, Gt)
+    )
+    return out
+
+
+def _gauge_holds(gauge: FloatArray) -> FloatArray:
+    """(6 n,) 1 on the unknowns that, held, fix every mode of ``gauge`` and nothing else: per
+    group of modes (the modes that move the same patches), as many unknowns of its first
+    patch as it has modes, chosen where the modes move them independently."""
+    n = gauge.shape[0] // 6
+    moves = gauge.reshape(n, 6, -1)
+    support = np.abs(moves).max(axis=1) > 0  # (n, g)
+    _, group = np.unique(support.T, axis=0, return_inverse=True)
+    holds = np.zeros((n, 6))
+    for label in np.unique(group):
+        modes = np.flatnonzero(group == label)
+        for first in np.flatnonzero(support[:, modes[0]]).tolist():
+            block = moves[first][:, modes]
+            if np.linalg.matrix_rank(block) == len(modes):
+                # the unknowns that best span the modes, by pivoted QR
+                _, _, pivots = qr(block.T, pivoting=True, mode="economic")
+                holds[first, pivots[: len(modes)]] = 1.0
+                break
+    out: FloatArray = holds.ravel()
+    return out
+
+
+def _unit_pairs(rows: IntArray, cols: IntArray, n: int) -> IntArray:
+    """The distinct pairs (k, 2) of patches, each once, that the triplets' entries join."""
+    a, b = np.asarray(rows) // 6, np.asarray(cols) // 6
+    key = np.unique(np.minimum(a, b) * n + np.maximum(a, b))
+    out: IntArray = np.column_stack([key // n, key % n])
+    return out
 
 
 def translation_sigmas(
@@ -170,15 +259,17 @@ def translation_sigmas(
     *,
     rms: float,
     z_design: float = 1.0,
+    positions: FloatArray | None = None,
 ) -> tuple[FloatArray, FloatArray]:
     """Standard deviations of every patch's translation (XY: its larger axis; Z), ``inf`` where
     no data see it: :func:`translation_covariances` times the residual variance ``rms²``.
 
     Each noise sample enters the information twice (a's points on b's surface and b's points on
     a's), so it counts half; Z variances are further scaled by ``z_design``
-    (:func:`merge.core.information.line_design`).
+    (:func:`merge.core.information.line_design`). ``positions`` (n, 2): where the patches lie,
+    for large systems (:func:`translation_covariances`).
     """
-    xy_cov, z_var = translation_covariances(*information, gauge)
+    xy_cov, z_var = translation_covariances(*information, gauge, positions=positions)
     rms2 = 2.0 * rms**2
     seen_xy: NDArray[np.bool_] = np.asarray(np.isfinite(xy_cov).all(axis=(1, 2)))
     largest = np.linalg.eigvalsh(np.where(seen_xy[:, None, None], xy_cov, 0.0))[:, 1]

@@ -25,10 +25,10 @@ def _chain(n: int, link: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray
     return rows, cols, A[rows, cols]
 
 
-@pytest.fixture(params=["dense", "sparse"])
+@pytest.fixture(params=["dense", "slabs"])
 def solver(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> None:
-    """Both ways of solving for the covariances (dense LAPACK, sparse LU)."""
-    if request.param == "sparse":
+    """Both ways of solving for the covariances (dense LAPACK, diagonal blocks slab by slab)."""
+    if request.param == "slabs":
         monkeypatch.setattr(uncertainty, "DENSE_MAX", 0)
 
 
@@ -43,8 +43,9 @@ def test_a_chain_is_as_uncertain_as_its_weakest_links() -> None:
     xy, z = translation_covariances(rows, cols, vals, gauge)
     laplacian = np.diag(np.r_[link, 0] + np.r_[0, link]) - np.diag(link, 1) - np.diag(link, -1)
     expected = np.diag(np.linalg.pinv(laplacian))
-    np.testing.assert_allclose(xy[:, 0, 0], expected, rtol=1e-6)
-    np.testing.assert_allclose(z, expected, rtol=1e-6)
+    # the ridge (1e-9 of the largest information) moves them by 1e-6 or so, either way
+    np.testing.assert_allclose(xy[:, 0, 0], expected, rtol=3e-6)
+    np.testing.assert_allclose(z, expected, rtol=3e-6)
     # each patch is held tightly by a neighbour (own information >= 4: variance <= 0.25 with
     # the others held), yet the halves float against each other (1 / 0.01 = 100 between them,
     # shared 2:3 about the mean): variances of 16 and 36
