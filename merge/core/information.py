@@ -9,15 +9,21 @@ residuals move together (:func:`line_design`); the report's uncertainties rest o
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 from numpy.typing import NDArray
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
+#: Float arrays of any width (float32 where the mosaic's memory counts).
+Floats = NDArray[np.floating[Any]]
+#: Integer arrays of any width.
+Ints = NDArray[np.integer[Any]]
 
 
 def noise_share(
-    w: FloatArray, arm: FloatArray, starts: IntArray, radius: FloatArray, noise2: FloatArray
+    w: Floats, arm: FloatArray, starts: IntArray, radius: FloatArray, noise2: FloatArray
 ) -> FloatArray:
     """Per run, the part of ``Σ w J J'`` (k, 6, 6) that slopes of white noise contribute.
 
@@ -48,7 +54,7 @@ def psd_part(blocks: FloatArray) -> FloatArray:
     return out
 
 
-def line_design(score: FloatArray, starts: IntArray, line: IntArray) -> float:
+def line_design(score: FloatArray, starts: IntArray, line: Ints) -> float:
     """Design effect of the Z scores ``w r`` (m,) clustered by scan line within each run.
 
     Per-line offsets (the feedback loop resetting between lines) shift all residuals of one

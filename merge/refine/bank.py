@@ -9,6 +9,7 @@ all patches end to end) feed the residuals of :mod:`merge.refine.normal_system`.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -18,6 +19,14 @@ from merge.core.patchset import Patch
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
+Ints = NDArray[np.integer[Any]]
+
+#: Arrays upsampled in one call: enough to spread the call's overhead, few enough that its
+#: temporaries stay a few megabytes (large ones cost page faults on every allocation).
+UPSAMPLE_BATCH = 16
+#: Storage of the nodes (:attr:`SurfaceBank.surface`) and points (:attr:`SurfaceBank.points`).
+SURFACE_DTYPE = np.float32
+POINT_DTYPE = np.float32
 
 
 class SurfaceBank:
@@ -74,16 +83,22 @@ class SurfaceBank:
         self.centre = np.zeros((n, 3))
         self.radius = np.zeros(n)
         self.half = np.zeros((n, 2))
-        surface, pts, lines = [], [], []
         #: nodes per pixel of the look-ups
         self.nodes = self.RAW_NODES if smooth <= 0 else 1
         #: variance of a looked-up slope of unit white noise, per axis, in 1 / pixel²
         self.slope_noise = slope_noise(self.nodes)
         self.node_nx = (self.nx - 1) * self.nodes + 1
         self.node_ny = (self.ny - 1) * self.nodes + 1
-        self.offset = np.zeros(n, dtype=np.intp)
+        sizes = self.node_nx * self.node_ny
+        self.offset = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.intp)
+        # (nodes, 3): height, dh/dx, dh/dy of every node, so one gather fetches all three (a
+        # row's three values side by side, one cache line), in float32: every node holds
+        # heights relative to its patch's median in pixels, which float32 keeps to a millionth
+        # of a pixel, and the nodes are most of a merge's memory (4 per pixel on raw heights)
+        self.surface = np.empty((int(sizes.sum()), 3), dtype=SURFACE_DTYPE)
         self.point_start = np.zeros(n + 1, dtype=np.intp)
-        total = 0
+        pts, lines = [], []
+        levelled: dict[int, FloatArray] = {}
         for c, p in enumerate(patches):
             h = p.heights / scale
             if smooth > 0:
@@ -99,16 +114,16 @@ class SurfaceBank:
             self.radius[c] = float(np.hypot(0.5 * w, 0.5 * hh))
             hl = h - self.centre[c, 2]
             if self.nodes > 1:
-                surface.append(hl)  # slopes come with the spline (_spline_nodes)
+                levelled[c] = hl  # slopes come with the spline (_fill_spline_nodes)
             else:
                 gx, gy = slopes(h, (self.dx[c], self.dy[c]))
-                surface.append(np.stack([hl, gx, gy]))
-            self.offset[c] = total
-            total += int(self.node_nx[c] * self.node_ny[c])
+                rows = slice(self.offset[c], self.offset[c] + sizes[c])
+                for k, a in enumerate((hl, gx, gy)):
+                    self.surface[rows, k] = a.ravel()
             ii, jj = np.meshgrid(np.arange(0, ny, stride), np.arange(0, nx, stride), indexing="ij")
             keep = np.isfinite(h[ii, jj])
             ii, jj = ii[keep], jj[keep]
-            lines.append(ii.ravel())
+            lines.append(ii.ravel().astype(np.int32))
             pts.append(
                 np.column_stack(
                     [
@@ -116,24 +131,43 @@ class SurfaceBank:
                         self.y0[c] + ii * self.dy[c] - cy,
                         hl[ii, jj],
                     ]
-                )
+                ).astype(POINT_DTYPE)
             )
             self.point_start[c + 1] = self.point_start[c] + len(ii)
-        if self.nodes > 1:
-            surface = _spline_nodes(surface, self.dx, self.dy)
-        # (nodes, 3): height, dh/dx, dh/dy of every node, so one gather fetches all three (in C
-        # order: a row's three values side by side, one cache line)
-        self.surface = np.ascontiguousarray(
-            np.concatenate([a.reshape(3, -1) for a in surface], axis=1).T
-        )
-        self.points = np.concatenate(pts)
+            if len(levelled) >= UPSAMPLE_BATCH or (levelled and c == n - 1):
+                self._fill_spline_nodes(levelled)
+                levelled = {}
+        #: every point's place in its patch's frame and its height (m, 3), float32: a few
+        #: millionths of a pixel, and look-ups take them back to float64
+        self.points = np.concatenate(pts) if pts else np.empty((0, 3), dtype=POINT_DTYPE)
         #: the scan line (row of its patch) of every point
-        self.line = np.concatenate(lines).astype(np.intp)
+        self.line = np.concatenate(lines) if lines else np.empty(0, dtype=np.int32)
         #: the patch of every point
-        self.owner = np.repeat(np.arange(n, dtype=np.intp), np.diff(self.point_start))
+        self.owner = np.repeat(np.arange(n, dtype=np.int32), np.diff(self.point_start))
+
+    def _fill_spline_nodes(self, heights: dict[int, FloatArray]) -> None:
+        """Height, dh/dx and dh/dy at the half-pixel nodes of patches ``heights`` (by index),
+        into :attr:`surface`.
+
+        The heights through :func:`merge.core.heightfield.upsample2` (patches of one shape a
+        call), with a pixel beyond the border; the slopes are central differences of the spline
+        a pixel either side, ``(S(x + 1) - S(x - 1)) / 2``: by linearity the spline through the
+        pixels' central differences, as the bilinear look-ups had them (at the border the
+        one-sided difference, which the continuation beyond it makes of a central one).
+        """
+        shapes: dict[tuple[int, ...], list[int]] = {}
+        for c, h in heights.items():
+            shapes.setdefault(h.shape, []).append(c)
+        for members in shapes.values():
+            fine = upsample2(np.stack([heights[c] for c in members]), margin=1)
+            for c, f in zip(members, fine, strict=True):
+                rows = slice(self.offset[c], self.offset[c] + self.node_nx[c] * self.node_ny[c])
+                self.surface[rows, 0] = f[2:-2, 2:-2].ravel()
+                self.surface[rows, 1] = ((f[2:-2, 4:] - f[2:-2, :-4]) / (2.0 * self.dx[c])).ravel()
+                self.surface[rows, 2] = ((f[4:, 2:-2] - f[:-4, 2:-2]) / (2.0 * self.dy[c])).ravel()
 
     def lookup(
-        self, dst: IntArray, p_local: FloatArray
+        self, dst: Ints, p_local: FloatArray
     ) -> tuple[FloatArray, FloatArray, FloatArray, NDArray[np.bool_]]:
         """Height (local), slopes and validity of patch ``dst[i]`` under local point ``i``.
 
@@ -161,7 +195,7 @@ class SurfaceBank:
 
     def candidates(
         self, pairs: IntArray, R: FloatArray, s: FloatArray, margin: float
-    ) -> tuple[IntArray, IntArray, IntArray, IntArray]:
+    ) -> tuple[Ints, Ints, Ints, IntArray]:
         """Points of every source patch that may fall on every destination patch.
 
         ``R`` (n, 3, 3) and ``s`` (n, 3) place every patch frame in the mosaic; ``margin``
@@ -206,42 +240,10 @@ class SurfaceBank:
         if not kept.any():
             e = np.empty(0, dtype=np.intp)
             return e, e, e, np.zeros(1, dtype=np.intp)
+        # one per row of the mosaic's system: int32 (points up to two billion), half the bytes
         return (
-            np.repeat(src_all[kept], counts[kept]),
-            np.repeat(dst_all[kept], counts[kept]),
-            np.concatenate([h for h in hits if len(h)]).astype(np.intp),
+            np.repeat(src_all[kept].astype(np.int32), counts[kept]),
+            np.repeat(dst_all[kept].astype(np.int32), counts[kept]),
+            np.concatenate([h for h in hits if len(h)]).astype(np.int32),
             np.concatenate([[0], np.cumsum(counts[kept])]).astype(np.intp),
         )
-
-
-#: Arrays upsampled in one call: enough to spread the call's overhead, few enough that its
-#: temporaries stay a few megabytes (large ones cost page faults on every allocation).
-UPSAMPLE_BATCH = 16
-
-
-def _spline_nodes(heights: list[FloatArray], dx: FloatArray, dy: FloatArray) -> list[FloatArray]:
-    """Height, dh/dx and dh/dy (3, 2 ny - 1, 2 nx - 1) at the half-pixel nodes of every patch.
-
-    The heights through :func:`merge.core.heightfield.upsample2` (patches of one shape a batch per
-    call), with a pixel beyond the border; the slopes are central differences of the spline a
-    pixel either side, ``(S(x + 1) - S(x - 1)) / 2``: by linearity the spline through the
-    pixels' central differences, as the bilinear look-ups had them (at the border the one-sided
-    difference, which the continuation beyond it makes of a central one).
-    """
-    out: list[FloatArray] = list(heights)
-    shapes: dict[tuple[int, ...], list[int]] = {}
-    for c, h in enumerate(heights):
-        shapes.setdefault(h.shape, []).append(c)
-    for members in shapes.values():
-        for first in range(0, len(members), UPSAMPLE_BATCH):
-            batch = members[first : first + UPSAMPLE_BATCH]
-            fine = upsample2(np.stack([heights[c] for c in batch]), margin=1)
-            for c, f in zip(batch, fine, strict=True):
-                out[c] = np.stack(
-                    [
-                        f[2:-2, 2:-2],
-                        (f[2:-2, 4:] - f[2:-2, :-4]) / (2.0 * dx[c]),
-                        (f[4:, 2:-2] - f[:-4, 2:-2]) / (2.0 * dy[c]),
-                    ]
-                )
-    return out

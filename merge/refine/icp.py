@@ -329,11 +329,20 @@ def _step(fit: Fit, lv: LevelSetup, cand: Candidates) -> tuple[NormalSystem, Flo
     return stats, delta
 
 
+#: Nodes per block of :func:`_slope_rms` (its temporaries a few megabytes).
+SLOPE_BLOCK = 1 << 18
+
+
 def _slope_rms(bank: SurfaceBank) -> float:
-    """RMS of the surfaces' slopes over all their nodes (dimensionless)."""
-    g = bank.surface[:, 1:]
-    ok = np.isfinite(g).all(axis=1)
-    return float(np.sqrt(np.mean(g[ok] ** 2) * 2.0)) if ok.any() else 0.0
+    """RMS of the surfaces' slopes over all their nodes (dimensionless: the slope's length,
+    both axes summed, per node)."""
+    total, count = 0.0, 0
+    for lo in range(0, len(bank.surface), SLOPE_BLOCK):
+        g = bank.surface[lo : lo + SLOPE_BLOCK, 1:].astype(np.float64)
+        g = g[np.isfinite(g).all(axis=1)]
+        total += float(np.einsum("ij,ij->", g, g))
+        count += len(g)
+    return float(np.sqrt(total / count)) if count else 0.0
 
 
 def _height_effect(delta: FloatArray, slope: float) -> float:

@@ -26,11 +26,17 @@ Measured (map error over the floor, mean of 18 draws each; bilinear look-ups): T
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 from numpy.typing import NDArray
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
+#: Float arrays of any width (float32 where the mosaic's memory counts).
+Floats = NDArray[np.floating[Any]]
+#: Integer arrays of any width.
+Ints = NDArray[np.integer[Any]]
 
 #: Groups with fewer valid rows than this say little about the spread of their own rows.
 MIN_GROUP = 5
@@ -42,7 +48,7 @@ MEDIAN_GROUPS = 8192
 BISECTIONS = 26
 
 
-def line_groups(starts: IntArray, line: IntArray) -> IntArray:
+def line_groups(starts: IntArray, line: Ints) -> IntArray:
     """First row of every group: a run of one directed pair (``starts``) cut where the source
     line (``line`` (m,), rows of a run sorted by line) changes. Returns (g,) sorted indices."""
     m = len(line)
@@ -53,7 +59,9 @@ def line_groups(starts: IntArray, line: IntArray) -> IntArray:
     return out
 
 
-def offset_ratio(r: FloatArray, w: FloatArray, valid: FloatArray, first: IntArray) -> float:
+def offset_ratio(
+    r: FloatArray, w: Floats, valid: NDArray[np.bool_] | FloatArray, first: IntArray
+) -> float:
     """``ρ = σ² / τ²``: white variance of a residual over the variance of its line's offset.
 
     One-way analysis of variance over the groups starting at ``first``: the pooled weighted
@@ -69,7 +77,7 @@ def offset_ratio(r: FloatArray, w: FloatArray, valid: FloatArray, first: IntArra
     sw = np.add.reduceat(w, first)
     sr = np.add.reduceat(w * r, first)
     srr = np.add.reduceat(w * r * r, first)
-    n = np.add.reduceat(valid, first)
+    n = np.add.reduceat(valid, first, dtype=np.float64)
     use = (n >= MIN_GROUP) & (sw > 0)
     if use.sum() < 2:
         return float("inf")
@@ -98,7 +106,7 @@ def offset_ratio(r: FloatArray, w: FloatArray, valid: FloatArray, first: IntArra
 
 def marginalise_offsets(
     J: FloatArray,
-    w: FloatArray,
+    w: Floats,
     r: FloatArray,
     runs: IntArray,
     first: IntArray,

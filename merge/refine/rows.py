@@ -9,6 +9,7 @@ its information with another (:func:`segment_sums`).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -17,6 +18,10 @@ from merge.refine.bank import SurfaceBank
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
+#: Float arrays of any width (float32 where the mosaic's memory counts).
+Floats = NDArray[np.floating[Any]]
+#: Integer arrays of any width.
+Ints = NDArray[np.integer[Any]]
 
 
 @dataclass
@@ -32,7 +37,7 @@ class PatchState:
     slope: FloatArray
 
 
-def _run_maps(state: PatchState, a: IntArray, b: IntArray) -> tuple[FloatArray, FloatArray]:
+def _run_maps(state: PatchState, a: Ints, b: Ints) -> tuple[FloatArray, FloatArray]:
     """Per run: the affine map ``p_b = M p_a + c`` from the source's frame to the destination's.
 
     ``q = R_a p + s_a + e_z (slope_a · p_xy)`` in the mosaic, then ``p_b = R_b' (q - s_b)``:
@@ -46,9 +51,9 @@ def _run_maps(state: PatchState, a: IntArray, b: IntArray) -> tuple[FloatArray, 
 
 
 def residuals(
-    bank: SurfaceBank, idx: IntArray, dst: IntArray, starts: IntArray, state: PatchState
-) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
-    """Per row: residual, validity (1 or 0), normal slopes (m, 2), lever arm (m, 2).
+    bank: SurfaceBank, idx: Ints, dst: Ints, starts: IntArray, state: PatchState
+) -> tuple[FloatArray, NDArray[np.bool_], FloatArray]:
+    """Per row: residual, validity, and the destination's normal slopes (m, 2).
 
     Rows ``idx`` (points) over ``dst`` (patches) come in runs ``starts[k]:starts[k + 1]`` of one
     directed pair each, so every run moves its points with one small matrix product. The
@@ -58,37 +63,47 @@ def residuals(
     """
     a, b = bank.owner[idx[starts[:-1]]], dst[starts[:-1]]
     M, c = _run_maps(state, a, b)
-    p_src = bank.points[idx]
+    p_src = bank.points[idx].astype(np.float64)  # stored float32
     p_dst = np.empty_like(p_src)
-    arm = np.empty((len(idx), 2))
-    Ra = state.R[a, :2, :]
     for k in range(len(a)):
         lo, hi = starts[k], starts[k + 1]
         np.matmul(p_src[lo:hi], M[k].T, out=p_dst[lo:hi])
         p_dst[lo:hi] += c[k]
-        np.matmul(p_src[lo:hi], Ra[k].T, out=arm[lo:hi])
     h, gx, gy, ok = bank.lookup(dst, p_dst)
     slope = state.slope[dst]
     r = np.where(ok, p_dst[:, 2] - np.einsum("mi,mi->m", slope, p_dst[:, :2]) - h, 0.0)
     grad = np.column_stack([gx, gy]) + slope
     grad[~ok] = 0.0
-    return r, ok.astype(np.float64), grad, arm
+    return r, ok, grad
+
+
+def lever_arms(bank: SurfaceBank, idx: Ints, starts: IntArray, state: PatchState) -> FloatArray:
+    """(m, 2) every row's point about its source patch's centre, in the mosaic's axes: the arm
+    of its spin. Rows in runs as :func:`residuals` has them."""
+    a = bank.owner[idx[starts[:-1]]]
+    Ra = state.R[a, :2, :]
+    p_src = bank.points[idx].astype(np.float64)
+    arm = np.empty((len(idx), 2))
+    for k in range(len(a)):
+        lo, hi = starts[k], starts[k + 1]
+        np.matmul(p_src[lo:hi], Ra[k].T, out=arm[lo:hi])
+    return arm
 
 
 def jacobians(
     bank: SurfaceBank,
-    idx: IntArray,
-    dst: IntArray,
+    idx: Ints,
+    dst: Ints,
     starts: IntArray,
     state: PatchState,
-    grad: FloatArray,
+    grad: Floats,
     ok: NDArray[np.bool_],
     arm: FloatArray,
 ) -> FloatArray:
     """(m, 6) derivative of every residual with respect to its source patch's unknowns.
 
     The translation part is the destination's normal in the mosaic, ``R_b (-grad, 1)``: one
-    rotation per run.
+    rotation per run; ``arm`` from :func:`lever_arms`.
     """
     nrm = np.column_stack([-grad, ok.astype(np.float64)])
     m = np.empty_like(nrm)
@@ -101,7 +116,7 @@ def jacobians(
 
 
 def segment_sums(
-    J: FloatArray, w: FloatArray, r: FloatArray, starts: IntArray
+    J: FloatArray, w: Floats, r: FloatArray, starts: IntArray
 ) -> tuple[FloatArray, FloatArray]:
     """Per run of rows ``starts[k]:starts[k + 1]``: ``Σ w J J'`` (k, 6, 6) and ``Σ w r J`` (k, 6).
 

@@ -94,7 +94,7 @@ def pair_misfits(
     state = MosaicState.from_transforms(transforms, bank, scale)
     margin = 1.5 * float(max(bank.dx.max(), bank.dy.max()))
     src, dst, idx, starts = bank.candidates(mine, state.R, state.s, margin)
-    r, valid, _, _ = residuals(bank, idx, dst, starts, state)
+    r, valid, _ = residuals(bank, idx, dst, starts, state)
     own = (src == c) & (valid > 0)  # c's points over the others' surfaces
     lines = patches[c].heights.shape[0]
     world = (bank.points[idx] @ state.R[c, :2].T + state.s[c, :2]) * scale

@@ -6,7 +6,7 @@ import numpy as np
 
 from merge.core.patchset import Patch
 from merge.refine.bank import SurfaceBank
-from merge.refine.rows import PatchState, residuals, segment_sums
+from merge.refine.rows import PatchState, lever_arms, residuals, segment_sums
 
 
 def test_segment_sums_equal_the_sums_they_stand_for() -> None:
@@ -42,9 +42,10 @@ def test_residuals_move_every_point_as_its_patch_state_says() -> None:
     bank, state = four_patches()
     pairs = np.array([[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]])
     src, dst, idx, starts = bank.candidates(pairs, state.R, state.s, 1.5)
-    r, w_plane, _, arm = residuals(bank, idx, dst, starts, state)
+    r, valid, _ = residuals(bank, idx, dst, starts, state)
+    arm = lever_arms(bank, idx, starts, state)
     # row by row: into the mosaic with the source's state, back out with the destination's
-    p = bank.points[idx]
+    p = bank.points[idx].astype(np.float64)
     rot = np.einsum("mij,mj->mi", state.R[src], p)
     q = rot + state.s[src]
     q[:, 2] += np.einsum("mi,mi->m", state.slope[src], p[:, :2])
@@ -52,6 +53,6 @@ def test_residuals_move_every_point_as_its_patch_state_says() -> None:
     h, _, _, ok = bank.lookup(dst, p_dst)
     expected = p_dst[:, 2] - np.einsum("mi,mi->m", state.slope[dst], p_dst[:, :2]) - h
     assert ok.sum() > 0.5 * len(ok)
-    np.testing.assert_array_equal(w_plane > 0, ok)
+    np.testing.assert_array_equal(valid, ok)
     np.testing.assert_allclose(r[ok], expected[ok], atol=1e-9)
     np.testing.assert_allclose(arm, rot[:, :2], atol=1e-12)
