@@ -52,8 +52,9 @@ class NormalSystem:
     """The sparse system ``A x = g`` (6 unknowns per patch) and fit statistics.
 
     ``rows``, ``cols``, ``vals`` are the triplets of ``A``; ``g`` (n, 6); per patch ``count`` (n,)
-    residuals that involve it, ``sq`` (n,) the sum of their squares as distances along the surface
-    normal and ``diag`` (n, 6, 6) its own information block; ``rms`` and ``rscale`` (robust scale)
+    residuals that involve it and ``sq`` (n,) the sum of their squares as distances along the
+    surface normal (with ``signal_vals`` only; zeros without), and ``diag`` (n, 6, 6) its own
+    information block; ``rms`` and ``rscale`` (robust scale)
     of the residuals (heights), pixel units. ``signal_vals`` (if asked for) are the values of ``A``
     at the same triplets without the share that slopes of the noise contribute (see
     :func:`merge.core.information.noise_share`): the information the surfaces themselves carry;
@@ -155,7 +156,8 @@ def build_normal_system(
         # small on TGX1, its flat face and the grating (a bowl no line model holds); this way
         # they are 0.9-1.4 x, and cautious (0.3-0.6 x) on MoS2 and the folded surface
         design = line_design(rows.w * rows.r, starts, line)
-    count, sq = _patch_sums(n, src, dst, rows)
+    # the report's per-patch sums, over every row of the mosaic: not for steps
+    count, sq = _patch_sums(n, src, dst, rows) if signal else (np.zeros(n), np.zeros(n))
     a_rows, a_cols, vals, g, diag = _assemble(bank, state, a_seg, b_seg, Baa, ga)
     signal_vals = None
     if signal_blocks is not None:

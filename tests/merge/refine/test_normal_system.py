@@ -14,11 +14,13 @@ def test_the_system_does_not_depend_on_its_blocks(block_rows: int) -> None:
     bank, state = four_patches()
     pairs = np.array([[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]])
     cand = bank.candidates(pairs, state.R, state.s, 1.5)
-    whole = build_normal_system(bank, cand, state, 0.1, block_rows=10**9)
-    split = build_normal_system(bank, cand, state, 0.1, block_rows=block_rows)
+    whole = build_normal_system(bank, cand, state, 0.1, block_rows=10**9, signal=True)
+    split = build_normal_system(bank, cand, state, 0.1, block_rows=block_rows, signal=True)
     assert whole.rms > 0 and whole.count.sum() > 0
+    assert whole.signal_vals is not None and split.signal_vals is not None
     np.testing.assert_allclose(split.g, whole.g, rtol=1e-12, atol=1e-12)
     np.testing.assert_allclose(split.diag, whole.diag, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(split.signal_vals, whole.signal_vals, rtol=1e-12, atol=1e-12)
     np.testing.assert_array_equal(split.count, whole.count)
     assert split.rscale == whole.rscale and split.rms == whole.rms
 
@@ -28,3 +30,12 @@ def test_no_correspondence_gives_an_empty_system() -> None:
     cand = bank.candidates(np.empty((0, 2), dtype=np.intp), state.R, state.s, 1.5)
     system = build_normal_system(bank, cand, state, 0.1)
     assert system.rms == 0.0 and len(system.vals) == 0 and not system.g.any()
+
+
+def test_the_per_patch_sums_come_with_the_signal_only() -> None:
+    bank, state = four_patches()
+    cand = bank.candidates(np.array([[0, 1], [2, 3]]), state.R, state.s, 1.5)
+    steps = build_normal_system(bank, cand, state, 0.1)
+    report = build_normal_system(bank, cand, state, 0.1, signal=True)
+    assert not steps.count.any() and report.count.sum() > 0
+    np.testing.assert_allclose(steps.g, report.g, rtol=1e-12, atol=1e-12)
