@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import resource
 import subprocess
 import sys
 import tempfile
@@ -39,15 +38,25 @@ PATCH_SIDE = 1e-6
 OVERLAP = 0.25
 
 
+def _memory(field: str) -> int:
+    """Bytes of ``VmRSS`` (now) or ``VmHWM`` (the peak) of this process, from /proc: unlike
+    ``ru_maxrss``, which Linux carries over an exec from the parent, they are this program's."""
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith(field + ":"):
+            return int(line.split()[1]) * 1024
+    raise RuntimeError(f"no {field} in /proc/self/status")
+
+
 def child(manifest: str, out: str) -> int:
     """Run the CLI's merge in this process; print its wall time and memory as JSON."""
     from backend.cli import main as cli_main
+    from merge import pipeline  # noqa: F401  (the merge's own imports count as the base)
 
-    base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+    base = _memory("VmRSS")
     clock = time.perf_counter()
     code = cli_main(["merge", manifest, "--out", out, "--quiet"])
     wall = time.perf_counter() - clock
-    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+    peak = _memory("VmHWM")
     print(json.dumps({"code": code, "wall_s": wall, "base_bytes": base, "peak_bytes": peak}))
     return code
 

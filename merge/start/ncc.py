@@ -65,6 +65,10 @@ def masked_ncc(
     return ncc, count, lattice.zero
 
 
+#: Pairs whose images are transformed together in :func:`pair_maps`.
+SPECTRA_PAIRS = 512
+
+
 def _channel_weights(weights: Sequence[float] | None, channels: int) -> FloatArray:
     w = np.ones(channels) if weights is None else np.asarray(weights, dtype=np.float64)
     if w.shape != (channels,) or (w < 0).any() or w.sum() <= 0:
@@ -265,24 +269,41 @@ def pair_maps(
     groups: dict[tuple[tuple[int, ...], tuple[int, ...]], list[int]] = {}
     for i in which:
         groups.setdefault((stacks[pairs[i, 0]].shape, stacks[pairs[i, 1]].shape), []).append(i)
-    for (shape_a, shape_b), members in groups.items():
+    for (shape_a, shape_b), every in groups.items():
         lattice = _Lattice.of(shape_a, shape_b)
-        rows = pairs[members]
-        # every image once per side it takes in this group
-        side_a, at_a = np.unique(rows[:, 0], return_inverse=True)
-        side_b, at_b = np.unique(rows[:, 1], return_inverse=True)
-        images_a = np.stack([stacks[c] for c in side_a.tolist()])
-        images_b = np.stack([stacks[c] for c in side_b.tolist()])
-        dense = bool(np.isfinite(images_a).all() and np.isfinite(images_b).all())
-        spectra_a = lattice.spectra(images_a, first=True, dense=dense)
-        spectra_b = lattice.spectra(images_b, first=False, dense=dense)
-        for lo in range(0, len(members), batch):
-            chunk = slice(lo, lo + batch)
-            ncc, count = lattice.ncc(
-                spectra_a.take(at_a.ravel()[chunk]), spectra_b.take(at_b.ravel()[chunk]), w
-            )
-            for j, i in enumerate(members[chunk]):
-                yield i, ncc[j], count[j], lattice.zero
+        # spectra for so many pairs at a time: for all pairs of a large mosaic at once they
+        # took 60 bytes per input pixel (pairs come in patch order, so a chunk's images are
+        # mostly its own and few are transformed twice)
+        for first in range(0, len(every), SPECTRA_PAIRS):
+            members = every[first : first + SPECTRA_PAIRS]
+            yield from _group_maps(lattice, stacks, pairs, members, w, batch)
+
+
+def _group_maps(
+    lattice: _Lattice,
+    stacks: Sequence[FloatArray],
+    pairs: NDArray[np.intp],
+    members: list[int],
+    w: FloatArray,
+    batch: int,
+) -> Iterator[tuple[int, FloatArray, FloatArray, tuple[int, int]]]:
+    """:func:`pair_maps` of ``members``, pairs of images of one shape each side."""
+    rows = pairs[members]
+    # every image once per side it takes in this group
+    side_a, at_a = np.unique(rows[:, 0], return_inverse=True)
+    side_b, at_b = np.unique(rows[:, 1], return_inverse=True)
+    images_a = np.stack([stacks[c] for c in side_a.tolist()])
+    images_b = np.stack([stacks[c] for c in side_b.tolist()])
+    dense = bool(np.isfinite(images_a).all() and np.isfinite(images_b).all())
+    spectra_a = lattice.spectra(images_a, first=True, dense=dense)
+    spectra_b = lattice.spectra(images_b, first=False, dense=dense)
+    for lo in range(0, len(members), batch):
+        chunk = slice(lo, lo + batch)
+        ncc, count = lattice.ncc(
+            spectra_a.take(at_a.ravel()[chunk]), spectra_b.take(at_b.ravel()[chunk]), w
+        )
+        for j, i in enumerate(members[chunk]):
+            yield i, ncc[j], count[j], lattice.zero
 
 
 def _masked_mean(x: FloatArray, mask: NDArray[np.bool_]) -> FloatArray:

@@ -10,6 +10,7 @@ from hardware.sim.synth import synthesize
 from merge.core.information import signal_information
 from merge.core.overlap import overlapping_pairs
 from merge.core.patchset import Patch, PatchSet
+from merge.start import coarse as coarse_module
 from merge.pipeline import default_cell
 from merge.start import coarse_cell
 from merge.start.coarse import CoarseStart, coarse_start
@@ -167,3 +168,17 @@ def test_a_patch_beyond_the_first_search_is_placed_against_all_its_neighbours() 
     err = start.translation[:, :2] - truth
     err -= err.mean(axis=0)  # the gauge
     assert np.abs(err).max() < 15e-9
+
+
+def test_maps_past_the_cache_are_computed_again_alike(
+    small_mosaic: Synthetic, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # a large mosaic keeps only so many NCC maps for the later passes; the rest are correlated
+    # again when asked for, and the start is the same
+    patches = small_mosaic.patch_set.patches
+    pairs = overlapping_pairs(np.array([p.footprint for p in patches]), margin=3e-7)
+    kept = coarse_start(patches, pairs, cell=2e-8, max_shift=3e-7)
+    monkeypatch.setattr(coarse_module, "MAP_CACHE_BYTES", 0)
+    again = coarse_start(patches, pairs, cell=2e-8, max_shift=3e-7)
+    np.testing.assert_allclose(again.translation, kept.translation, rtol=0, atol=1e-15)
+    np.testing.assert_array_equal(again.xy_complete, kept.xy_complete)

@@ -2,6 +2,7 @@ import numpy as np
 import pytest
 from scipy.ndimage import gaussian_filter
 
+from merge.start import ncc as ncc_module
 from merge.start.ncc import _Lattice, best_shift, masked_ncc, pair_maps
 
 
@@ -65,6 +66,19 @@ def test_pair_maps_score_every_pair_as_alone() -> None:
         assert zero == alone_zero
         np.testing.assert_array_equal(count, alone_count)
         np.testing.assert_allclose(ncc[used], alone[used], atol=1e-4)
+
+
+def test_pair_maps_in_chunks_equal_them_at_once(monkeypatch: pytest.MonkeyPatch) -> None:
+    # the spectra of a large mosaic's images are taken a few hundred pairs at a time: the maps
+    # are the same however the pairs are cut
+    big = texture(6, (90, 90))
+    images = [big[3 * k : 3 * k + 30, 2 * k : 2 * k + 40] for k in range(6)]
+    pairs = np.array([[0, 1], [1, 2], [2, 3], [3, 4], [4, 5], [0, 5], [1, 4]])
+    whole = {i: (m, c) for i, m, c, _ in pair_maps(images, pairs, range(len(pairs)))}
+    monkeypatch.setattr(ncc_module, "SPECTRA_PAIRS", 2)
+    for i, m, c, _ in pair_maps(images, pairs, range(len(pairs))):
+        np.testing.assert_array_equal(c, whole[i][1])
+        np.testing.assert_allclose(m, whole[i][0], atol=1e-9)
 
 
 def test_full_images_score_by_summed_areas_as_by_masks() -> None:
