@@ -10,8 +10,8 @@ from hardware.sim.synth import synthesize
 from merge.core.information import signal_information
 from merge.core.overlap import overlapping_pairs
 from merge.core.patchset import Patch, PatchSet
-from merge.start import coarse as coarse_module
 from merge.pipeline import default_cell
+from merge.start import coarse as coarse_module
 from merge.start import coarse_cell
 from merge.start.coarse import CoarseStart, coarse_start
 from tests.conftest import Synthetic
