@@ -53,6 +53,9 @@ def add_parser(sub: Any) -> None:
 
 def run(args: argparse.Namespace) -> int:
     import merge
+    from backend.allocator import return_large_blocks
+
+    return_large_blocks()
 
     start = time.perf_counter()
     try:
