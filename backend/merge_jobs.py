@@ -167,6 +167,7 @@ def _merge_child(
             config,
             progress=lambda it, res: out.put(("progress", it, float(res))),
             cancel=cancel.is_set,
+            status=lambda s: out.put(("status", s.stage, s.detail, s.fraction, s.eta)),
         )
         out.put(("done", result.mosaic.heights, result_document(result, patch_set)))
     except merge.MergeCancelled:
@@ -388,7 +389,6 @@ class MergeService:
         out: Any,
         cancel: MpEvent,
     ) -> None:
-        cap = job.parameters.get("max_iter") or (200 if job.method == "paper" else 40)
         cancelled_at: float | None = None
         while True:
             try:
@@ -408,10 +408,27 @@ class MergeService:
                     return
                 continue
             kind = message[0]
-            if kind == "progress":
+            if kind == "status":
+                _, stage, detail, fraction, eta = message
+                job.progress = min(0.99, float(fraction))
+                session.commit()
+                when = f", {round(eta)} s to go" if eta is not None else ""
+                self.events.emit(
+                    "merge",
+                    f"merge {job.id}: {detail or stage}, {100 * job.progress:.0f} %{when}",
+                    run_id=job.run_id,
+                    data={
+                        "job": job.id,
+                        "state": "running",
+                        "stage": stage,
+                        "detail": detail,
+                        "progress": job.progress,
+                        "eta_s": eta,
+                    },
+                )
+            elif kind == "progress":
                 _, iteration, residual = message
                 job.iteration, job.residual = int(iteration), float(residual)
-                job.progress = min(0.95, iteration / cap)
                 session.commit()
                 self.events.emit(
                     "merge",

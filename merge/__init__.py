@@ -19,6 +19,7 @@ The entry points:
 
 from merge.config import METHODS, MergeConfig
 from merge.core import MergeCancelled, Patch, PatchSet, PatchSetError, PatchTransform
+from merge.core.progress import Status
 from merge.io import StoredResult, read_patch_set, read_result, write_patch_set, write_result
 from merge.pipeline import run
 from merge.render import Mosaic, render_mosaic
@@ -35,6 +36,7 @@ __all__ = [
     "PatchSet",
     "PatchSetError",
     "PatchTransform",
+    "Status",
     "StoredResult",
     "read_patch_set",
     "read_result",

@@ -29,6 +29,7 @@ from numpy.typing import NDArray
 from merge.config import MergeConfig
 from merge.core.overlap import moved_boxes, overlap_groups, overlapping_pairs
 from merge.core.patchset import Patch, PatchSet
+from merge.core.progress import Report, stage, tracking
 from merge.core.transforms import PatchTransform
 from merge.refine import DEFAULT_LEVELS, Level, SurfaceBank, estimate_distortion, refine, undistort
 from merge.render import render_mosaic
@@ -43,6 +44,9 @@ Progress = Callable[[int, float], None]
 #: Polled between iterations; returning True stops the merge with MergeCancelled.
 Cancel = Callable[[], bool]
 
+#: Iterations a merge typically takes (9-10 from 100 to 2,500 patches): the refinement's
+#: share of the progress bar.
+TYPICAL_ITERATIONS = 10
 #: Prior standard deviation of a patch's XY correction in the refinement, as a fraction of the
 #: searched stage error: it decides only where the data are silent (flat, 1-D structure).
 SHIFT_PRIOR_FRACTION = 0.25
@@ -125,6 +129,7 @@ def run(
     *,
     progress: Progress | None = None,
     cancel: Cancel | None = None,
+    status: Report | None = None,
 ) -> MergeResult:
     """Merge all patches of ``patch_set`` simultaneously into one mosaic.
 
@@ -137,7 +142,11 @@ def run(
     progress : callable(iteration, residual_m), keyword-only
         Called after every solver iteration.
     cancel : callable() -> bool, keyword-only
-        Polled every iteration; true stops the merge with :class:`merge.MergeCancelled`.
+        Polled through every stage (every iteration, block of rows, pair, slab, patch); true
+        stops the merge with :class:`merge.MergeCancelled`.
+    status : callable(Status), keyword-only
+        Told where the merge is (:class:`merge.core.progress.Status`: the stage, what within
+        it, the fraction of the whole done and an ETA), at every stage and every quarter second.
 
     With ``config.self_calibrate`` the scanner's bend shared by every patch is measured from a
     first merge, taken out of every patch, and the corrected patches are merged again: the
@@ -145,7 +154,18 @@ def run(
     says what was taken out (nothing, and no second merge, where no bend stands out of the
     noise). ``progress`` then counts the iterations of both merges in one sequence.
     """
-    cfg = config or MergeConfig()
+    with tracking(status, cancel):
+        return _run(patch_set, config or MergeConfig(), progress=progress, cancel=cancel)
+
+
+def _run(
+    patch_set: PatchSet,
+    cfg: MergeConfig,
+    *,
+    progress: Progress | None,
+    cancel: Cancel | None,
+) -> MergeResult:
+    """:func:`run` under its tracking."""
     if not cfg.self_calibrate:
         return merge_once(patch_set, cfg, progress=progress, cancel=cancel)
     clock = time.perf_counter()
@@ -187,8 +207,10 @@ def merge_once(
     watch = Stopwatch()
     with watch.step("start"):
         layout = layout_of(patch_set, cfg)
-        placed = _start(patch_set, layout, cfg)
-    with watch.step("solve"):
+        # the start's work: every patch averaged onto its lattice, every pair correlated
+        with stage("start", len(patches) + len(layout.pairs), "correlating the overlaps"):
+            placed = _start(patch_set, layout, cfg)
+    with watch.step("solve"), stage("refine", TYPICAL_ITERATIONS, "refining"):
         solution = _solve(patches, layout, placed, cfg, progress=progress, cancel=cancel)
     return finish(patches, layout, solution, cfg, watch)
 
@@ -203,13 +225,13 @@ def finish(
     """Steps 4 and 5: the report on the transforms the solver settled on and the render, as
     the result (the live merge ends with them too)."""
     transforms = solution.transforms
-    with watch.step("report"):
+    with watch.step("report"), stage("report", 2, "the quality of every patch"):
         final_pairs = overlapping_pairs(moved_boxes(layout.boxes, transforms), margin=layout.cell)
         fits = assess(patches, final_pairs, transforms, bank=solution.bank)
         reports, unheld = patch_reports(
             patches, transforms, fits, layout.linked, registered=cfg.method in ("default", "paper")
         )
-    with watch.step("render"):
+    with watch.step("render"), stage("render", len(patches), "drawing the mosaic"):
         mosaic = render_mosaic(patches, transforms, pixel_size=cfg.pixel_size, feather=cfg.feather)
     return MergeResult(
         mosaic=mosaic,

@@ -19,6 +19,7 @@ from numpy.typing import NDArray
 
 from merge.core.heightfield import bilinear
 from merge.core.patchset import Patch
+from merge.core.progress import checkpoint
 from merge.core.transforms import PatchTransform
 
 FloatArray = NDArray[np.float64]
@@ -105,6 +106,7 @@ def render_mosaic(
     wsum = np.zeros((ny, nx))
     coverage = np.zeros((ny, nx), dtype=np.int32)
     for p, tr in zip(patches, trs, strict=True):
+        checkpoint(1)
         hit = resample_patch(p, tr, grid, feather)
         if hit is None:
             continue

@@ -5,7 +5,10 @@ from __future__ import annotations
 import argparse
 import sys
 import time
-from typing import TextIO
+from typing import TYPE_CHECKING, TextIO
+
+if TYPE_CHECKING:
+    from merge import Status
 
 
 class UsageError(Exception):
@@ -36,31 +39,49 @@ def int_pair(text: str) -> tuple[int, int]:
     return int(a), int(b)
 
 
-class ProgressBar:
-    """Iteration progress on stderr: a redrawn bar on a terminal, sparse lines otherwise."""
+def duration(seconds: float) -> str:
+    """``"1 h 05 min"``, ``"3 min 20 s"``, ``"12 s"``."""
+    s = max(0, round(seconds))
+    if s >= 3600:
+        return f"{s // 3600} h {s % 3600 // 60:02d} min"
+    if s >= 60:
+        return f"{s // 60} min {s % 60:02d} s"
+    return f"{s} s"
 
-    def __init__(self, total: int, *, stream: TextIO | None = None, label: str = "merge") -> None:
-        self.total = max(total, 1)
+
+class ProgressBar:
+    """A merge's progress on stderr: its stage, the share of the whole done, an ETA and the
+    last iteration's residual; a redrawn bar on a terminal, a line every few seconds
+    otherwise. ``status`` is the merge's ``status`` callback, the bar itself its ``progress``."""
+
+    def __init__(
+        self, *, stream: TextIO | None = None, label: str = "merge", every: float = 5.0
+    ) -> None:
         self.stream = stream or sys.stderr
         self.label = label
         self.tty = self.stream.isatty()
-        self.last = 0.0
+        self.every = every
+        self.last = -float("inf")
+        self.stage = ""
+        self.residual: float | None = None
 
     def __call__(self, iteration: int, residual: float) -> None:
+        self.residual = residual
+
+    def status(self, s: Status) -> None:
         now = time.monotonic()
+        changed = s.stage != self.stage
+        self.stage = s.stage
+        eta = f", {duration(s.eta)} to go" if s.eta is not None else ""
+        res = f", residual {self.residual * 1e9:.3f} nm" if self.residual is not None else ""
+        said = f"{s.detail or s.stage}: {100 * s.fraction:3.0f} %{eta}{res}"
         if self.tty:
-            frac = min(iteration / self.total, 1.0)
-            filled = int(30 * frac)
+            filled = int(30 * min(s.fraction, 1.0))
             bar = "#" * filled + "-" * (30 - filled)
-            self.stream.write(
-                f"\r{self.label} [{bar}] iteration {iteration:4d}"
-                f"  residual {residual * 1e9:8.3f} nm"
-            )
+            self.stream.write(f"\r{self.label} [{bar}] {said}\x1b[K")
             self.stream.flush()
-        elif now - self.last > 1.0:
-            self.stream.write(
-                f"{self.label}: iteration {iteration}, residual {residual * 1e9:.3f} nm\n"
-            )
+        elif changed or now - self.last >= self.every:
+            self.stream.write(f"{self.label}: {said}\n")
             self.last = now
 
     def close(self) -> None:

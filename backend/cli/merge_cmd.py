@@ -71,9 +71,11 @@ def run(args: argparse.Namespace) -> int:
         patch_set = merge.read_patch_set(args.manifest, readers=height_readers())
     except (merge.PatchSetError, ValueError) as exc:
         raise UsageError(str(exc)) from None
-    bar = None if args.quiet else ProgressBar(config.max_iter or 40)
+    bar = None if args.quiet else ProgressBar()
     try:
-        result = merge.run(patch_set, config, progress=bar)
+        result = merge.run(
+            patch_set, config, progress=bar, status=None if bar is None else bar.status
+        )
     finally:
         if bar is not None:
             bar.close()

@@ -15,6 +15,8 @@ from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from typing import TypeVar
 
+from merge.core.progress import checkpoint
+
 T = TypeVar("T")
 
 
@@ -59,5 +61,7 @@ def each(work: Callable[[T], None], items: Sequence[T]) -> None:
     if len(items) < 2 or WORKERS < 2:
         for item in items:
             work(item)
+            checkpoint()
         return
-    list(_shared_pool().map(work, items))
+    for _ in _shared_pool().map(work, items):
+        checkpoint()  # a cancel stops here; the blocks not begun are dropped

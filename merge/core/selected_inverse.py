@@ -27,6 +27,8 @@ from scipy.linalg import LinAlgError, lapack
 from scipy.sparse import csr_matrix, spmatrix
 from scipy.sparse.csgraph import reverse_cuthill_mckee
 
+from merge.core.progress import checkpoint
+
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
 
@@ -111,6 +113,7 @@ def diagonal_blocks(
     schur: list[FloatArray] = []
     couplings: list[FloatArray] = []  # M between slab k and slab k + 1
     for k, rows in enumerate(unknowns):
+        checkpoint()
         band = csr[rows]
         D = band[:, rows].toarray()
         if k:
@@ -122,6 +125,7 @@ def diagonal_blocks(
     G = schur[-1]
     _put(out, parts[-1], G, size)
     for k in range(len(parts) - 2, -1, -1):
+        checkpoint()
         X = schur[k] @ couplings[k]
         G = schur[k] + X @ G @ X.T
         schur[k + 1] = couplings[k] = np.empty(0)  # the memory goes back slab by slab

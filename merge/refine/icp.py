@@ -52,6 +52,7 @@ from merge.core.errors import MergeCancelled
 from merge.core.heightfield import Border
 from merge.core.noise import patch_noise
 from merge.core.patchset import Patch
+from merge.core.progress import checkpoint
 from merge.core.transforms import PatchTransform
 from merge.refine.bank import SurfaceBank
 from merge.refine.normal_system import Candidates, NormalSystem, build_normal_system
@@ -221,6 +222,7 @@ def refine(
     plane_sigma = np.full(2, drift_prior / scale)  # the first level: as loose along both axes
     converged = False
     for li, level in enumerate(levels):
+        checkpoint(0, f"refining, level {li + 1} of {len(levels)}")
         lv = _level_setup(patches, fit, pairs, li, level, first_free, held)
         if li == 1:
             plane_sigma = _plane_sigma(state.slope * lv.bank.radius[:, None], drift_prior / scale)
@@ -284,6 +286,7 @@ def _run_level(
     for _ in range(level.max_iter):
         if cancel is not None and cancel():
             raise MergeCancelled("merge cancelled")
+        checkpoint()
         if moved > 0.5 * lv.margin:
             cand, moved = bank.candidates(lv.pairs, state.R, state.s, lv.margin), 0.0
         stats, delta = _step(fit, lv, cand)
@@ -295,6 +298,7 @@ def _run_level(
         fit.history.append(stats.rms * fit.scale)
         if progress is not None:
             progress(fit.iteration, stats.rms * fit.scale)
+        checkpoint(1)
         # converged when no patch moves, or when the cost no longer falls (the motion left is
         # then in directions the data do not constrain, e.g. XY over a flat overlap)
         stalls = stalls + 1 if abs(previous - stats.rms) <= STALL * stats.rms else 0

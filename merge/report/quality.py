@@ -17,6 +17,7 @@ from numpy.typing import NDArray
 from merge.core.information import signal_information
 from merge.core.noise import patch_noise
 from merge.core.patchset import Patch
+from merge.core.progress import checkpoint
 from merge.core.transforms import PatchTransform
 from merge.refine.bank import SurfaceBank
 from merge.refine.normal_system import NormalSystem, build_normal_system
@@ -70,6 +71,7 @@ def assess(
     )
     noise = patch_noise((p.heights for p in patches), scale)
     system = build_normal_system(bank, cand, state, noise, signal=True)
+    checkpoint(1, "the uncertainty of every patch")
     n = len(patches)
     xy, z = np.full(n, np.inf), np.full(n, np.inf)
     if system.signal_vals is not None and len(system.rows):

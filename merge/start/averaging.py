@@ -18,6 +18,7 @@ from numpy.typing import NDArray
 from merge.core.downsample import GridSample, grid_downsample
 from merge.core.noise import estimate_noise
 from merge.core.patchset import Patch
+from merge.core.progress import checkpoint
 from merge.start.lattice import correlated_channels, fill_empty_lines, remove_common_plane, texture
 from merge.start.tilts import levelled_one_by_one, patch_tilts, untilted
 
@@ -85,12 +86,14 @@ def averaged_on_lattice(
         min(p.origin[0] - 0.5 * p.pixel_size[0] for p in patches),
         min(p.origin[1] - 0.5 * p.pixel_size[1] for p in patches),
     )
-    grids = [
-        fill_empty_lines(
-            grid_downsample(p.heights, p.pixel_size, cell=cell, origin=p.origin, anchor=anchor)
+    grids = []
+    for p in patches:
+        checkpoint(1)
+        grids.append(
+            fill_empty_lines(
+                grid_downsample(p.heights, p.pixel_size, cell=cell, origin=p.origin, anchor=anchor)
+            )
         )
-        for p in patches
-    ]
     # lattice index (row, column) of every grid's cell (0, 0)
     offs = [
         (round((g.y[0] - anchor[1]) / cell - 0.5), round((g.x[0] - anchor[0]) / cell - 0.5))

@@ -32,6 +32,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from merge.core.patchset import Patch
+from merge.core.progress import checkpoint
 from merge.start.averaging import Lattice, averaged_on_lattice
 from merge.start.lattice import overlap_information, overlap_z_difference
 from merge.start.ncc import masked_ncc, pair_maps
@@ -198,6 +199,7 @@ def _xy_offsets(
     redo = np.flatnonzero(doubtful | moved[pairs[:, 0]] | moved[pairs[:, 1]])
     if len(redo):
         for j in redo.tolist():
+            checkpoint()
             pred = x_start[pairs[j, 0]] - x_start[pairs[j, 1]]
             e = lat.expected(j)
             centre = (e[0] + pred[1] / lat.cell, e[1] + pred[0] / lat.cell)
@@ -213,6 +215,7 @@ def _first_pass(lat: Lattice, corr: Correlations, radius: float) -> None:
     for i, ncc, count, zero in pair_maps(
         lat.channels, lat.pairs, todo, weights=CHANNEL_WEIGHTS, batch=BATCH
     ):
+        checkpoint(1)
         e = lat.expected(i)
         corr.keep(i, (ncc, count, zero))
         peak = find_peak(
@@ -242,6 +245,7 @@ def _place_doubtful(
     x_start = sol.x.copy()
     moved = np.zeros(n, dtype=bool)
     for c in patches_in_doubt(n, pairs, unmeasured, sol.robust, can_measure, corr.xy_w):
+        checkpoint()
         mine = np.flatnonzero(can_measure & np.any(pairs == c, axis=1))
         u = place_patch(
             [_pair_map(lat, corr, i, c, x_start) for i in mine.tolist()],

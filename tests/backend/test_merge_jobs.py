@@ -30,7 +30,10 @@ def test_the_worker_yields_the_cores_to_the_server_and_sends_the_mosaic(
     _merge_child(_inputs(small_mosaic), {}, out, threading.Event())  # type: ignore[arg-type]
     messages = list(out.queue)
     assert niced == [WORKER_NICENESS]
-    assert [m[0] for m in messages[:-1]] == ["progress"] * (len(messages) - 1)
+    assert {m[0] for m in messages[:-1]} == {"progress", "status"}
+    stages = [m[1] for m in messages if m[0] == "status"]
+    assert stages[0] == "start" and stages[-1] == "render"
+    assert [m[3] for m in messages if m[0] == "status"][-1] == pytest.approx(1.0)
     kind, heights, document = messages[-1]
     assert kind == "done"
     assert heights.ndim == 2 and len(document["patches"]) == len(small_mosaic.patch_set)

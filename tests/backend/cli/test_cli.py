@@ -190,3 +190,23 @@ def test_sim_scan_bad_options(
 ) -> None:
     assert main(["sim-scan", "--out", str(tmp_path / "x"), *args]) == 2
     assert "error:" in capsys.readouterr().err
+
+
+def test_the_progress_bar_tells_the_stage_and_the_time_to_go() -> None:
+    import io
+
+    from backend.cli.common import ProgressBar, duration
+    from merge import Status
+
+    stream = io.StringIO()
+    bar = ProgressBar(stream=stream, every=3600.0)
+    bar.status(Status("start", "correlating the overlaps", 0.1, 10.0))
+    bar.status(Status("start", "correlating the overlaps", 0.2, 20.0))  # same stage, too soon
+    bar(3, 1.5e-9)
+    bar.status(Status("refine", "refining, level 2 of 2", 0.5, 50.0))
+    lines = stream.getvalue().splitlines()
+    assert lines == [
+        "merge: correlating the overlaps:  10 %, 1 min 30 s to go",
+        "merge: refining, level 2 of 2:  50 %, 50 s to go, residual 1.500 nm",
+    ]
+    assert duration(3725) == "1 h 02 min"
