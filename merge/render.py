@@ -115,9 +115,12 @@ def render_mosaic(
         acc[ii, jj] += wz
         wsum[ii, jj] += w
         coverage[ii, jj] += 1
-    with np.errstate(invalid="ignore", divide="ignore"):
-        heights = np.where(wsum > 0, acc / wsum, np.nan)
-    return Mosaic(heights=heights, origin=(xmin, ymin), pixel_size=(dx, dy), coverage=coverage)
+    # the heights in the sums' own array: a large mosaic is not held twice
+    covered = wsum > 0
+    np.divide(acc, wsum, out=acc, where=covered)
+    del wsum
+    acc[~covered] = np.nan
+    return Mosaic(heights=acc, origin=(xmin, ymin), pixel_size=(dx, dy), coverage=coverage)
 
 
 @dataclass(frozen=True)

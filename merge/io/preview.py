@@ -60,11 +60,12 @@ def render_panels(panels_in: list[tuple[str, Mosaic]], *, size: int = 420) -> UI
     if not panels_in:
         raise ValueError("need at least one height map")
     mosaics = [m for _, m in panels_in]
-    both = np.concatenate([m.heights.ravel() for m in mosaics])
+    panels = [fit_size(m.heights, size) for m in mosaics]
+    # the colour scale from what the panels show (not a copy of every mosaic's heights)
+    both = np.concatenate([p.ravel() for p in panels])
     both = both[np.isfinite(both)]
     lo, hi = np.percentile(both, [1, 99]) if both.size else (0.0, 1.0)
     hi = hi if hi > lo else lo + 1e-9
-    panels = [fit_size(m.heights, size) for m in mosaics]
     ph = max(p.shape[0] for p in panels)
     margin, title_h, bar_w, label_w = 16, 30, 18, 70
     width = margin + sum(p.shape[1] + margin for p in panels) + bar_w + label_w
@@ -99,7 +100,7 @@ def render_panels(panels_in: list[tuple[str, Mosaic]], *, size: int = 420) -> UI
     return img
 
 
-def write_preview(path: str, before: Mosaic, after: Mosaic) -> None:
-    """Write :func:`render_preview` as a PNG file."""
+def write_preview(path: str, before: Mosaic, after: Mosaic, *, size: int = 420) -> None:
+    """Write :func:`render_preview` as a PNG file (``size``: a panel's longer side, pixels)."""
     with open(path, "wb") as fh:
-        fh.write(encode_png(render_preview(before, after)))
+        fh.write(encode_png(render_preview(before, after, size=size)))

@@ -20,6 +20,8 @@ from merge.report import MergeResult
 
 FloatArray = NDArray[np.float64]
 FORMAT = "mosaic-afm/mosaic@1"
+#: Longer side of each panel of ``preview.png``, pixels.
+PREVIEW_SIDE = 420
 
 
 def _clean(v: float) -> float | None:
@@ -97,7 +99,7 @@ def write_result(
     """
     out = Path(folder)
     out.mkdir(parents=True, exist_ok=True)
-    np.save(out / "mosaic.npy", result.mosaic.heights.astype(np.float64))
+    np.save(out / "mosaic.npy", np.asarray(result.mosaic.heights, dtype=np.float64))
     doc = result_document(result, patch_set)
     path = out / "mosaic.json"
     path.write_text(json.dumps(doc, indent=1) + "\n", encoding="utf-8")
@@ -110,8 +112,12 @@ def write_result(
             m.origin[0] + (nx - 1) * m.pixel_size[0],
             m.origin[1] + (ny - 1) * m.pixel_size[1],
         )
-        before = render_mosaic(patch_set.patches, pixel_size=m.pixel_size, bounds=bounds)
-        write_preview(str(out / "preview.png"), before, m)
+        # the nominal placement only as fine as the preview shows it (a panel's longer side:
+        # PREVIEW_SIDE), not a second mosaic of the merge's size
+        coarse = max(1.0, max(ny, nx) / PREVIEW_SIDE)
+        pitch = (m.pixel_size[0] * coarse, m.pixel_size[1] * coarse)
+        before = render_mosaic(patch_set.patches, pixel_size=pitch, bounds=bounds)
+        write_preview(str(out / "preview.png"), before, m, size=PREVIEW_SIDE)
     return path
 
 
