@@ -24,7 +24,6 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from backend.allocator import return_large_blocks
 from backend.events import EventBus
 from backend.merge_jobs import WORKER_NICENESS, PatchInput, die_with_parent, patch_id
 from merge.live.gate import ScanRecord
@@ -65,7 +64,6 @@ def _live_child(inbox: Any, outbox: Any, parent: int | None = None) -> None:
         die_with_parent(parent)
     if hasattr(os, "nice"):
         os.nice(WORKER_NICENESS)
-    return_large_blocks()
     from merge.core.noise import estimate_noise
     from merge.live import Gate, LiveMerge
 

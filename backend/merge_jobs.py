@@ -27,7 +27,7 @@ from numpy.typing import NDArray
 from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
-from backend.allocator import return_large_blocks
+from backend.allocator import stage_trimmer
 from backend.db.models import MergeJob, Run
 from backend.db.patch_store import read_patch, write_merge
 from backend.db.space import full_message, is_full
@@ -155,7 +155,6 @@ def _merge_child(
         die_with_parent(parent)
     if hasattr(os, "nice"):
         os.nice(WORKER_NICENESS)
-    return_large_blocks()
     import merge
     from merge.io.result import result_document
 
@@ -167,7 +166,9 @@ def _merge_child(
             config,
             progress=lambda it, res: out.put(("progress", it, float(res))),
             cancel=cancel.is_set,
-            status=lambda s: out.put(("status", s.stage, s.detail, s.fraction, s.eta)),
+            status=stage_trimmer(
+                lambda s: out.put(("status", s.stage, s.detail, s.fraction, s.eta))
+            ),
         )
         out.put(("done", result.mosaic.heights, result_document(result, patch_set)))
     except merge.MergeCancelled:

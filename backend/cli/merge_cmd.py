@@ -53,9 +53,7 @@ def add_parser(sub: Any) -> None:
 
 def run(args: argparse.Namespace) -> int:
     import merge
-    from backend.allocator import return_large_blocks
-
-    return_large_blocks()
+    from backend.allocator import stage_trimmer
 
     start = time.perf_counter()
     try:
@@ -74,7 +72,10 @@ def run(args: argparse.Namespace) -> int:
     bar = None if args.quiet else ProgressBar()
     try:
         result = merge.run(
-            patch_set, config, progress=bar, status=None if bar is None else bar.status
+            patch_set,
+            config,
+            progress=bar,
+            status=stage_trimmer(None if bar is None else bar.status),
         )
     finally:
         if bar is not None:

@@ -1,4 +1,4 @@
-"""A merging process hands freed arrays back to the system (``backend.allocator``)."""
+"""A merging process hands the memory a finished stage freed back (``backend.allocator``)."""
 
 from __future__ import annotations
 
@@ -7,42 +7,54 @@ import sys
 
 import pytest
 
-from backend.allocator import return_large_blocks
+from backend.allocator import TRIM, stage_trimmer
+from merge import Status
 
-#: A merge's stages in small: a large array freed, then many medium ones made and freed.
-STAGES = """
+#: A stage in small: a large array freed (glibc's threshold rises to it), then many medium
+#: ones made (from the heap now) and freed behind a small block that holds the heap's top.
+STAGE = """
 import sys
 from pathlib import Path
 import numpy as np
-from backend.allocator import return_large_blocks
+from backend.allocator import release_freed_memory
 
 def rss():
     for line in Path("/proc/self/status").read_text().splitlines():
         if line.startswith("VmRSS:"):
             return int(line.split()[1]) * 1024
 
-if sys.argv[1] == "fixed":
-    assert return_large_blocks()
-big = np.ones(16 << 17)  # 16 MB: freed, glibc's threshold rises to it
+big = np.ones(16 << 17)
 del big
 base = rss()
-medium = [np.ones(2 << 17) for _ in range(60)]  # 60 x 2 MB
-pin = np.ones(1000)  # a small block after them holds the heap's top
+medium = [np.ones(2 << 17) for _ in range(60)]
+pin = np.ones(1000)
 del medium
+if sys.argv[1] == "trim":
+    release_freed_memory()
 print(rss() - base)
 """
 
 
 def _held_after(mode: str) -> int:
     done = subprocess.run(
-        [sys.executable, "-c", STAGES, mode], capture_output=True, text=True, check=True
+        [sys.executable, "-c", STAGE, mode], capture_output=True, text=True, check=True
     )
     return int(done.stdout.strip())
 
 
-def test_freed_arrays_go_back_to_the_system() -> None:
-    if not return_large_blocks():
-        pytest.skip("not glibc: its allocator's threshold is not ours to fix")
-    # 120 MB made and freed: glibc on its own kept 25 MB of them in its heap here; with the
-    # threshold fixed, next to nothing is kept
-    assert _held_after("fixed") < 4 << 20
+def test_the_memory_a_stage_freed_goes_back_to_the_system() -> None:
+    if TRIM is None:
+        pytest.skip("not glibc: no malloc_trim")
+    # 120 MB made and freed: glibc kept a share in its heap (25 MB here); trimmed, none
+    assert _held_after("trim") < 4 << 20
+
+
+def test_the_heaps_are_trimmed_when_a_stage_ends(monkeypatch: pytest.MonkeyPatch) -> None:
+    trims: list[int] = []
+    monkeypatch.setattr("backend.allocator.release_freed_memory", lambda: trims.append(1))
+    told: list[str] = []
+    status = stage_trimmer(lambda s: told.append(s.stage))
+    for name in ("start", "start", "refine", "refine", "report", "render"):
+        status(Status(name, "", 0.5, 1.0))
+    assert len(trims) == 3  # start -> refine -> report -> render
+    assert told == ["start", "start", "refine", "refine", "report", "render"]
