@@ -414,34 +414,24 @@ class MergeService:
                 job.progress = min(0.99, float(fraction))
                 session.commit()
                 when = f", {round(eta)} s to go" if eta is not None else ""
-                self.events.emit(
-                    "merge",
-                    f"merge {job.id}: {detail or stage}, {100 * job.progress:.0f} %{when}",
-                    run_id=job.run_id,
-                    data={
-                        "job": job.id,
-                        "state": "running",
-                        "stage": stage,
-                        "detail": detail,
-                        "progress": job.progress,
-                        "eta_s": eta,
-                    },
+                self._running(
+                    job,
+                    f"{detail or stage}, {100 * job.progress:.0f} %{when}",
+                    stage=stage,
+                    detail=detail,
+                    progress=job.progress,
+                    eta_s=eta,
                 )
             elif kind == "progress":
                 _, iteration, residual = message
                 job.iteration, job.residual = int(iteration), float(residual)
                 session.commit()
-                self.events.emit(
-                    "merge",
-                    f"merge {job.id}: iteration {iteration}, residual {residual * 1e9:.3f} nm",
-                    run_id=job.run_id,
-                    data={
-                        "job": job.id,
-                        "state": "running",
-                        "iteration": int(iteration),
-                        "residual": float(residual),
-                        "progress": job.progress,
-                    },
+                self._running(
+                    job,
+                    f"iteration {iteration}, residual {residual * 1e9:.3f} nm",
+                    iteration=int(iteration),
+                    residual=float(residual),
+                    progress=job.progress,
                 )
             elif kind == "done":
                 _, heights, document = message
@@ -460,6 +450,15 @@ class MergeService:
             else:
                 self._set(session, job, "failed", str(message[1]))
                 return
+
+    def _running(self, job: MergeJob, said: str, **data: Any) -> None:
+        """An event of a running job: ``said`` after its name, ``data`` beside its state."""
+        self.events.emit(
+            "merge",
+            f"merge {job.id}: {said}",
+            run_id=job.run_id,
+            data={"job": job.id, "state": "running", **data},
+        )
 
     def _set(self, session: Session, job: MergeJob, state: str, message: str) -> None:
         job.state, job.message = state, message

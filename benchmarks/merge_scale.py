@@ -32,6 +32,9 @@ from typing import Any
 
 import numpy as np
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from merge_bench import floor_of  # a script beside this one
+
 ROOT = Path(__file__).resolve().parents[1]
 #: Patch side, metres, and overlap of every case (the issue's measurements).
 PATCH_SIDE = 1e-6
@@ -103,32 +106,6 @@ def map_error(
     return float(np.sqrt(total / max(count, 1)))
 
 
-def floor_of(synth: list[Any], surface: Any, pixel: tuple[float, float], stride: int) -> float:
-    """Map error (m) of the true transforms through the same renderer: drift-free heights."""
-    from hardware.sim.synth import scan_fraction
-    from merge import Patch, PatchTransform, render_mosaic
-
-    fixed = [
-        Patch(
-            id=s.id,
-            heights=s.heights - s.z_drift * (scan_fraction(s.heights.shape) - 0.5),
-            origin=s.origin,
-            pixel_size=s.pixel_size,
-        )
-        for s in synth
-    ]
-    mosaic = render_mosaic(fixed, [PatchTransform(s.rotation, s.translation) for s in synth])
-    return map_error(
-        mosaic.heights,
-        mosaic.origin,
-        mosaic.pixel_size,
-        surface,
-        np.eye(3),
-        np.zeros(3),
-        stride=stride,
-    )
-
-
 def one_size(side: int, pixels: int, work: Path) -> dict[str, Any]:
     """Synthesise, merge (in a fresh process) and score a ``side`` x ``side`` mosaic."""
     from backend.synthetic import patch_set_from_synth, registration_error
@@ -170,7 +147,8 @@ def one_size(side: int, pixels: int, work: Path) -> dict[str, Any]:
     origin = (float(doc["origin"][0]), float(doc["origin"][1]))
     pixel = (float(doc["pixel_size"][0]), float(doc["pixel_size"][1]))
     merr = map_error(heights, origin, pixel, surface, G, g, stride=stride)
-    floor = floor_of(synth, surface, pixel, stride) if n <= 1600 else float("nan")
+    # the floor at full resolution, where it fits beside the mosaic
+    floor = floor_of(synth, surface) if n <= 1600 else float("nan")
     input_pixels = n * pixels * pixels
     return {
         "patches": n,
