@@ -146,7 +146,8 @@ def run(
         stops the merge with :class:`merge.MergeCancelled`.
     status : callable(Status), keyword-only
         Told where the merge is (:class:`merge.core.progress.Status`: the stage, what within
-        it, the fraction of the whole done and an ETA), at every stage and every quarter second.
+        it, the fraction of the whole done and an ETA), at every stage and every quarter second
+        (with ``self_calibrate``, the stages of each of its two merges in turn).
 
     With ``config.self_calibrate`` the scanner's bend shared by every patch is measured from a
     first merge, taken out of every patch, and the corrected patches are merged again: the

@@ -116,8 +116,7 @@ _current: ContextVar[Tracker | None] = ContextVar("merge_progress", default=None
 @contextmanager
 def tracking(report: Report | None, cancel: Callable[[], bool] | None) -> Iterator[Tracker | None]:
     """Track the merge run in the ``with`` body: ``report`` told where it is, ``cancel`` polled
-    at every :func:`checkpoint`. A merge inside another's tracking (self-calibration's two)
-    keeps the outer one."""
+    at every :func:`checkpoint`. A merge run inside another's tracking keeps the outer one."""
     if _current.get() is not None or (report is None and cancel is None):
         yield _current.get()
         return
