@@ -15,16 +15,23 @@ import numpy as np
 from backend.formats.image import AfmImage, FloatArray, FormatError
 from backend.formats.park import is_park, read_park
 
+#: Bytes of heights from which a TIFF is written as BigTIFF: a classic TIFF's offsets are 32
+#: bits, so a file past 4 GB (a mosaic of 32,000 x 32,000 px in float32) cannot be one; below,
+#: classic TIFF, which every reader opens.
+BIGTIFF_FROM = (1 << 32) - (1 << 26)
+
 
 def write_tiff(path: str | Path, heights: FloatArray, *, pixel_size: tuple[float, float]) -> None:
     """Float32 heights in metres; X/YResolution in pixels per centimetre (so the size is
-    there for any reader), and the exact pitch in the description."""
+    there for any reader), and the exact pitch in the description; BigTIFF from
+    :data:`BIGTIFF_FROM` bytes of heights."""
     import tifffile
 
     h = np.asarray(heights, dtype=np.float32)[::-1]
     tifffile.imwrite(
         str(path),
         h,
+        bigtiff=h.nbytes >= BIGTIFF_FROM,
         resolution=(1e-2 / pixel_size[0], 1e-2 / pixel_size[1]),
         resolutionunit="CENTIMETER",
         description=f"mosaic-afm heights m pixel_size {pixel_size[0]!r} {pixel_size[1]!r}",

@@ -150,14 +150,15 @@ def read_result(folder: str | Path) -> StoredResult:
         base = base.parent
     try:
         doc = json.loads((base / "mosaic.json").read_text(encoding="utf-8"))
-        heights = np.load(base / "mosaic.npy", allow_pickle=False)
+        # memory-mapped: a large mosaic is read from the disk as it is used, not all at once
+        heights = np.load(base / "mosaic.npy", allow_pickle=False, mmap_mode="r")
     except (OSError, ValueError) as exc:
         raise ValueError(f"not a merge result folder: {base} ({exc})") from None
     shape = tuple(doc.get("shape", heights.shape))
     if heights.ndim != 2 or tuple(heights.shape) != shape:
         raise ValueError(f"{base}: mosaic.npy has shape {heights.shape}, mosaic.json says {shape}")
     mosaic = Mosaic(
-        heights=heights.astype(np.float64),
+        heights=np.asarray(heights, dtype=np.float64),  # no copy when it is float64 already
         origin=(float(doc["origin"][0]), float(doc["origin"][1])),
         pixel_size=(float(doc["pixel_size"][0]), float(doc["pixel_size"][1])),
         coverage=np.isfinite(heights).astype(np.int32),

@@ -23,6 +23,8 @@ def test_result_files_follow_the_contract(small_mosaic: Synthetic, tmp_path: Pat
     assert p0["transform"]["model"] == "rigid+zplane"
     back = read_result(tmp_path)
     np.testing.assert_array_equal(back.mosaic.heights, heights)
+    # read from the disk as it is used (a read-only view of the mapped file), not copied whole
+    assert not back.mosaic.heights.flags.owndata and not back.mosaic.heights.flags.writeable
     tr = back.transforms["p000"]
     np.testing.assert_allclose(tr.slope, result.patches[0].transform.slope)
     png = (tmp_path / "preview.png").read_bytes()
