@@ -265,12 +265,12 @@ def _correlation(
     lat: Lattice, corr: Correlations, i: int
 ) -> tuple[FloatArray, FloatArray, tuple[int, int]]:
     """Pair ``i``'s NCC map, computed once (while the cache has room)."""
-    if i not in corr.maps:
-        a, b = lat.pairs[i]
-        corr.keep(i, masked_ncc(lat.channels[a], lat.channels[b], weights=CHANNEL_WEIGHTS))
-        if i not in corr.maps:
-            return masked_ncc(lat.channels[a], lat.channels[b], weights=CHANNEL_WEIGHTS)
-    return corr.maps[i]
+    if i in corr.maps:
+        return corr.maps[i]
+    a, b = lat.pairs[i]
+    m = masked_ncc(lat.channels[a], lat.channels[b], weights=CHANNEL_WEIGHTS)
+    corr.keep(i, m)
+    return m
 
 
 def _measure(

@@ -80,22 +80,6 @@ def test_our_files_open_in_gwyddion_the_right_way_up(tmp_path: Path, suffix: str
     np.testing.assert_allclose(seen.heights, heights, rtol=1e-6, atol=1e-15)
 
 
-def test_a_tiff_past_four_gigabytes_is_a_bigtiff(
-    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
-) -> None:
-    import tifffile
-
-    from backend.formats import tiff
-
-    heights = np.load(DATA / "mos2.npy")[:20, :30]
-    small = export_heights(tmp_path / "small.tif", heights, pixel_size=(8e-9, 8e-9))
-    monkeypatch.setattr(tiff, "BIGTIFF_FROM", heights.astype(np.float32).nbytes)
-    big = export_heights(tmp_path / "big.tif", heights, pixel_size=(8e-9, 8e-9))
-    with tifffile.TiffFile(small) as t, tifffile.TiffFile(big) as b:
-        assert not t.is_bigtiff and b.is_bigtiff
-    np.testing.assert_allclose(read_image(big).heights, heights, rtol=1e-6)
-
-
 def test_exports_open_in_their_tools(tmp_path: Path) -> None:
     import tifffile
     import trimesh
