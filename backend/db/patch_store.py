@@ -198,6 +198,10 @@ def mark_stored(session: Session, patch: PatchRecord, dataset: str) -> None:
     session.commit()
 
 
+#: Pixels from which a stored mosaic is written in tiles of MOSAIC_TILE x MOSAIC_TILE (HDF5
+#: chunks); smaller ones are one contiguous block, which reads fastest whole.
+CHUNKED_FROM = 1 << 22
+MOSAIC_TILE = 512
 #: The group of a run's live mosaic, as the live merge left it when the run ended.
 LIVE_GROUP = "live"
 
@@ -214,7 +218,10 @@ def write_mosaic(path: Path, name: str, heights: FloatArray, document: dict[str,
         if name in f:
             del f[name]
         group = f.create_group(name)
-        group.create_dataset("mosaic", data=np.asarray(heights, dtype=np.float64))
+        h = np.asarray(heights, dtype=np.float64)
+        # a large mosaic in tiles: a reader takes the part it shows without reading the whole
+        tiles = (min(h.shape[0], MOSAIC_TILE), min(h.shape[1], MOSAIC_TILE))
+        group.create_dataset("mosaic", data=h, chunks=tiles if h.size > CHUNKED_FROM else None)
         group.attrs["document"] = json.dumps(document)
         group.attrs["complete"] = True
         f.flush()

@@ -113,3 +113,20 @@ def test_a_retried_patch_replaces_its_earlier_attempt(session_and_run: tuple[Ses
     assert read_patch(path, 0).heights[0, 0] == 1.0
     with h5py.File(path, "r") as f:
         assert len(f["patches"]) == 1
+
+
+def test_a_large_mosaic_is_stored_in_tiles(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from backend.db import patch_store
+
+    heights = np.random.default_rng(2).normal(0.0, 1e-9, (700, 600))
+    doc = {"format": "mosaic-afm/mosaic@1", "shape": [700, 600]}
+    path = tmp_path / "run.h5"
+    small = patch_store.write_merge(path, 1, heights, doc)
+    monkeypatch.setattr(patch_store, "CHUNKED_FROM", heights.size - 1)
+    large = patch_store.write_merge(path, 2, heights, doc)
+    with h5py.File(path, "r") as f:
+        assert f[small]["mosaic"].chunks is None
+        assert f[large]["mosaic"].chunks == (512, 512)
+    back, said = patch_store.read_merge(path, large)
+    np.testing.assert_array_equal(back, heights)
+    assert said == doc
