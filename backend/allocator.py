@@ -13,7 +13,7 @@ ends instead: :func:`stage_trimmer` wraps a merge's ``status`` callback to do it
 from __future__ import annotations
 
 import ctypes
-import ctypes.util
+import functools
 from collections.abc import Callable
 from typing import TYPE_CHECKING
 
@@ -21,13 +21,12 @@ if TYPE_CHECKING:
     from merge import Status
 
 
+@functools.cache
 def _malloc_trim() -> Callable[[], None] | None:
-    """glibc's ``malloc_trim(0)``, or None where the C library has none."""
-    name = ctypes.util.find_library("c")
-    if name is None:
-        return None
+    """glibc's ``malloc_trim(0)`` from the process's own symbols (looked up once, when first
+    needed: no library search at import), or None where the C library has none."""
     try:
-        trim = ctypes.CDLL(name).malloc_trim
+        trim = ctypes.CDLL(None).malloc_trim
     except (OSError, AttributeError):
         return None
     trim.argtypes = [ctypes.c_size_t]
@@ -39,15 +38,12 @@ def _malloc_trim() -> Callable[[], None] | None:
     return release
 
 
-#: ``malloc_trim(0)`` of this process's C library, if it has one.
-TRIM = _malloc_trim()
-
-
 def release_freed_memory() -> bool:
     """Give the memory freed inside the heaps back to the system; whether it could."""
-    if TRIM is None:
+    trim = _malloc_trim()
+    if trim is None:
         return False
-    TRIM()
+    trim()
     return True
 
 

@@ -52,8 +52,15 @@ class ServerProcess:
             **env,
         }
         self.proc: subprocess.Popen[bytes] | None = None
-        self.url = f"http://127.0.0.1:{self.port}"
-        self.log = data_dir / f"server-{self.port}.log"
+
+    @property
+    def url(self) -> str:
+        return f"http://127.0.0.1:{self.port}"
+
+    @property
+    def log(self) -> Path:
+        """The server's output, one file per port tried."""
+        return self.data_dir / f"server-{self.port}.log"
 
     def start(self, timeout: float = 60.0) -> ServerProcess:
         for _ in range(BIND_TRIES - 1):
@@ -61,12 +68,10 @@ class ServerProcess:
                 return self._start(timeout)
             except PortTaken:
                 self.port = free_port()
-                self.url = f"http://127.0.0.1:{self.port}"
         return self._start(timeout)
 
     def _start(self, timeout: float) -> ServerProcess:
         self.data_dir.mkdir(parents=True, exist_ok=True)
-        self.log = self.data_dir / f"server-{self.port}.log"
         with self.log.open("ab") as log:
             self.proc = subprocess.Popen(
                 [sys.executable, "-m", "backend.cli", "serve", "--port", str(self.port)],

@@ -192,7 +192,6 @@ def test_a_port_taken_before_the_bind_is_given_up_for_another(tmp_path: Path) ->
         taken.listen()
         server = ServerProcess(tmp_path)
         server.port = taken.getsockname()[1]  # as if another process got there first
-        server.url = f"http://127.0.0.1:{server.port}"
         server.start()
         try:
             assert server.port != taken.getsockname()[1]
