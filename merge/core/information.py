@@ -18,8 +18,6 @@ FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
 #: Float arrays of any width (float32 where the mosaic's memory counts).
 Floats = NDArray[np.floating[Any]]
-#: Integer arrays of any width.
-Ints = NDArray[np.integer[Any]]
 
 
 def noise_share(
@@ -54,18 +52,27 @@ def psd_part(blocks: FloatArray) -> FloatArray:
     return out
 
 
-def line_design(score: FloatArray, starts: IntArray, line: Ints) -> float:
-    """Design effect of the Z scores ``w r`` (m,) clustered by scan line within each run.
+def line_sums(score: FloatArray, groups: IntArray) -> FloatArray:
+    """(2,) what :func:`line_design` weighs: the squares of the Z scores ``w r`` (m,) summed by
+    scan line of each run (``groups`` (g,) the first row of each, sorted, the first at 0), and
+    summed one by one. Sums of blocks of rows add up."""
+    if len(score) == 0:
+        return np.zeros(2)
+    sums = np.add.reduceat(score, groups)
+    return np.array([float(sums @ sums), float(score @ score)])
+
+
+def line_design(sums: FloatArray) -> float:
+    """Design effect of the Z scores clustered by scan line within each run, from their
+    :func:`line_sums`.
 
     Per-line offsets (the feedback loop resetting between lines) shift all residuals of one
     source line alike, so they average out far less than white noise: the variance of a Z
     offset is larger than the residuals' count suggests. The ratio of the clustered to the
     independent sum of squared scores measures by how much (1 for white noise).
     """
-    run = np.repeat(np.arange(len(starts) - 1), np.diff(starts))
-    sums = np.bincount(run * (int(line.max(initial=0)) + 1) + line, weights=score)
-    alone = float(score @ score)
-    return max(float(sums @ sums) / alone, 1.0) if alone > 0 else 1.0
+    clustered, alone = float(sums[0]), float(sums[1])
+    return max(clustered / alone, 1.0) if alone > 0 else 1.0
 
 
 def signal_information(tensor: FloatArray, noise_part: FloatArray | float) -> FloatArray:

@@ -2,8 +2,10 @@
 
 Lengths are in units of ``scale`` (the median pixel size), so the unknowns of the solver are of
 order one. Every patch keeps its own frame: centred on its footprint, heights relative to its
-median. Its points (every ``stride``-th pixel) and its heights and slopes (one row per pixel,
-all patches end to end) feed the residuals of :mod:`merge.refine.normal_system`.
+median. Its points (every ``stride``-th pixel) and its heights and slopes (at every node, all
+patches end to end) feed the residuals of :mod:`merge.refine.normal_system`. A point is not
+stored: its place follows from its pixel and its height is the node on it
+(:meth:`SurfaceBank.point_xyz`), so the nodes are all a level holds per pixel.
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ from numpy.typing import NDArray
 
 from merge.core.heightfield import Border, slope_noise, slopes, smooth_nan, upsample2
 from merge.core.patchset import Patch
+from merge.refine.runs import RowBlock, Runs
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
@@ -24,9 +27,14 @@ Ints = NDArray[np.integer[Any]]
 #: Arrays upsampled in one call: enough to spread the call's overhead, few enough that its
 #: temporaries stay a few megabytes (large ones cost page faults on every allocation).
 UPSAMPLE_BATCH = 16
-#: Storage of the nodes (:attr:`SurfaceBank.surface`) and points (:attr:`SurfaceBank.points`).
+#: Storage of the nodes' heights (:attr:`SurfaceBank.height`): float32 keeps heights relative
+#: to a patch's median, in pixels, to a millionth of a pixel.
 SURFACE_DTYPE = np.float32
-POINT_DTYPE = np.float32
+#: Storage of the nodes' slopes (:attr:`SurfaceBank.slope`). Slopes only tilt a row's Jacobian,
+#: never its residual, so a step's fixed point does not depend on them; float16 keeps them to
+#: a two-thousandth (a step converges as fast) and halves what the raw nodes weigh (4 per pixel:
+#: 48 -> 32 bytes a pixel).
+SLOPE_DTYPE = np.float16
 
 
 class SurfaceBank:
@@ -81,8 +89,18 @@ class SurfaceBank:
         self.ny = np.array([p.shape[0] for p in patches], dtype=np.intp)
         self.nx = np.array([p.shape[1] for p in patches], dtype=np.intp)
         self.centre = np.zeros((n, 3))
-        self.radius = np.zeros(n)
-        self.half = np.zeros((n, 2))
+        self.half = np.column_stack([0.5 * (self.nx - 1) * self.dx, 0.5 * (self.ny - 1) * self.dy])
+        self.radius = np.hypot(self.half[:, 0], self.half[:, 1])
+        #: every ``stride``-th pixel is a point
+        self.stride = stride
+        #: rows and columns of every patch's point grid
+        self.point_ny = (self.ny + stride - 1) // stride
+        self.point_nx = (self.nx + stride - 1) // stride
+        #: the first point of every patch, and (last) their count, holes included
+        self.point_start = np.concatenate([[0], np.cumsum(self.point_ny * self.point_nx)])
+        #: points per patch that hold a height (its weight in the gauge; the spline of raw
+        #: heights has none within a pixel of a hole)
+        self.point_count = np.zeros(n, dtype=np.intp)
         #: nodes per pixel of the look-ups
         self.nodes = self.RAW_NODES if smooth <= 0 else 1
         #: variance of a looked-up slope of unit white noise, per axis, in 1 / pixel²
@@ -91,63 +109,40 @@ class SurfaceBank:
         self.node_ny = (self.ny - 1) * self.nodes + 1
         sizes = self.node_nx * self.node_ny
         self.offset = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.intp)
-        # (nodes, 3): height, dh/dx, dh/dy of every node, so one gather fetches all three (a
-        # row's three values side by side, one cache line), in float32: every node holds
-        # heights relative to its patch's median in pixels, which float32 keeps to a millionth
-        # of a pixel, and the nodes are most of a merge's memory (4 per pixel on raw heights)
-        self.surface = np.empty((int(sizes.sum()), 3), dtype=SURFACE_DTYPE)
-        self.point_start = np.zeros(n + 1, dtype=np.intp)
-        pts, lines = [], []
+        # the nodes are most of a merge's memory (4 per pixel on raw heights): heights in
+        # float32, relative to the patch's median in pixels; slopes (dh/dx, dh/dy) side by side
+        self.height = np.empty(int(sizes.sum()), dtype=SURFACE_DTYPE)
+        self.slope = np.empty((int(sizes.sum()), 2), dtype=SLOPE_DTYPE)
         levelled: dict[int, FloatArray] = {}
         for c, p in enumerate(patches):
             h = p.heights / scale
             if smooth > 0:
                 h = smooth_nan(h, smooth, border=border)
-            ny, nx = h.shape
-            w, hh = (nx - 1) * self.dx[c], (ny - 1) * self.dy[c]
-            cx, cy = self.x0[c] + 0.5 * w, self.y0[c] + 0.5 * hh
+            cx, cy = self.x0[c] + self.half[c, 0], self.y0[c] + self.half[c, 1]
             # the frame's height is the raw heights' median whatever the smoothing, so one
             # placement means the same on every level (a smoothed median moved up to 0.8 px on
             # TGX1's two-level faces: every level began with patches jumped in Z)
             self.centre[c] = (cx, cy, float(np.nanmedian(p.heights)) / scale)
-            self.half[c] = (0.5 * w, 0.5 * hh)
-            self.radius[c] = float(np.hypot(0.5 * w, 0.5 * hh))
             hl = h - self.centre[c, 2]
             if self.nodes > 1:
                 levelled[c] = hl  # slopes come with the spline (_fill_spline_nodes)
             else:
                 gx, gy = slopes(h, (self.dx[c], self.dy[c]))
                 rows = slice(self.offset[c], self.offset[c] + sizes[c])
-                for k, a in enumerate((hl, gx, gy)):
-                    self.surface[rows, k] = a.ravel()
-            ii, jj = np.meshgrid(np.arange(0, ny, stride), np.arange(0, nx, stride), indexing="ij")
-            keep = np.isfinite(h[ii, jj])
-            ii, jj = ii[keep], jj[keep]
-            lines.append(ii.ravel().astype(np.int32))
-            pts.append(
-                np.column_stack(
-                    [
-                        self.x0[c] + jj * self.dx[c] - cx,
-                        self.y0[c] + ii * self.dy[c] - cy,
-                        hl[ii, jj],
-                    ]
-                ).astype(POINT_DTYPE)
-            )
-            self.point_start[c + 1] = self.point_start[c] + len(ii)
+                self.height[rows] = hl.ravel()
+                self.slope[rows, 0], self.slope[rows, 1] = gx.ravel(), gy.ravel()
             if len(levelled) >= UPSAMPLE_BATCH or (levelled and c == n - 1):
                 self._fill_spline_nodes(levelled)
                 levelled = {}
-        #: every point's place in its patch's frame and its height (m, 3), float32: a few
-        #: millionths of a pixel, and look-ups take them back to float64
-        self.points = np.concatenate(pts) if pts else np.empty((0, 3), dtype=POINT_DTYPE)
-        #: the scan line (row of its patch) of every point
-        self.line = np.concatenate(lines) if lines else np.empty(0, dtype=np.int32)
-        #: the patch of every point
-        self.owner = np.repeat(np.arange(n, dtype=np.int32), np.diff(self.point_start))
+        for c in range(n):
+            nodes = self.height[self.offset[c] : self.offset[c] + sizes[c]]
+            step = stride * self.nodes
+            at = nodes.reshape(self.node_ny[c], self.node_nx[c])[::step, ::step]
+            self.point_count[c] = int(np.isfinite(at).sum())
 
     def _fill_spline_nodes(self, heights: dict[int, FloatArray]) -> None:
         """Height, dh/dx and dh/dy at the half-pixel nodes of patches ``heights`` (by index),
-        into :attr:`surface`.
+        into :attr:`height` and :attr:`slope`.
 
         The heights through :func:`merge.core.heightfield.upsample2` (patches of one shape a
         call), with a pixel beyond the border; the slopes are central differences of the spline
@@ -162,9 +157,9 @@ class SurfaceBank:
             fine = upsample2(np.stack([heights[c] for c in members]), margin=1)
             for c, f in zip(members, fine, strict=True):
                 rows = slice(self.offset[c], self.offset[c] + self.node_nx[c] * self.node_ny[c])
-                self.surface[rows, 0] = f[2:-2, 2:-2].ravel()
-                self.surface[rows, 1] = ((f[2:-2, 4:] - f[2:-2, :-4]) / (2.0 * self.dx[c])).ravel()
-                self.surface[rows, 2] = ((f[4:, 2:-2] - f[:-4, 2:-2]) / (2.0 * self.dy[c])).ravel()
+                self.height[rows] = f[2:-2, 2:-2].ravel()
+                self.slope[rows, 0] = ((f[2:-2, 4:] - f[2:-2, :-4]) / (2.0 * self.dx[c])).ravel()
+                self.slope[rows, 1] = ((f[4:, 2:-2] - f[:-4, 2:-2]) / (2.0 * self.dy[c])).ravel()
 
     def lookup(
         self, dst: Ints, p_local: FloatArray
@@ -183,67 +178,85 @@ class SurfaceBank:
             nx, ny = self.node_nx[dst], self.node_ny[dst]
         i0 = np.clip(np.floor(v).astype(np.intp), 0, ny - 2)
         j0 = np.clip(np.floor(u).astype(np.intp), 0, nx - 2)
-        fv, fu = np.clip(v - i0, 0.0, 1.0)[:, None], np.clip(u - j0, 0.0, 1.0)[:, None]
+        fv, fu = np.clip(v - i0, 0.0, 1.0), np.clip(u - j0, 0.0, 1.0)
         k = self.offset[dst] + i0 * nx + j0
-        a = self.surface  # take() gathers rows several times faster than fancy indexing
-        a00, a01 = a.take(k, axis=0), a.take(k + 1, axis=0)
-        a10, a11 = a.take(k + nx, axis=0), a.take(k + nx + 1, axis=0)
-        top = a00 + fu * (a01 - a00)
-        val = top + fv * (a10 + fu * (a11 - a10) - top)
-        ok = inside & np.isfinite(val.sum(axis=1))
-        return val[:, 0], val[:, 1], val[:, 2], ok
+        corners = (k, k + 1, k + nx, k + nx + 1)
+        # take() gathers several times faster than fancy indexing
+        h00, h01, h10, h11 = (self.height.take(c).astype(np.float64) for c in corners)
+        g00, g01, g10, g11 = (self.slope.take(c, axis=0).astype(np.float32) for c in corners)
+        top = h00 + fu * (h01 - h00)
+        h = top + fv * (h10 + fu * (h11 - h10) - top)
+        fu2, fv2 = fu[:, None], fv[:, None]
+        gtop = g00 + fu2 * (g01 - g00)
+        g = gtop + fv2 * (g10 + fu2 * (g11 - g10) - gtop)
+        ok = inside & np.isfinite(h) & np.isfinite(g).all(axis=1)
+        return h, g[:, 0], g[:, 1], ok
 
-    def candidates(
-        self, pairs: IntArray, R: FloatArray, s: FloatArray, margin: float
-    ) -> tuple[Ints, Ints, Ints, IntArray]:
+    def candidates(self, pairs: IntArray, R: FloatArray, s: FloatArray, margin: float) -> Runs:
         """Points of every source patch that may fall on every destination patch.
 
         ``R`` (n, 3, 3) and ``s`` (n, 3) place every patch frame in the mosaic; ``margin``
-        (pixel units) widens every outline. Returns per row the source patch, destination patch
-        and global point index, plus the start of every directed pair's run of rows (runs are
-        contiguous).
+        (pixel units) widens every outline. Both ways: the points of each patch against the
+        other's surface, which averages the interpolation of either surface (Jacobians act on
+        both patches of a pair). Returns one run per directed pair whose rectangle holds a point:
+        the source's points within the destination's outline (its bounding box in the source's
+        frame).
         """
         pairs = np.asarray(pairs, dtype=np.intp).reshape(-1, 2)
-        # Both ways: the points of each patch against the other's surface, which averages the
-        # interpolation of either surface (Jacobians act on both patches of a pair).
-        src_all, dst_all = pairs.ravel(), pairs[:, ::-1].ravel()
+        src, dst = pairs.ravel(), pairs[:, ::-1].ravel()
         # every destination's outline in its source's local frame, all directed pairs at once
-        hx, hy = self.half[dst_all, 0], self.half[dst_all, 1]
-        corners = np.zeros((len(dst_all), 4, 3))
+        hx, hy = self.half[dst, 0], self.half[dst, 1]
+        corners = np.zeros((len(dst), 4, 3))
         corners[:, :, 0] = np.column_stack([-hx, hx, hx, -hx])
         corners[:, :, 1] = np.column_stack([-hy, -hy, hy, hy])
-        Rsd = np.einsum("kji,kjl->kil", R[src_all], R[dst_all])
+        Rsd = np.einsum("kji,kjl->kil", R[src], R[dst])
         loc = np.einsum("kij,kcj->kci", Rsd, corners)
-        loc += np.einsum("kji,kj->ki", R[src_all], s[dst_all] - s[src_all])[:, None, :]
+        loc += np.einsum("kji,kj->ki", R[src], s[dst] - s[src])[:, None, :]
         lo = loc[:, :, :2].min(axis=1) - margin
         hi = loc[:, :, :2].max(axis=1) + margin
-        x, y = self.points[:, 0], self.points[:, 1]
-        # every source's points against all its destinations' outlines at once; the rows of
-        # directed pair k are then a slice of its source's hits
-        hits: list[IntArray] = [np.empty(0, dtype=np.intp)] * len(src_all)
-        for src in np.unique(src_all).tolist():
-            ks = np.flatnonzero(src_all == src)
-            first, last = self.point_start[src], self.point_start[src + 1]
-            px, py = x[first:last], y[first:last]
-            inside = (
-                (px >= lo[ks, 0, None])
-                & (px <= hi[ks, 0, None])
-                & (py >= lo[ks, 1, None])
-                & (py <= hi[ks, 1, None])
-            )
-            col, pt = np.nonzero(inside)  # sorted by destination, then point
-            bounds = np.searchsorted(col, np.arange(len(ks) + 1))
-            for j, k in enumerate(ks.tolist()):
-                hits[k] = pt[bounds[j] : bounds[j + 1]] + first
-        counts = np.array([len(h) for h in hits], dtype=np.intp)
-        kept = counts > 0
+        # in the source's point grid: pixel (i, j) lies at ((j, i) - half / pitch) * pitch
+        pitch = np.column_stack([self.dx[src], self.dy[src]]) * self.stride
+        first = self.half[src] / pitch
+        g_lo = np.maximum(np.ceil(lo / pitch + first), 0).astype(np.intp)
+        g_hi = np.floor(hi / pitch + first).astype(np.intp) + 1
+        g_hi = np.minimum(g_hi, np.column_stack([self.point_nx[src], self.point_ny[src]]))
+        box = np.column_stack([g_lo[:, 1], g_hi[:, 1], g_lo[:, 0], g_hi[:, 0]])
+        count = np.maximum(box[:, 1] - box[:, 0], 0) * np.maximum(box[:, 3] - box[:, 2], 0)
+        kept = count > 0
         if not kept.any():
-            e = np.empty(0, dtype=np.intp)
-            return e, e, e, np.zeros(1, dtype=np.intp)
-        # one per row of the mosaic's system: int32 (points up to two billion), half the bytes
-        return (
-            np.repeat(src_all[kept].astype(np.int32), counts[kept]),
-            np.repeat(dst_all[kept].astype(np.int32), counts[kept]),
-            np.concatenate([h for h in hits if len(h)]).astype(np.int32),
-            np.concatenate([[0], np.cumsum(counts[kept])]).astype(np.intp),
+            return Runs.empty()
+        return Runs(
+            src[kept],
+            dst[kept],
+            box[kept],
+            np.concatenate([[0], np.cumsum(count[kept])]).astype(np.intp),
         )
+
+    def rows(self, runs: Runs, first: int = 0, last: int | None = None) -> RowBlock:
+        """The rows of runs ``[first, last)`` (all by default), line by line within each."""
+        last = len(runs) if last is None else last
+        starts = runs.starts[first : last + 1] - runs.starts[first]
+        count = np.diff(starts)
+        run = np.repeat(np.arange(last - first), count)
+        box = runs.box[first:last]
+        width = (box[:, 3] - box[:, 2])[run]
+        at = np.arange(int(starts[-1])) - starts[:-1][run]
+        return RowBlock(
+            src=runs.src[first:last][run],
+            dst=runs.dst[first:last][run],
+            row=(box[run, 0] + at // width) * self.stride,
+            col=(box[run, 2] + at % width) * self.stride,
+            starts=starts,
+            groups=runs.groups(first, last),
+        )
+
+    def point_xyz(self, rows: RowBlock) -> FloatArray:
+        """(m, 3) every row's point in its source's frame: its pixel's place and the height of
+        the node on it (NaN in a hole)."""
+        c = rows.src
+        out = np.empty((len(c), 3))
+        out[:, 0] = rows.col * self.dx[c] - self.half[c, 0]
+        out[:, 1] = rows.row * self.dy[c] - self.half[c, 1]
+        node = self.offset[c] + self.nodes * (rows.row * self.node_nx[c] + rows.col)
+        out[:, 2] = self.height.take(node)
+        return out

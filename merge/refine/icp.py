@@ -55,7 +55,8 @@ from merge.core.patchset import Patch
 from merge.core.progress import checkpoint
 from merge.core.transforms import PatchTransform
 from merge.refine.bank import SurfaceBank
-from merge.refine.normal_system import Candidates, NormalSystem, build_normal_system
+from merge.refine.normal_system import NormalSystem, build_normal_system
+from merge.refine.runs import Runs
 from merge.refine.solve import Priors, solve_system
 from merge.refine.state import MosaicState
 
@@ -310,7 +311,7 @@ def _run_level(
     return False
 
 
-def _step(fit: Fit, lv: LevelSetup, cand: Candidates) -> tuple[NormalSystem, FloatArray]:
+def _step(fit: Fit, lv: LevelSetup, cand: Runs) -> tuple[NormalSystem, FloatArray]:
     """One Gauss-Newton step of every patch not held: the system at the current placement, its
     priors, the solve, the move and the gauge; the system and the step ``delta`` (n, 6)."""
     state, bank, base = fit.state, lv.bank, fit.base
@@ -329,7 +330,7 @@ def _step(fit: Fit, lv: LevelSetup, cand: Candidates) -> tuple[NormalSystem, Flo
     delta = solve_system(stats, priors, held=lv.held)
     state.update(delta, bank.radius)
     if lv.held is None:  # held patches hold the gauge
-        state.fix_gauge(bank.centre, bank.point_start)
+        state.fix_gauge(bank.centre, bank.point_count)
     return stats, delta
 
 
@@ -344,8 +345,8 @@ def _slope_rms(bank: SurfaceBank) -> float:
     """RMS of the surfaces' slopes over every :data:`SLOPE_SAMPLE`-th node (dimensionless: the
     slope's length, both axes summed, per node)."""
     total, count = 0.0, 0
-    for lo in range(0, len(bank.surface), SLOPE_BLOCK):
-        g = bank.surface[lo : lo + SLOPE_BLOCK : SLOPE_SAMPLE, 1:].astype(np.float64)
+    for lo in range(0, len(bank.slope), SLOPE_BLOCK):
+        g = bank.slope[lo : lo + SLOPE_BLOCK : SLOPE_SAMPLE].astype(np.float64)
         g = g[np.isfinite(g).all(axis=1)]
         total += float(np.einsum("ij,ij->", g, g))
         count += len(g)

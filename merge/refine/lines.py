@@ -35,8 +35,6 @@ FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
 #: Float arrays of any width (float32 where the mosaic's memory counts).
 Floats = NDArray[np.floating[Any]]
-#: Integer arrays of any width.
-Ints = NDArray[np.integer[Any]]
 
 #: Groups with fewer valid rows than this say little about the spread of their own rows.
 MIN_GROUP = 5
@@ -46,17 +44,6 @@ MEDIAN_CHI2_1 = 0.454936
 MEDIAN_GROUPS = 8192
 #: Bisections of the offset variance (on its logarithm, over 30 orders of magnitude).
 BISECTIONS = 26
-
-
-def line_groups(starts: IntArray, line: Ints) -> IntArray:
-    """First row of every group: a run of one directed pair (``starts``) cut where the source
-    line (``line`` (m,), rows of a run sorted by line) changes. Returns (g,) sorted indices."""
-    m = len(line)
-    mark = np.zeros(m, dtype=bool)
-    mark[starts[:-1][starts[:-1] < m]] = True
-    mark[1:] |= line[1:] != line[:-1]
-    out: IntArray = np.flatnonzero(mark)
-    return out
 
 
 def offset_ratio(
@@ -72,12 +59,29 @@ def offset_ratio(
     means scatter no more than ``σ²`` explains (no line offsets) or too few groups hold enough
     rows.
     """
+    return ratio_of_sums(group_sums(r, w, valid, first))
+
+
+def group_sums(
+    r: FloatArray, w: Floats, valid: NDArray[np.bool_] | FloatArray, first: IntArray
+) -> FloatArray:
+    """(4, g) per group starting at ``first``: ``Σ w``, ``Σ w r``, ``Σ w r²`` and its valid rows,
+    what :func:`ratio_of_sums` needs (a mosaic's groups summed block by block)."""
     if len(first) == 0:
-        return float("inf")
-    sw = np.add.reduceat(w, first)
-    sr = np.add.reduceat(w * r, first)
-    srr = np.add.reduceat(w * r * r, first)
-    n = np.add.reduceat(valid, first, dtype=np.float64)
+        return np.zeros((4, 0))
+    return np.stack(
+        [
+            np.add.reduceat(w, first, dtype=np.float64),
+            np.add.reduceat(w * r, first),
+            np.add.reduceat(w * r * r, first),
+            np.add.reduceat(valid, first, dtype=np.float64),
+        ]
+    )
+
+
+def ratio_of_sums(sums: FloatArray) -> float:
+    """:func:`offset_ratio` from the groups' sums (4, g) of :func:`group_sums`."""
+    sw, sr, srr, n = sums
     use = (n >= MIN_GROUP) & (sw > 0)
     if use.sum() < 2:
         return float("inf")
@@ -117,8 +121,9 @@ def marginalise_offsets(
     """Take the line offsets out of per-run sums ``B`` (k, 6, 6) and ``g`` (k, 6), in place.
 
     ``J`` (m, 6), ``w`` and ``r`` (m,) are the rows of ``k`` runs (``runs`` (k + 1,) their
-    bounds), ``first`` the first row of every group in them (:func:`line_groups`, every run
-    starting a group), ``rho`` from :func:`offset_ratio` (infinite: nothing to do).
+    bounds), ``first`` the first row of every group in them
+    (:meth:`merge.refine.runs.Runs.groups`: every run starts one), ``rho`` from
+    :func:`offset_ratio` (infinite: nothing to do).
     """
     if not np.isfinite(rho) or len(first) == 0:
         return

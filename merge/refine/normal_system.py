@@ -29,22 +29,24 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from merge.core.information import line_design, noise_share, psd_part
+from merge.core.information import line_design, line_sums, noise_share, psd_part
 from merge.core.parallel import each
 from merge.refine.bank import SurfaceBank
-from merge.refine.lines import line_groups, marginalise_offsets, offset_ratio
+from merge.refine.lines import group_sums, marginalise_offsets, ratio_of_sums
 from merge.refine.rows import PatchState, jacobians, lever_arms, residuals, segment_sums
+from merge.refine.runs import Runs
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
 #: Float arrays of any width (float32 where the mosaic's memory counts).
 Floats = NDArray[np.floating[Any]]
-#: Integer arrays of any width.
-Ints = NDArray[np.integer[Any]]
-Candidates = tuple[Ints, Ints, Ints, IntArray]
 
 #: Rows per block of the system build (whole runs are kept together).
 BLOCK_ROWS = 1 << 15
+#: Storage of every row's residual and of its destination's slopes between the build's passes
+#: (:class:`ScoredRows`): all that a row holds beyond its block.
+RESIDUAL_DTYPE = np.float32
+GRAD_DTYPE = np.float16
 
 
 @dataclass(frozen=True)
@@ -90,22 +92,9 @@ class NormalSystem:
         )
 
 
-def _blocks(starts: IntArray, rows: int) -> list[tuple[int, int]]:
-    """Ranges ``[first, last)`` of runs holding about ``rows`` rows each (at least one run)."""
-    out = []
-    k = len(starts) - 1
-    first = 0
-    while first < k:
-        last = int(np.searchsorted(starts, starts[first] + rows, side="right")) - 1
-        last = min(max(last, first + 1), k)
-        out.append((first, last))
-        first = last
-    return out
-
-
 def build_normal_system(
     bank: SurfaceBank,
-    cand: Candidates,
+    runs: Runs,
     state: PatchState,
     noise: float,
     *,
@@ -119,8 +108,8 @@ def build_normal_system(
     ----------
     bank : SurfaceBank
         The patches of this level.
-    cand : tuple of int arrays
-        ``(src, dst, idx, starts)`` from :meth:`SurfaceBank.candidates`.
+    runs : Runs
+        The rows, run by run (:meth:`SurfaceBank.candidates`).
     state : PatchState
         Current placement of every patch.
     noise : float
@@ -134,34 +123,35 @@ def build_normal_system(
         the residuals.
     """
     n = len(bank.centre)
-    src, dst, idx, starts = cand
-    blocks = _blocks(starts, block_rows)
-    rows = None if len(idx) == 0 else _scored_rows(bank, cand, state, noise, blocks)
+    blocks = runs.blocks(block_rows)
+    rows = None if runs.size == 0 else _scored_rows(bank, runs, state, noise, blocks)
     if rows is None:
         return NormalSystem.empty(n)
-    # the residuals of one source line share its offset (merge.refine.lines); no groups, none
-    line = bank.line[idx]
-    groups = line_groups(starts, line) if lines else np.empty(0, dtype=np.intp)
-    a_seg, b_seg = src[starts[:-1]].astype(np.intp), dst[starts[:-1]].astype(np.intp)
     noise2 = None
     if signal:
-        pitch2 = 0.5 * (bank.dx[b_seg] ** -2 + bank.dy[b_seg] ** -2)
+        pitch2 = 0.5 * (bank.dx[runs.dst] ** -2 + bank.dy[runs.dst] ** -2)
         noise2 = bank.slope_noise * noise**2 * pitch2
-    Baa, ga, share = _run_information(bank, cand, state, rows, groups, blocks, noise2)
+    rho = _offset_ratio(runs, rows, blocks) if lines else float("inf")
+    info = _run_information(bank, runs, state, rows, blocks, rho, noise2)
     signal_blocks, design = None, 1.0
-    if share is not None:
-        signal_blocks = psd_part(Baa - share)
+    if info.share is not None:
+        signal_blocks = psd_part(info.Baa - info.share)
         # the design effect of the raw Z scores, on top of the offsets' model: measured on the
         # whitened scores (what the model leaves correlated) the Z sigmas were 1.3-1.9 x too
         # small on TGX1, its flat face and the grating (a bowl no line model holds); this way
         # they are 0.9-1.4 x, and cautious (0.3-0.6 x) on MoS2 and the folded surface
-        design = line_design(rows.w * rows.r, starts, line)
+        design = line_design(info.line_sums)
     # the report's per-patch sums, over every row of the mosaic: not for steps
-    count, sq = _patch_sums(n, src, dst, rows) if signal else (np.zeros(n), np.zeros(n))
-    a_rows, a_cols, vals, g, diag = _assemble(bank, state, a_seg, b_seg, Baa, ga)
+    count, sq = np.zeros(n), np.zeros(n)
+    if signal:
+        for ends in (runs.src, runs.dst):  # a row involves both patches of its pair
+            count += np.bincount(ends, weights=info.patch_sums[:, 0], minlength=n)
+            sq += np.bincount(ends, weights=info.patch_sums[:, 1], minlength=n)
+    a_seg, b_seg = runs.src, runs.dst
+    a_rows, a_cols, vals, g, diag = _assemble(bank, state, a_seg, b_seg, info.Baa, info.ga)
     signal_vals = None
     if signal_blocks is not None:
-        signal_vals = _assemble(bank, state, a_seg, b_seg, signal_blocks, ga)[2]
+        signal_vals = _assemble(bank, state, a_seg, b_seg, signal_blocks, info.ga)[2]
     return NormalSystem(
         rows=a_rows,
         cols=a_cols,
@@ -179,111 +169,133 @@ def build_normal_system(
 
 @dataclass(frozen=True)
 class ScoredRows:
-    """Pass 1 of the build: per row (m,) its residual ``r``, whether its foot lies on its
-    destination (``ok``), its robust weight ``w`` and the destination's slopes ``grad`` (m, 2);
-    the valid residuals' RMS ``rms`` and robust scale ``rscale``. Kept for every row of the
-    mosaic at once, so weights and slopes are float32 (a ten-millionth of what they weigh and
-    tilt), and no more than these (a row held 64 bytes, now 21)."""
+    """Pass 1 of the build: per row (m,) its residual ``r`` (NaN where its foot misses its
+    destination) and the destination's slopes ``grad`` (m, 2); the valid residuals' RMS ``rms``
+    and robust scale ``rscale``. What a row holds between the passes, for every row of the
+    mosaic at once: 8 bytes (float32 residuals, a ten-millionth of their size; float16 slopes,
+    which only tilt a Jacobian)."""
 
-    r: FloatArray
-    ok: NDArray[np.bool_]
+    r: Floats
     grad: Floats
-    w: Floats
     rms: float
     rscale: float
+
+    def block(self, lo: int, hi: int) -> tuple[FloatArray, NDArray[np.bool_], FloatArray]:
+        """Rows ``[lo, hi)``: residual (0 where not valid), validity and Cauchy weight."""
+        r = self.r[lo:hi].astype(np.float64)
+        ok = np.isfinite(r)
+        r[~ok] = 0.0
+        w = np.where(ok, 1.0 / (1.0 + (r / (3.0 * self.rscale)) ** 2), 0.0)
+        return r, ok, w
 
 
 def _scored_rows(
     bank: SurfaceBank,
-    cand: Candidates,
+    runs: Runs,
     state: PatchState,
     noise: float,
     blocks: list[tuple[int, int]],
 ) -> ScoredRows | None:
     """Pass 1: every row's residual and slopes (block by block, on the cores), then the robust
-    scale and the Cauchy weights, which need all of them; None if no row is valid."""
-    _, dst, idx, starts = cand
-    m = len(idx)
-    r, ok = np.empty(m), np.empty(m, dtype=bool)
-    grad = np.empty((m, 2), dtype=np.float32)
+    scale, which needs all of them; None if no row is valid."""
+    m = runs.size
+    r = np.empty(m, dtype=RESIDUAL_DTYPE)
+    grad = np.empty((m, 2), dtype=GRAD_DTYPE)
+    squares = np.zeros((len(blocks), 2))  # per block: valid rows, their sum of squares
 
-    def block_residuals(block: tuple[int, int]) -> None:
-        lo, hi = starts[block[0]], starts[block[1]]
-        r[lo:hi], ok[lo:hi], grad[lo:hi] = residuals(
-            bank, idx[lo:hi], dst[lo:hi], starts[block[0] : block[1] + 1] - lo, state
-        )
+    def block_residuals(j: int) -> None:
+        lo, hi = runs.starts[blocks[j][0]], runs.starts[blocks[j][1]]
+        rr, ok, gg = residuals(bank, bank.rows(runs, *blocks[j]), state)
+        r[lo:hi] = np.where(ok, rr, np.nan)
+        grad[lo:hi] = gg
+        squares[j] = ok.sum(), rr @ rr
 
-    each(block_residuals, blocks)
-    used = np.abs(r[ok])
-    if used.size == 0:
+    each(block_residuals, range(len(blocks)))
+    valid, total = squares.sum(axis=0)
+    if valid == 0:
         return None
-    rms = float(np.sqrt(np.mean(used**2)))
-    rscale = max(1.4826 * float(np.median(used)), noise)
-    del used
-    w = np.where(ok, 1.0 / (1.0 + (r / (3.0 * rscale)) ** 2), 0.0).astype(np.float32)
-    return ScoredRows(r, ok, grad, w, rms, rscale)
+    rms = float(np.sqrt(total / valid))
+    used = r[np.isfinite(r)]
+    np.abs(used, out=used)
+    rscale = max(1.4826 * float(np.median(used, overwrite_input=True)), noise)
+    return ScoredRows(r, grad, rms, rscale)
+
+
+def _offset_ratio(runs: Runs, rows: ScoredRows, blocks: list[tuple[int, int]]) -> float:
+    """:func:`merge.refine.lines.offset_ratio` over every line of every run, block by block."""
+    lines = runs.box[:, 1] - runs.box[:, 0]
+    first_group = np.concatenate([[0], np.cumsum(lines)])
+    sums = np.empty((4, int(first_group[-1])))
+
+    def block_sums(block: tuple[int, int]) -> None:
+        lo, hi = runs.starts[block[0]], runs.starts[block[1]]
+        r, ok, w = rows.block(lo, hi)
+        g_lo, g_hi = first_group[block[0]], first_group[block[1]]
+        sums[:, g_lo:g_hi] = group_sums(r, w, ok, runs.groups(*block))
+
+    each(block_sums, blocks)
+    return ratio_of_sums(sums)
+
+
+@dataclass(frozen=True)
+class RunInformation:
+    """Pass 2 of the build, per run (k runs): the source's information block ``Baa`` (k, 6, 6)
+    and gradient ``ga`` (k, 6), the noise's ``share`` of each block (or None); per run the
+    valid rows and their squared distances along the surface normal ``patch_sums`` (k, 2), and
+    the mosaic's :func:`merge.core.information.line_sums` (2,)."""
+
+    Baa: FloatArray
+    ga: FloatArray
+    share: FloatArray | None
+    patch_sums: FloatArray
+    line_sums: FloatArray
 
 
 def _run_information(
     bank: SurfaceBank,
-    cand: Candidates,
+    runs: Runs,
     state: PatchState,
     rows: ScoredRows,
-    groups: IntArray,
     blocks: list[tuple[int, int]],
+    rho: float,
     noise2: FloatArray | None = None,
-) -> tuple[FloatArray, FloatArray, FloatArray | None]:
-    """Pass 2: per run, the source's information block (k, 6, 6) and gradient (k, 6), the
-    offsets of its lines (``groups``) marginalised; with ``noise2`` (k,) (the variance of a
-    looked-up slope of the noise per run) also the share of each block that noise claims
-    (:func:`merge.core.information.noise_share`)."""
-    _, dst, idx, starts = cand
-    r, w, ok = rows.r, rows.w, rows.ok
-    rho = offset_ratio(r, w, ok, groups)
-    k = len(starts) - 1
+) -> RunInformation:
+    """Pass 2: per run, the source's information block and gradient, the offsets of its lines
+    marginalised (``rho`` from :func:`merge.refine.lines.offset_ratio`); with ``noise2`` (k,)
+    (the variance of a looked-up slope of the noise per run) also the share of each block that
+    noise claims (:func:`merge.core.information.noise_share`) and the report's sums."""
+    k = len(runs)
     Baa, ga = np.empty((k, 6, 6)), np.empty((k, 6))
     share = None if noise2 is None else np.empty((k, 6, 6))
-    a_seg = cand[0][starts[:-1]]
+    patch_sums = np.zeros((k, 2))
+    lines = np.zeros((len(blocks), 2))
 
-    def information(block: tuple[int, int]) -> None:
-        first, last = block
-        lo, hi = starts[first], starts[last]
-        runs = starts[first : last + 1] - lo
-        arm = lever_arms(bank, idx[lo:hi], runs, state)
-        J = jacobians(bank, idx[lo:hi], dst[lo:hi], runs, state, rows.grad[lo:hi], ok[lo:hi], arm)
-        Baa[first:last], ga[first:last] = segment_sums(J, w[lo:hi], r[lo:hi], runs)
+    def information(j: int) -> None:
+        first, last = blocks[j]
+        lo, hi = runs.starts[first], runs.starts[last]
+        block = bank.rows(runs, first, last)
+        r, ok, w = rows.block(lo, hi)
+        grad = rows.grad[lo:hi].astype(np.float64)
+        points = bank.point_xyz(block)
+        np.nan_to_num(points, copy=False)  # holes: their rows are not valid
+        arm = lever_arms(points, block, state)
+        J = jacobians(bank, block, state, grad, ok, arm, points)
+        Baa[first:last], ga[first:last] = segment_sums(J, w, r, block.starts)
         if share is not None and noise2 is not None:
             share[first:last] = noise_share(
-                w[lo:hi], arm, runs, bank.radius[a_seg[first:last]], noise2[first:last]
+                w, arm, block.starts, bank.radius[runs.src[first:last]], noise2[first:last]
             )
-        g_lo, g_hi = np.searchsorted(groups, [lo, hi])
+            lines[j] = line_sums(w * r, block.groups)
+            d2 = r**2 / (1.0 + np.einsum("ij,ij->i", grad, grad))
+            patch_sums[first:last, 0] = np.add.reduceat(ok, block.starts[:-1], dtype=np.float64)
+            patch_sums[first:last, 1] = np.add.reduceat(d2, block.starts[:-1])
         marginalise_offsets(
-            J,
-            w[lo:hi],
-            r[lo:hi],
-            runs,
-            groups[g_lo:g_hi] - lo,
-            rho,
-            Baa[first:last],
-            ga[first:last],
+            J, w, r, block.starts, block.groups, rho, Baa[first:last], ga[first:last]
         )
 
-    each(information, blocks)
-    return Baa, ga, share
-
-
-def _patch_sums(n: int, src: Ints, dst: Ints, rows: ScoredRows) -> tuple[FloatArray, FloatArray]:
-    """Per patch (n,): the valid residuals that involve it, and the sum of their squares as
-    distances along the surface normal (how far the surfaces lie apart: a flank misplaced by a
-    nanometre is tens of nanometres off in height)."""
-    ok = rows.ok
-    count = np.bincount(src[ok], minlength=n) + np.bincount(dst[ok], minlength=n)
-    d2 = rows.r**2 / (1.0 + np.einsum("ij,ij->i", rows.grad, rows.grad))
-    sq = np.asarray(
-        np.bincount(src, weights=d2, minlength=n) + np.bincount(dst, weights=d2, minlength=n),
-        dtype=np.float64,
-    )
-    return count.astype(np.float64), sq
+    each(information, range(len(blocks)))
+    line_total = lines.sum(axis=0)
+    return RunInformation(Baa, ga, share, patch_sums, line_total)
 
 
 def _assemble(

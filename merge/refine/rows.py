@@ -15,6 +15,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from merge.refine.bank import SurfaceBank
+from merge.refine.runs import RowBlock
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
@@ -51,68 +52,71 @@ def _run_maps(state: PatchState, a: Ints, b: Ints) -> tuple[FloatArray, FloatArr
 
 
 def residuals(
-    bank: SurfaceBank, idx: Ints, dst: Ints, starts: IntArray, state: PatchState
+    bank: SurfaceBank, rows: RowBlock, state: PatchState
 ) -> tuple[FloatArray, NDArray[np.bool_], FloatArray]:
     """Per row: residual, validity, and the destination's normal slopes (m, 2).
 
-    Rows ``idx`` (points) over ``dst`` (patches) come in runs ``starts[k]:starts[k + 1]`` of one
-    directed pair each, so every run moves its points with one small matrix product. The
-    residual is the height of the source point above the destination's surface and drift plane;
-    its gradient with respect to the mosaic position is the destination's normal
-    ``(-slope_x, -slope_y, 1)``.
+    Rows come in runs of one directed pair each (``rows.starts``), so every run moves its
+    points with one small matrix product. The residual is the height of the source point above
+    the destination's surface and drift plane; its gradient with respect to the mosaic position
+    is the destination's normal ``(-slope_x, -slope_y, 1)``. A point in a hole is not valid.
     """
-    a, b = bank.owner[idx[starts[:-1]]], dst[starts[:-1]]
+    starts = rows.starts
+    a, b = rows.src[starts[:-1]], rows.dst[starts[:-1]]
     M, c = _run_maps(state, a, b)
-    p_src = bank.points[idx].astype(np.float64)  # stored float32
+    p_src = bank.point_xyz(rows)
+    solid = np.isfinite(p_src[:, 2])
+    p_src[~solid, 2] = 0.0
     p_dst = np.empty_like(p_src)
     for k in range(len(a)):
         lo, hi = starts[k], starts[k + 1]
         np.matmul(p_src[lo:hi], M[k].T, out=p_dst[lo:hi])
         p_dst[lo:hi] += c[k]
-    h, gx, gy, ok = bank.lookup(dst, p_dst)
-    slope = state.slope[dst]
+    h, gx, gy, ok = bank.lookup(rows.dst, p_dst)
+    ok &= solid
+    slope = state.slope[rows.dst]
     r = np.where(ok, p_dst[:, 2] - np.einsum("mi,mi->m", slope, p_dst[:, :2]) - h, 0.0)
     grad = np.column_stack([gx, gy]) + slope
     grad[~ok] = 0.0
     return r, ok, grad
 
 
-def lever_arms(bank: SurfaceBank, idx: Ints, starts: IntArray, state: PatchState) -> FloatArray:
-    """(m, 2) every row's point about its source patch's centre, in the mosaic's axes: the arm
-    of its spin. Rows in runs as :func:`residuals` has them."""
-    a = bank.owner[idx[starts[:-1]]]
-    Ra = state.R[a, :2, :]
-    p_src = bank.points[idx].astype(np.float64)
-    arm = np.empty((len(idx), 2))
-    for k in range(len(a)):
+def lever_arms(points: FloatArray, rows: RowBlock, state: PatchState) -> FloatArray:
+    """(m, 2) every row's point (``points`` (m, 3), :meth:`SurfaceBank.point_xyz`, holes at
+    zero height) about its source patch's centre, in the mosaic's axes: the arm of its spin."""
+    starts = rows.starts
+    Ra = state.R[rows.src[starts[:-1]], :2, :]
+    arm = np.empty((len(points), 2))
+    for k in range(len(Ra)):
         lo, hi = starts[k], starts[k + 1]
-        np.matmul(p_src[lo:hi], Ra[k].T, out=arm[lo:hi])
+        np.matmul(points[lo:hi], Ra[k].T, out=arm[lo:hi])
     return arm
 
 
 def jacobians(
     bank: SurfaceBank,
-    idx: Ints,
-    dst: Ints,
-    starts: IntArray,
+    rows: RowBlock,
     state: PatchState,
     grad: Floats,
     ok: NDArray[np.bool_],
     arm: FloatArray,
+    points: FloatArray,
 ) -> FloatArray:
     """(m, 6) derivative of every residual with respect to its source patch's unknowns.
 
     The translation part is the destination's normal in the mosaic, ``R_b (-grad, 1)``: one
-    rotation per run; ``arm`` from :func:`lever_arms`.
+    rotation per run; ``arm`` from :func:`lever_arms`, ``points`` as there.
     """
+    starts = rows.starts
     nrm = np.column_stack([-grad, ok.astype(np.float64)])
+    nrm[~ok] = 0.0
     m = np.empty_like(nrm)
-    for k, b in enumerate(dst[starts[:-1]]):
+    for k, b in enumerate(rows.dst[starts[:-1]]):
         lo, hi = starts[k], starts[k + 1]
         np.matmul(nrm[lo:hi], state.R[b].T, out=m[lo:hi])
-    rho = bank.radius[bank.owner[idx], None]
+    rho = bank.radius[rows.src, None]
     spin = (m[:, 1] * arm[:, 0] - m[:, 0] * arm[:, 1])[:, None]
-    return np.concatenate([m, spin / rho, bank.points[idx, :2] / rho], axis=1)
+    return np.concatenate([m, spin / rho, points[:, :2] / rho], axis=1)
 
 
 def segment_sums(

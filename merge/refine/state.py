@@ -64,11 +64,11 @@ class MosaicState(PatchState):
         self.s = self.s + delta[:, :3]
         self.slope = self.slope + delta[:, 4:] / radius[:, None]
 
-    def fix_gauge(self, centre: FloatArray, point_start: IntArray) -> None:
+    def fix_gauge(self, centre: FloatArray, points: IntArray) -> None:
         """Remove the common motion (:mod:`merge.refine.icp`'s notes): mean spin, mean plane and
-        mean displacement from the nominal ``centre`` (n, 3), weighted by each patch's points
-        (``point_start``, :attr:`merge.refine.bank.SurfaceBank.point_start`)."""
-        weight = np.diff(point_start).astype(np.float64)
+        mean displacement from the nominal ``centre`` (n, 3), weighted by each patch's ``points``
+        (n,) (:attr:`merge.refine.bank.SurfaceBank.point_count`)."""
+        weight = points.astype(np.float64)
         weight = weight / weight.sum()
         pivot = weight @ self.s
         spin = np.zeros(3)

@@ -93,16 +93,17 @@ def pair_misfits(
     bank = SurfaceBank(patches, scale, 0.0, 1)
     state = MosaicState.from_transforms(transforms, bank, scale)
     margin = 1.5 * float(max(bank.dx.max(), bank.dy.max()))
-    src, dst, idx, starts = bank.candidates(mine, state.R, state.s, margin)
-    r, valid, _ = residuals(bank, idx, dst, starts, state)
-    own = (src == c) & (valid > 0)  # c's points over the others' surfaces
+    rows = bank.rows(bank.candidates(mine, state.R, state.s, margin))
+    r, valid, _ = residuals(bank, rows, state)
+    own = (rows.src == c) & valid  # c's points over the others' surfaces
     lines = patches[c].heights.shape[0]
-    world = (bank.points[idx] @ state.R[c, :2].T + state.s[c, :2]) * scale
+    points = np.nan_to_num(bank.point_xyz(rows))
+    world = (points @ state.R[c, :2].T + state.s[c, :2]) * scale
     out = []
-    for j in np.unique(dst[own]).tolist():
-        here = own & (dst == j)
+    for j in np.unique(rows.dst[own]).tolist():
+        here = own & (rows.dst == j)
         value = r[here] * scale
-        means = _line_means(bank.line[idx[here]], value, lines)
+        means = _line_means(rows.row[here], value, lines)
         rms = float(np.sqrt(np.mean(value**2)))
         lo, hi = world[here].min(axis=0), world[here].max(axis=0)
         box = (float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1]))

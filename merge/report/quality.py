@@ -75,7 +75,7 @@ def assess(
     n = len(patches)
     xy, z = np.full(n, np.inf), np.full(n, np.inf)
     if system.signal_vals is not None and len(system.rows):
-        weight = np.diff(bank.point_start).astype(np.float64)
+        weight = bank.point_count.astype(np.float64)
         groups = tied_groups(system.rows, system.cols, n)
         gauge = gauge_modes(state.s, bank.radius, weight, groups)
         xy, z = translation_sigmas(

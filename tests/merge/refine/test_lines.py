@@ -13,7 +13,7 @@ from hardware.sim.surfaces import Chessboard
 from merge import PatchTransform
 from merge.refine import normal_system as ns
 from merge.refine.icp import DEFAULT_LEVELS, refine
-from merge.refine.lines import line_groups, marginalise_offsets, offset_ratio
+from merge.refine.lines import group_sums, marginalise_offsets, offset_ratio, ratio_of_sums
 from tests.conftest import make_synthetic
 
 FloatArray = NDArray[np.float64]
@@ -28,10 +28,19 @@ def _grouped(
     return r.ravel(), np.arange(groups) * size
 
 
-def test_groups_break_at_every_run_and_every_new_line() -> None:
-    starts = np.array([0, 4, 9])
-    line = np.array([0, 0, 1, 1, 1, 1, 1, 2, 2])
-    assert line_groups(starts, line).tolist() == [0, 2, 4, 7]
+def test_the_groups_sums_of_blocks_give_the_ratio_of_the_whole() -> None:
+    # a mosaic's groups are summed block by block; the ratio must not see the blocks
+    rng = np.random.default_rng(4)
+    r, first = _grouped(rng, 600, 12, 1.0, 0.3)
+    w = rng.uniform(0.2, 1.0, r.size)
+    ones = np.ones_like(r)
+    parts = [
+        group_sums(r[lo:hi], w[lo:hi], ones[lo:hi], first[(first >= lo) & (first < hi)] - lo)
+        for lo, hi in pairwise([0, 12 * 100, 12 * 450, r.size])
+    ]
+    whole = offset_ratio(r, w, ones, first)
+    assert np.isfinite(whole)
+    assert ratio_of_sums(np.concatenate(parts, axis=1)) == pytest.approx(whole, rel=1e-12)
 
 
 def test_the_offset_ratio_is_white_over_line_variance() -> None:
@@ -111,6 +120,6 @@ def test_line_offsets_do_not_drag_a_pair_apart(monkeypatch: pytest.MonkeyPatch) 
     # its residuals count as independent; marginalised, only the within-line variation measures
     # (here 0.07 nm against 0.22 nm)
     with_lines = _pair_error()
-    monkeypatch.setattr(ns, "offset_ratio", lambda *args: float("inf"))
+    monkeypatch.setattr(ns, "ratio_of_sums", lambda *args: float("inf"))
     without = _pair_error()
     assert with_lines < 0.5 * without

@@ -22,7 +22,9 @@ def test_the_system_does_not_depend_on_its_blocks(block_rows: int) -> None:
     np.testing.assert_allclose(split.diag, whole.diag, rtol=1e-12, atol=1e-12)
     np.testing.assert_allclose(split.signal_vals, whole.signal_vals, rtol=1e-12, atol=1e-12)
     np.testing.assert_array_equal(split.count, whole.count)
-    assert split.rscale == whole.rscale and split.rms == whole.rms
+    assert split.rscale == whole.rscale
+    assert split.rms == pytest.approx(whole.rms, rel=1e-12)
+    assert split.line_design == pytest.approx(whole.line_design, rel=1e-12)
 
 
 def test_no_correspondence_gives_an_empty_system() -> None:

@@ -41,11 +41,12 @@ def four_patches() -> tuple[SurfaceBank, PatchState]:
 def test_residuals_move_every_point_as_its_patch_state_says() -> None:
     bank, state = four_patches()
     pairs = np.array([[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]])
-    src, dst, idx, starts = bank.candidates(pairs, state.R, state.s, 1.5)
-    r, valid, _ = residuals(bank, idx, dst, starts, state)
-    arm = lever_arms(bank, idx, starts, state)
+    rows = bank.rows(bank.candidates(pairs, state.R, state.s, 1.5))
+    src, dst = rows.src, rows.dst
+    r, valid, _ = residuals(bank, rows, state)
+    p = bank.point_xyz(rows)
+    arm = lever_arms(p, rows, state)
     # row by row: into the mosaic with the source's state, back out with the destination's
-    p = bank.points[idx].astype(np.float64)
     rot = np.einsum("mij,mj->mi", state.R[src], p)
     q = rot + state.s[src]
     q[:, 2] += np.einsum("mi,mi->m", state.slope[src], p[:, :2])

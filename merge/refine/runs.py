@@ -1,0 +1,85 @@
+"""The rows of a mosaic's normal system, described run by run and made a block at a time.
+
+A row is one point of a source patch over a destination patch. The points of one source that
+may fall on one destination (a directed pair) are those inside the destination's outline, which
+on the source's regular point grid is a rectangle: a run is stored as that rectangle, not as its
+rows. A mosaic of ten thousand patches has fifty million rows; held as three integers each they
+were a sixth of a merge's memory, now a block of runs makes its rows when it is processed
+(:meth:`merge.refine.bank.SurfaceBank.rows`) and drops them after.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+IntArray = NDArray[np.intp]
+
+
+@dataclass(frozen=True)
+class Runs:
+    """One run per directed pair: ``src`` and ``dst`` (k,) patches, ``box`` (k, 4) the source's
+    point-grid rows ``[i0, i1)`` and columns ``[j0, j1)`` it covers, ``starts`` (k + 1,) the first
+    row of every run (rows run line by line, so each line of a run is one group of rows,
+    :mod:`merge.refine.lines`)."""
+
+    src: IntArray
+    dst: IntArray
+    box: IntArray
+    starts: IntArray
+
+    @classmethod
+    def empty(cls) -> Runs:
+        none = np.empty(0, dtype=np.intp)
+        return cls(none, none, np.empty((0, 4), dtype=np.intp), np.zeros(1, dtype=np.intp))
+
+    def __len__(self) -> int:
+        return len(self.src)
+
+    @property
+    def size(self) -> int:
+        """Rows in all runs."""
+        return int(self.starts[-1])
+
+    def blocks(self, rows: int) -> list[tuple[int, int]]:
+        """Ranges ``[first, last)`` of runs holding about ``rows`` rows each (at least one run)."""
+        out = []
+        k = len(self)
+        first = 0
+        while first < k:
+            last = int(np.searchsorted(self.starts, self.starts[first] + rows, side="right")) - 1
+            last = min(max(last, first + 1), k)
+            out.append((first, last))
+            first = last
+        return out
+
+    def groups(self, first: int = 0, last: int | None = None) -> IntArray:
+        """First row of every line of runs ``[first, last)``, counted from the first of their
+        rows (g,), sorted."""
+        last = len(self) if last is None else last
+        box = self.box[first:last]
+        lines, width = box[:, 1] - box[:, 0], box[:, 3] - box[:, 2]
+        run = np.repeat(np.arange(last - first), lines)
+        t = np.arange(int(lines.sum())) - np.repeat(np.cumsum(lines) - lines, lines)
+        out: IntArray = self.starts[first:last][run] - self.starts[first] + t * width[run]
+        return out
+
+
+@dataclass(frozen=True)
+class RowBlock:
+    """The rows of a block of runs: per row (m,) its source and destination patch and its
+    point's pixel (``row``, the scan line, and ``col``); ``starts`` (k + 1,) the runs' bounds
+    and ``groups`` (g,) the first row of every line of every run, both from the block's first
+    row."""
+
+    src: IntArray
+    dst: IntArray
+    row: IntArray
+    col: IntArray
+    starts: IntArray
+    groups: IntArray
+
+    def __len__(self) -> int:
+        return len(self.src)
