@@ -75,8 +75,9 @@ BATCH = 64
 PLACE_RADIUS = 1.5
 #: Bytes of NCC maps the first pass keeps for the second pass and the placements; past it they
 #: are computed again when asked for (few are: the pairs in doubt). Kept all, a map of every
-#: pair took 60 bytes per input pixel of a mosaic of 64 x 64 px patches, 2.4 GB at 10,000.
-MAP_CACHE_BYTES = 256 << 20
+#: pair took 60 bytes per input pixel of a mosaic of 64 x 64 px patches, 2.4 GB at 10,000; the
+#: first pass keeps only those of pairs it could not accept (the likely doubtful ones).
+MAP_CACHE_BYTES = 64 << 20
 #: Weights of the correlated channels: heights, x slope, y slope.
 CHANNEL_WEIGHTS = (0.5, 0.25, 0.25)
 
@@ -217,7 +218,6 @@ def _first_pass(lat: Lattice, corr: Correlations, radius: float) -> None:
     ):
         checkpoint(1)
         e = lat.expected(i)
-        corr.keep(i, (ncc, count, zero))
         peak = find_peak(
             ncc,
             count,
@@ -229,6 +229,8 @@ def _first_pass(lat: Lattice, corr: Correlations, radius: float) -> None:
             ambiguity=AMBIGUITY,
         )
         _accept(lat, corr, i, peak)
+        if not corr.xy_w[i].any():  # a copy: the maps are views of their whole batch's
+            corr.keep(i, (ncc.copy(), count.copy(), zero))
 
 
 def _place_doubtful(
