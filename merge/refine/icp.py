@@ -55,7 +55,7 @@ from merge.core.patchset import Patch
 from merge.core.progress import checkpoint
 from merge.core.transforms import PatchTransform
 from merge.refine.bank import SurfaceBank
-from merge.refine.normal_system import NormalSystem, build_normal_system
+from merge.refine.normal_system import build_normal_system
 from merge.refine.runs import Runs
 from merge.refine.solve import Priors, solve_system
 from merge.refine.state import MosaicState
@@ -290,20 +290,20 @@ def _run_level(
         checkpoint()
         if moved > 0.5 * lv.margin:
             cand, moved = bank.candidates(lv.pairs, state.R, state.s, lv.margin), 0.0
-        stats, delta = _step(fit, lv, cand)
+        rms, delta = _step(fit, lv, cand)
         motion = float(
             (np.abs(delta[:, :3]).max(axis=1) + np.abs(delta[:, 3:]).max(axis=1)).max(initial=0)
         )
         moved += motion
         fit.iteration += 1
-        fit.history.append(stats.rms * fit.scale)
+        fit.history.append(rms * fit.scale)
         if progress is not None:
-            progress(fit.iteration, stats.rms * fit.scale)
+            progress(fit.iteration, rms * fit.scale)
         checkpoint(1)
         # converged when no patch moves, or when the cost no longer falls (the motion left is
         # then in directions the data do not constrain, e.g. XY over a flat overlap)
-        stalls = stalls + 1 if abs(previous - stats.rms) <= STALL * stats.rms else 0
-        previous = stats.rms
+        stalls = stalls + 1 if abs(previous - rms) <= STALL * rms else 0
+        previous = rms
         effect, last_effect = _height_effect(delta, slope), effect
         settled = _remaining(effect, last_effect) < HEIGHT_TOL * fit.noise
         if motion < level.tol or stalls >= STALLS or settled:
@@ -311,9 +311,11 @@ def _run_level(
     return False
 
 
-def _step(fit: Fit, lv: LevelSetup, cand: Runs) -> tuple[NormalSystem, FloatArray]:
+def _step(fit: Fit, lv: LevelSetup, cand: Runs) -> tuple[float, FloatArray]:
     """One Gauss-Newton step of every patch not held: the system at the current placement, its
-    priors, the solve, the move and the gauge; the system and the step ``delta`` (n, 6)."""
+    priors, the solve, the move and the gauge; the residual RMS (pixel units) and the step
+    ``delta`` (n, 6). The system is dropped with the step (a mosaic's holds a few bytes per
+    pixel, which the next one's build would otherwise find still held)."""
     state, bank, base = fit.state, lv.bank, fit.base
     # scan lines as correlated noise (merge.refine.lines) only on the raw heights: smoothing
     # spreads every line's offset over its neighbours, and on the coarse levels the start's
@@ -331,7 +333,7 @@ def _step(fit: Fit, lv: LevelSetup, cand: Runs) -> tuple[NormalSystem, FloatArra
     state.update(delta, bank.radius)
     if lv.held is None:  # held patches hold the gauge
         state.fix_gauge(bank.centre, bank.point_count)
-    return stats, delta
+    return stats.rms, delta
 
 
 #: Nodes per block of :func:`_slope_rms` (its temporaries a few megabytes), and every how

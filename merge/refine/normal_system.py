@@ -47,6 +47,10 @@ BLOCK_ROWS = 1 << 15
 #: (:class:`ScoredRows`): all that a row holds beyond its block.
 RESIDUAL_DTYPE = np.float32
 GRAD_DTYPE = np.float16
+#: Rows the robust scale is the median of, at most (evenly spread over the mosaic; a median of
+#: millions moves by a thousandth of itself, and a copy of every row's residual was a sixth of
+#: the build's memory).
+MEDIAN_ROWS = 1 << 22
 
 
 @dataclass(frozen=True)
@@ -127,12 +131,14 @@ def build_normal_system(
     rows = None if runs.size == 0 else _scored_rows(bank, runs, state, noise, blocks)
     if rows is None:
         return NormalSystem.empty(n)
+    rms, rscale = rows.rms, rows.rscale
     noise2 = None
     if signal:
         pitch2 = 0.5 * (bank.dx[runs.dst] ** -2 + bank.dy[runs.dst] ** -2)
         noise2 = bank.slope_noise * noise**2 * pitch2
     rho = _offset_ratio(runs, rows, blocks) if lines else float("inf")
     info = _run_information(bank, runs, state, rows, blocks, rho, noise2)
+    del rows  # every row's residual and slopes: not needed past here
     signal_blocks, design = None, 1.0
     if info.share is not None:
         signal_blocks = psd_part(info.Baa - info.share)
@@ -160,8 +166,8 @@ def build_normal_system(
         diag=diag,
         count=count,
         sq=sq,
-        rms=rows.rms,
-        rscale=rows.rscale,
+        rms=rms,
+        rscale=rscale,
         signal_vals=signal_vals,
         line_design=design,
     )
@@ -215,7 +221,8 @@ def _scored_rows(
     if valid == 0:
         return None
     rms = float(np.sqrt(total / valid))
-    used = r[np.isfinite(r)]
+    sample = r[:: max(1, m // MEDIAN_ROWS)]
+    used = sample[np.isfinite(sample)]
     np.abs(used, out=used)
     rscale = max(1.4826 * float(np.median(used, overwrite_input=True)), noise)
     return ScoredRows(r, grad, rms, rscale)
@@ -335,27 +342,29 @@ def _assemble(
     np.add.at(g, b_seg, np.einsum("kij,kj->ki", T, ga))
     np.add.at(diag, a_seg, Baa)
     np.add.at(diag, b_seg, Bbb)
+    # the triplets of the four blocks of every run, written where they go (a list of parts
+    # concatenated held them twice: a few bytes per pixel of a mosaic of small patches)
+    k = len(a_seg)
+    size = 36 * k
+    a_rows, a_cols = np.empty(4 * size, dtype=np.intp), np.empty(4 * size, dtype=np.intp)
+    vals = np.empty(4 * size)
     ii, jj = np.meshgrid(np.arange(6), np.arange(6), indexing="ij")
-
-    def triplets(
-        ra: IntArray, cb: IntArray, blk: FloatArray
-    ) -> tuple[IntArray, IntArray, FloatArray]:
-        return (
-            (ra[:, None, None] * 6 + ii).ravel(),
-            (cb[:, None, None] * 6 + jj).ravel(),
-            blk.ravel(),
+    for part, (ra, cb, blk) in enumerate(
+        (
+            (a_seg, a_seg, Baa),
+            (b_seg, b_seg, Bbb),
+            (a_seg, b_seg, Bab),
+            (b_seg, a_seg, np.swapaxes(Bab, 1, 2)),
         )
-
-    parts = [
-        triplets(a_seg, a_seg, Baa),
-        triplets(b_seg, b_seg, Bbb),
-        triplets(a_seg, b_seg, Bab),
-        triplets(b_seg, a_seg, np.swapaxes(Bab, 1, 2)),
-    ]
+    ):
+        at = slice(part * size, (part + 1) * size)
+        a_rows[at].reshape(k, 6, 6)[:] = ra[:, None, None] * 6 + ii
+        a_cols[at].reshape(k, 6, 6)[:] = cb[:, None, None] * 6 + jj
+        vals[at].reshape(k, 6, 6)[:] = blk
     return (
-        np.concatenate([x[0] for x in parts]),
-        np.concatenate([x[1] for x in parts]),
-        np.concatenate([x[2] for x in parts]),
+        a_rows,
+        a_cols,
+        vals,
         g,
         diag,
     )
