@@ -1,4 +1,4 @@
-"""Height maps as continuous surfaces: NaN-aware smoothing, slopes and bilinear look-up."""
+"""Height maps as continuous surfaces: NaN-aware smoothing, upsampling and bilinear look-up."""
 
 from __future__ import annotations
 
@@ -211,13 +211,6 @@ def _either(mask: NDArray[np.bool_], *, axis: int) -> NDArray[np.bool_]:
     m = np.moveaxis(mask, axis, 0)
     out: NDArray[np.bool_] = np.moveaxis(m[:-1] | m[1:], 0, axis)
     return out
-
-
-def slopes(heights: FloatArray, pixel_size: tuple[float, float]) -> tuple[FloatArray, FloatArray]:
-    """``(dh/dx, dh/dy)`` by central differences (one-sided at edges); NaN next to holes."""
-    h = np.asarray(heights, dtype=np.float64)
-    gy, gx = np.gradient(h, pixel_size[1], pixel_size[0])
-    return np.asarray(gx, dtype=np.float64), np.asarray(gy, dtype=np.float64)
 
 
 def bilinear(

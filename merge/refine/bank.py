@@ -2,10 +2,12 @@
 
 Lengths are in units of ``scale`` (the median pixel size), so the unknowns of the solver are of
 order one. Every patch keeps its own frame: centred on its footprint, heights relative to its
-median. Its points (every ``stride``-th pixel) and its heights and slopes (at every node, all
-patches end to end) feed the residuals of :mod:`merge.refine.normal_system`. A point is not
-stored: its place follows from its pixel and its height is the node on it
-(:meth:`SurfaceBank.point_xyz`), so the nodes are all a level holds per pixel.
+median. Its points (every ``stride``-th pixel) and its heights (at every node, all patches end
+to end) feed the residuals of :mod:`merge.refine.normal_system`. Only the nodes' heights are
+stored: a slope is the difference of the heights a pixel either side, taken at the look-up
+(:meth:`SurfaceBank.lookup`), and a point's place follows from its pixel and its height is the
+node on it (:meth:`SurfaceBank.point_xyz`). Raw heights, four nodes per pixel, weigh 17 bytes
+a pixel; with their slopes stored beside them they weighed 48.
 """
 
 from __future__ import annotations
@@ -16,7 +18,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from merge.core.heightfield import Border, slope_noise, slopes, smooth_nan, upsample2
+from merge.core.heightfield import Border, slope_noise, smooth_nan, upsample2
 from merge.core.patchset import Patch
 from merge.refine.runs import RowBlock, Runs
 
@@ -30,11 +32,6 @@ UPSAMPLE_BATCH = 16
 #: Storage of the nodes' heights (:attr:`SurfaceBank.height`): float32 keeps heights relative
 #: to a patch's median, in pixels, to a millionth of a pixel.
 SURFACE_DTYPE = np.float32
-#: Storage of the nodes' slopes (:attr:`SurfaceBank.slope`). Slopes only tilt a row's Jacobian,
-#: never its residual, so a step's fixed point does not depend on them; float16 keeps them to
-#: a two-thousandth (a step converges as fast) and halves what the raw nodes weigh (4 per pixel:
-#: 48 -> 32 bytes a pixel).
-SLOPE_DTYPE = np.float16
 
 
 class SurfaceBank:
@@ -107,12 +104,15 @@ class SurfaceBank:
         self.slope_noise = slope_noise(self.nodes)
         self.node_nx = (self.nx - 1) * self.nodes + 1
         self.node_ny = (self.ny - 1) * self.nodes + 1
-        sizes = self.node_nx * self.node_ny
-        self.offset = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.intp)
-        # the nodes are most of a merge's memory (4 per pixel on raw heights): heights in
-        # float32, relative to the patch's median in pixels; slopes (dh/dx, dh/dy) side by side
+        #: every patch's nodes are stored with a pixel's worth of them beyond every border (the
+        #: heights continued point-symmetrically), so a slope is a central difference
+        #: everywhere: row length of the stored grid, and the index of interior node (0, 0)
+        self.grid_nx = self.node_nx + 2 * self.nodes
+        sizes = self.grid_nx * (self.node_ny + 2 * self.nodes)
+        offset = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.intp)
+        self.origin = offset + self.nodes * (self.grid_nx + 1)
+        # the nodes are most of a merge's memory: float32, relative to the patch's median
         self.height = np.empty(int(sizes.sum()), dtype=SURFACE_DTYPE)
-        self.slope = np.empty((int(sizes.sum()), 2), dtype=SLOPE_DTYPE)
         levelled: dict[int, FloatArray] = {}
         for c, p in enumerate(patches):
             h = p.heights / scale
@@ -125,30 +125,30 @@ class SurfaceBank:
             self.centre[c] = (cx, cy, float(np.nanmedian(p.heights)) / scale)
             hl = h - self.centre[c, 2]
             if self.nodes > 1:
-                levelled[c] = hl  # slopes come with the spline (_fill_spline_nodes)
+                levelled[c] = hl  # upsampled in batches (_fill_spline_nodes)
             else:
-                gx, gy = slopes(h, (self.dx[c], self.dy[c]))
-                rows = slice(self.offset[c], self.offset[c] + sizes[c])
-                self.height[rows] = hl.ravel()
-                self.slope[rows, 0], self.slope[rows, 1] = gx.ravel(), gy.ravel()
+                # continued point-symmetrically: the central difference at the border is then
+                # the one-sided one
+                grid = np.pad(hl, 1, mode="reflect", reflect_type="odd")
+                self.height[offset[c] : offset[c] + sizes[c]] = grid.ravel()
             if len(levelled) >= UPSAMPLE_BATCH or (levelled and c == n - 1):
-                self._fill_spline_nodes(levelled)
+                self._fill_spline_nodes(levelled, offset)
                 levelled = {}
+        step, m = stride * self.nodes, self.nodes
         for c in range(n):
-            nodes = self.height[self.offset[c] : self.offset[c] + sizes[c]]
-            step = stride * self.nodes
-            at = nodes.reshape(self.node_ny[c], self.node_nx[c])[::step, ::step]
+            at = self.grid(c)[m:-m:step, m:-m:step]
             self.point_count[c] = int(np.isfinite(at).sum())
 
-    def _fill_spline_nodes(self, heights: dict[int, FloatArray]) -> None:
-        """Height, dh/dx and dh/dy at the half-pixel nodes of patches ``heights`` (by index),
-        into :attr:`height` and :attr:`slope`.
+    def _fill_spline_nodes(self, heights: dict[int, FloatArray], offset: IntArray) -> None:
+        """The half-pixel nodes of patches ``heights`` (by index) into :attr:`height`, from
+        ``offset`` on, a pixel beyond every border included.
 
         The heights through :func:`merge.core.heightfield.upsample2` (patches of one shape a
-        call), with a pixel beyond the border; the slopes are central differences of the spline
-        a pixel either side, ``(S(x + 1) - S(x - 1)) / 2``: by linearity the spline through the
-        pixels' central differences, as the bilinear look-ups had them (at the border the
-        one-sided difference, which the continuation beyond it makes of a central one).
+        call), which continues them point-symmetrically beyond the border. The slopes the
+        look-ups take from them are central differences of the spline a pixel either side,
+        ``(S(x + 1) - S(x - 1)) / 2``: by linearity the spline through the pixels' central
+        differences, as bilinear look-ups between pixels had them (at the border the one-sided
+        difference, which the continuation makes of a central one).
         """
         shapes: dict[tuple[int, ...], list[int]] = {}
         for c, h in heights.items():
@@ -156,10 +156,7 @@ class SurfaceBank:
         for members in shapes.values():
             fine = upsample2(np.stack([heights[c] for c in members]), margin=1)
             for c, f in zip(members, fine, strict=True):
-                rows = slice(self.offset[c], self.offset[c] + self.node_nx[c] * self.node_ny[c])
-                self.height[rows] = f[2:-2, 2:-2].ravel()
-                self.slope[rows, 0] = ((f[2:-2, 4:] - f[2:-2, :-4]) / (2.0 * self.dx[c])).ravel()
-                self.slope[rows, 1] = ((f[4:, 2:-2] - f[:-4, 2:-2]) / (2.0 * self.dy[c])).ravel()
+                self.height[offset[c] : offset[c] + f.size] = f.ravel()
 
     def lookup(
         self, dst: Ints, p_local: FloatArray
@@ -179,18 +176,37 @@ class SurfaceBank:
         i0 = np.clip(np.floor(v).astype(np.intp), 0, ny - 2)
         j0 = np.clip(np.floor(u).astype(np.intp), 0, nx - 2)
         fv, fu = np.clip(v - i0, 0.0, 1.0), np.clip(u - j0, 0.0, 1.0)
-        k = self.offset[dst] + i0 * nx + j0
-        corners = (k, k + 1, k + nx, k + nx + 1)
-        # take() gathers several times faster than fancy indexing
-        h00, h01, h10, h11 = (self.height.take(c).astype(np.float64) for c in corners)
-        g00, g01, g10, g11 = (self.slope.take(c, axis=0).astype(np.float32) for c in corners)
+        row = self.grid_nx[dst]
+        k = self.origin[dst] + i0 * row + j0
+        h = self._bilinear(k, row, fu, fv)
+        # slopes: the bilinear look-ups a pixel either side (by linearity, the bilinear
+        # interpolation of the nodes' central differences)
+        gx = self._bilinear(k + self.nodes, row, fu, fv)
+        gx -= self._bilinear(k - self.nodes, row, fu, fv)
+        gx /= 2.0 * self.dx[dst]
+        gy = self._bilinear(k + self.nodes * row, row, fu, fv)
+        gy -= self._bilinear(k - self.nodes * row, row, fu, fv)
+        gy /= 2.0 * self.dy[dst]
+        ok = inside & np.isfinite(h) & np.isfinite(gx) & np.isfinite(gy)
+        return h, gx, gy, ok
+
+    def grid(self, c: int) -> NDArray[np.float32]:
+        """Patch ``c``'s stored nodes (rows, :attr:`grid_nx`), a pixel's worth beyond every border
+        included (a view, float32)."""
+        first = self.origin[c] - self.nodes * (self.grid_nx[c] + 1)
+        rows = self.node_ny[c] + 2 * self.nodes
+        out: NDArray[np.float32] = self.height[first : first + rows * self.grid_nx[c]]
+        return out.reshape(rows, -1)
+
+    def _bilinear(self, k: IntArray, row: IntArray, fu: FloatArray, fv: FloatArray) -> FloatArray:
+        """Bilinear between nodes ``k``, ``k + 1``, ``k + row``, ``k + row + 1`` (m,) at
+        fractions ``fu`` (along a row) and ``fv``."""
+        a = self.height  # take() gathers several times faster than fancy indexing
+        h00, h01 = a.take(k).astype(np.float64), a.take(k + 1)
+        h10, h11 = a.take(k + row), a.take(k + row + 1)
         top = h00 + fu * (h01 - h00)
-        h = top + fv * (h10 + fu * (h11 - h10) - top)
-        fu2, fv2 = fu[:, None], fv[:, None]
-        gtop = g00 + fu2 * (g01 - g00)
-        g = gtop + fv2 * (g10 + fu2 * (g11 - g10) - gtop)
-        ok = inside & np.isfinite(h) & np.isfinite(g).all(axis=1)
-        return h, g[:, 0], g[:, 1], ok
+        out: FloatArray = top + fv * (h10 + fu * (h11 - h10) - top)
+        return out
 
     def candidates(self, pairs: IntArray, R: FloatArray, s: FloatArray, margin: float) -> Runs:
         """Points of every source patch that may fall on every destination patch.
@@ -257,6 +273,6 @@ class SurfaceBank:
         out = np.empty((len(c), 3))
         out[:, 0] = rows.col * self.dx[c] - self.half[c, 0]
         out[:, 1] = rows.row * self.dy[c] - self.half[c, 1]
-        node = self.offset[c] + self.nodes * (rows.row * self.node_nx[c] + rows.col)
+        node = self.origin[c] + self.nodes * (rows.row * self.grid_nx[c] + rows.col)
         out[:, 2] = self.height.take(node)
         return out

@@ -44,9 +44,9 @@ def test_lookup_is_exact_on_a_plane_and_refuses_points_outside(smooth: float) ->
     )
     # the nodes are stored in float32: a millionth of a pixel on heights of a few pixels
     np.testing.assert_allclose(h[:200], expected, atol=3e-6)
-    # and the slopes in float16: to a two-thousandth of themselves
-    np.testing.assert_allclose(gx[:200], 0.3, rtol=5e-4)
-    np.testing.assert_allclose(gy[:200], -0.2, rtol=5e-4)
+    # and the slopes, differences of those nodes a pixel apart
+    np.testing.assert_allclose(gx[:200], 0.3, atol=3e-6)
+    np.testing.assert_allclose(gy[:200], -0.2, atol=3e-6)
 
 
 def test_raw_slopes_at_the_pixels_are_their_central_differences() -> None:
@@ -64,9 +64,8 @@ def test_raw_slopes_at_the_pixels_are_their_central_differences() -> None:
     ey, ex = np.gradient(heights * 1e9)
     assert ok.all()
     np.testing.assert_allclose(h, (heights * 1e9 - bank.centre[0, 2]).ravel(), atol=1e-9)
-    # (slopes stored in float16: to a two-thousandth of the largest)
-    np.testing.assert_allclose(gx, ex.ravel(), atol=5e-4 * np.abs(ex).max())
-    np.testing.assert_allclose(gy, ey.ravel(), atol=5e-4 * np.abs(ey).max())
+    np.testing.assert_allclose(gx, ex.ravel(), atol=1e-6)
+    np.testing.assert_allclose(gy, ey.ravel(), atol=1e-6)
 
 
 def test_every_level_places_a_patch_in_the_same_frame() -> None:
@@ -165,7 +164,7 @@ def test_runs_hold_exactly_the_points_inside_a_rotated_outline() -> None:
         zip(ii[inside].tolist(), jj[inside].tolist(), strict=True)
     )
     # a point's height is its pixel's (smoothed) height, relative to the patch's median
-    np.testing.assert_allclose(xyz[:, 2], bank.height[rows.row * bank.node_nx[0] + rows.col])
+    np.testing.assert_allclose(xyz[:, 2], bank.grid(0)[rows.row + 1, rows.col + 1])
 
 
 def test_a_point_in_a_hole_gives_a_row_that_is_not_valid() -> None:
@@ -187,12 +186,11 @@ def test_a_point_in_a_hole_gives_a_row_that_is_not_valid() -> None:
 def test_narrow_nodes_and_rows_merge_as_float64_do(
     small_mosaic: Synthetic, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    # the nodes' heights and the residuals are stored in float32, the slopes in float16, to
-    # save the mosaic's memory; the merge they give is the float64 one to a thousandth of a
+    # the nodes' heights and the residuals are stored in float32, the rows' slopes in float16,
+    # to save the mosaic's memory; the merge they give is the float64 one to a thousandth of a
     # nanometre
     narrow = run(small_mosaic.patch_set)
     monkeypatch.setattr(bank_module, "SURFACE_DTYPE", np.float64)
-    monkeypatch.setattr(bank_module, "SLOPE_DTYPE", np.float64)
     monkeypatch.setattr(normal_system, "RESIDUAL_DTYPE", np.float64)
     monkeypatch.setattr(normal_system, "GRAD_DTYPE", np.float64)
     wide = run(small_mosaic.patch_set)
