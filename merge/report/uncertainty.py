@@ -47,11 +47,11 @@ PASSES = 4
 SHARE = 0.25
 #: Systems up to this many unknowns are solved dense: the marginal covariances need as many
 #: right-hand sides as translations (half the unknowns), and LAPACK solves them as one
-#: matrix-matrix problem (400 patches: 0.47 s). Its memory and time grow as the square and
-#: cube of the size, and so did a sparse LU's one column at a time (1,600 patches: 22 s), so
-#: larger systems get only the diagonal blocks, slab by slab
-#: (:mod:`merge.core.selected_inverse`: 1,600 patches in 1.2 s).
-DENSE_MAX = 4000
+#: matrix-matrix problem. Its memory and time grow as the square and cube of the size (400
+#: patches: 0.47 s, and 150 MB, the whole merge's peak), and so did a sparse LU's one column at
+#: a time (1,600 patches: 22 s), so larger systems get only the diagonal blocks, slab by slab
+#: (:mod:`merge.core.selected_inverse`: 400 patches in 0.3 s, 1,600 in 1.2 s).
+DENSE_MAX = 1200
 
 
 def tied_groups(rows: IntArray, cols: IntArray, n: int) -> IntArray:
