@@ -78,6 +78,12 @@ def write_stl(path: Path, verts: FloatArray, faces: IntArray) -> None:
         f.write(rec.tobytes())
 
 
+def _any_finite(h: FloatArray) -> bool:
+    """Whether ``h`` (2-D) holds a finite height, read a few MB at a time."""
+    rows = max(1, (8 << 20) // (8 * max(h.shape[1], 1)))
+    return any(bool(np.isfinite(h[lo : lo + rows]).any()) for lo in range(0, len(h), rows))
+
+
 def export_heights(
     path: str | Path,
     heights: FloatArray,
@@ -91,8 +97,8 @@ def export_heights(
     suffix; ``document`` (e.g. a merge's ``mosaic.json``) goes along as metadata."""
     out = Path(path)
     suffix = out.suffix.lower()
-    h = np.asarray(heights, dtype=np.float64)
-    if h.ndim != 2 or not np.isfinite(h).any():
+    h = np.asarray(heights)  # a memory-mapped mosaic stays mapped
+    if h.ndim != 2 or not _any_finite(h):
         raise FormatError(f"{out}: nothing to export (need a 2-D map with finite heights)")
     doc = document or {}
     if suffix == ".gwy":
@@ -118,7 +124,6 @@ def export_heights(
             origin=origin,
             title=title,
             metadata=meta,
-            mask=(~np.isfinite(h)).astype(np.float64) if not np.isfinite(h).all() else None,
         )
     elif suffix in (".tif", ".tiff"):
         write_tiff(out, h, pixel_size=pixel_size)

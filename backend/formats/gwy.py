@@ -145,6 +145,79 @@ def read_gwy(path: str | Path, *, channel: str | None = None) -> AfmImage:
     )
 
 
+#: Rows of a height map converted and written at a time (a few MB: a mosaic of any size is
+#: written without a copy of it in memory).
+BLOCK_BYTES = 8 << 20
+#: Gwyddion's serialisation gives every object's size in 32 bits.
+MAX_OBJECT = 2**32 - 1
+
+
+def _name(key: str) -> bytes:
+    return key.encode("utf-8") + b"\0"
+
+
+def _scalar(key: str, code: str, value: Any) -> bytes:
+    return _name(key) + code.encode() + struct.pack(_SCALARS[code], value)
+
+
+def _text(key: str, value: str) -> bytes:
+    return _name(key) + b"s" + _name(value)
+
+
+def _object(name: str, body: bytes) -> bytes:
+    return _name(name) + struct.pack("<I", len(body)) + body
+
+
+def _si_unit(unit: str) -> bytes:
+    return _object("GwySIUnit", _text("unitstr", unit))
+
+
+class _Field:
+    """A GwyDataField whose values are written block by block: ``head`` its serialisation up
+    to its data, ``size`` that of the whole object (what Gwyddion reads as its length)."""
+
+    def __init__(
+        self, shape: tuple[int, int], pixel_size: tuple[float, float], origin: tuple[float, float]
+    ) -> None:
+        ny, nx = shape
+        body = b"".join(
+            [
+                _scalar("xreal", "d", nx * pixel_size[0]),
+                _scalar("yreal", "d", ny * pixel_size[1]),
+                # the corner, as Gwyddion has it
+                _scalar("xoff", "d", origin[0] - pixel_size[0] / 2),
+                _scalar("yoff", "d", origin[1] - pixel_size[1] / 2),
+                _name("si_unit_xy") + b"o" + _si_unit("m"),
+            ]
+        )
+        self.body, self.nx, self.ny = body, nx, ny
+
+    def head(self, unit_z: str) -> bytes:
+        body = b"".join(
+            [
+                self.body,
+                _name("si_unit_z") + b"o" + _si_unit(unit_z),
+                _scalar("xres", "i", self.nx),
+                _scalar("yres", "i", self.ny),
+                _name("data") + b"D" + struct.pack("<I", self.nx * self.ny),
+            ]
+        )
+        size = len(body) + 8 * self.nx * self.ny
+        if size > MAX_OBJECT:
+            raise FormatError(
+                f"{self.nx} x {self.ny} heights are more than a .gwy file can hold (4 GB a "
+                "field); export them as .tif (BigTIFF) or .npy"
+            )
+        return _name("GwyDataField") + struct.pack("<I", size) + body
+
+
+def _row_blocks(ny: int, nx: int) -> list[tuple[int, int]]:
+    """Row ranges ``[lo, hi)`` of about :data:`BLOCK_BYTES` of doubles, top row (``ny - 1``)
+    first: Gwyddion's order."""
+    rows = max(1, BLOCK_BYTES // (8 * max(nx, 1)))
+    return [(max(0, hi - rows), hi) for hi in range(ny, 0, -rows)]
+
+
 def write_gwy(
     path: str | Path,
     heights: FloatArray,
@@ -153,36 +226,50 @@ def write_gwy(
     origin: tuple[float, float] = (0.0, 0.0),
     title: str = "Height",
     metadata: dict[str, str] | None = None,
-    mask: FloatArray | None = None,
 ) -> None:
-    """Write one height field (metres, rows along +y) with an optional mask (1 = masked) and
-    string metadata, as Gwyddion opens it."""
-    from gwyfile.objects import GwyContainer, GwyDataField, GwySIUnit
+    """Write one height field (metres, rows along +y; any array, a memory-mapped one read a
+    block of rows at a time) and string metadata, as Gwyddion opens it. Missing heights (NaN)
+    are written as the lowest height and marked in the field's mask (1 = masked).
 
-    h = np.asarray(heights, dtype=np.float64)
+    The file is serialised here, not through gwyfile, which builds all of it in memory (five
+    copies of a mosaic's heights); a field of more than 4 GB cannot be held by the format and
+    is refused with a :class:`FormatError`.
+    """
+    h = heights if isinstance(heights, np.ndarray) else np.asarray(heights)
+    if h.ndim != 2:
+        raise FormatError(f"{path}: a .gwy field needs a 2-D map, got shape {h.shape}")
     ny, nx = h.shape
-
-    def field(values: FloatArray, unit_z: str) -> Any:
-        return GwyDataField(
-            np.ascontiguousarray(values[::-1]),
-            xreal=nx * pixel_size[0],
-            yreal=ny * pixel_size[1],
-            xoff=origin[0] - pixel_size[0] / 2,  # the corner, as Gwyddion has it
-            yoff=origin[1] - pixel_size[1] / 2,
-            si_unit_xy=GwySIUnit(unitstr="m"),
-            si_unit_z=GwySIUnit(unitstr=unit_z),
-        )
-
-    container = GwyContainer()
-    container["/0/data"] = field(
-        np.nan_to_num(h, nan=float(np.nanmin(h)) if np.isfinite(h).any() else 0.0), "m"
-    )
-    container["/0/data/title"] = title
-    if mask is not None:
-        container["/0/mask"] = field(np.asarray(mask, dtype=np.float64), "")
+    blocks = _row_blocks(ny, nx)
+    low, holes = np.inf, False
+    for lo, hi in blocks:
+        block = np.asarray(h[lo:hi], dtype=np.float64)
+        finite = np.isfinite(block)
+        holes |= not finite.all()
+        if finite.any():
+            low = min(low, float(block[finite].min()))
+    fill = low if np.isfinite(low) else 0.0
+    field = _Field((ny, nx), pixel_size, origin)
+    parts = [(_name("/0/data") + b"o", field.head("m"), "data")]
+    parts.append((_text("/0/data/title", title), b"", ""))
+    if holes:
+        parts.append((_name("/0/mask") + b"o", field.head(""), "mask"))
     if metadata:
-        meta = GwyContainer()
-        for key, value in metadata.items():
-            meta[key] = str(value)
-        container["/0/meta"] = meta
-    container.tofile(str(path))
+        meta = b"".join(_text(k, str(v)) for k, v in metadata.items())
+        parts.append((_name("/0/meta") + b"o" + _object("GwyContainer", meta), b"", ""))
+    size = sum(len(a) + len(b) + (8 * nx * ny if kind else 0) for a, b, kind in parts)
+    if size > MAX_OBJECT:
+        raise FormatError(
+            f"{nx} x {ny} heights are more than a .gwy file can hold (4 GB); export them as "
+            ".tif (BigTIFF) or .npy"
+        )
+    with Path(path).open("wb") as out:
+        out.write(b"GWYP" + _name("GwyContainer") + struct.pack("<I", size))
+        for key, head, kind in parts:
+            out.write(key + head)
+            for lo, hi in blocks if kind else ():
+                block = np.asarray(h[lo:hi], dtype=np.float64)[::-1]
+                if kind == "data":
+                    values = np.where(np.isfinite(block), block, fill)
+                else:
+                    values = (~np.isfinite(block)).astype(np.float64)
+                out.write(np.ascontiguousarray(values, dtype="<f8").tobytes())

@@ -8,6 +8,7 @@ project's rows-along-+y on the way in and out.
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -21,17 +22,34 @@ from backend.formats.park import is_park, read_park
 BIGTIFF_FROM = (1 << 32) - (1 << 26)
 
 
+#: Bytes of float32 heights per strip: a mosaic is converted and written a strip at a time.
+STRIP_BYTES = 4 << 20
+
+
 def write_tiff(path: str | Path, heights: FloatArray, *, pixel_size: tuple[float, float]) -> None:
     """Float32 heights in metres; X/YResolution in pixels per centimetre (so the size is
     there for any reader), and the exact pitch in the description; BigTIFF from
-    :data:`BIGTIFF_FROM` bytes of heights."""
+    :data:`BIGTIFF_FROM` bytes of heights. Written in strips of :data:`STRIP_BYTES`, top row
+    first, each converted as it goes: a memory-mapped mosaic is never copied whole."""
     import tifffile
 
-    h = np.asarray(heights, dtype=np.float32)[::-1]
+    h = heights if isinstance(heights, np.ndarray) else np.asarray(heights)
+    if h.ndim != 2:
+        raise FormatError(f"{path}: a TIFF export needs a 2-D map, got shape {h.shape}")
+    ny, nx = h.shape
+    rows = max(1, STRIP_BYTES // (4 * max(nx, 1)))
+
+    def strips() -> Iterator[bytes]:
+        for hi in range(ny, 0, -rows):
+            yield np.asarray(h[max(0, hi - rows) : hi][::-1], dtype="<f4").tobytes()
+
     tifffile.imwrite(
         str(path),
-        h,
-        bigtiff=h.nbytes >= BIGTIFF_FROM,
+        strips(),
+        shape=(ny, nx),
+        dtype="<f4",
+        rowsperstrip=rows,
+        bigtiff=4 * ny * nx >= BIGTIFF_FROM,
         resolution=(1e-2 / pixel_size[0], 1e-2 / pixel_size[1]),
         resolutionunit="CENTIMETER",
         description=f"mosaic-afm heights m pixel_size {pixel_size[0]!r} {pixel_size[1]!r}",
