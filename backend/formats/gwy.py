@@ -1,5 +1,5 @@
 """Gwyddion ``.gwy`` files: read any data field (own bounded reader of the serialisation),
-write a mosaic (gwyfile, MIT).
+write a mosaic (own writer, a block of rows at a time).
 
 Gwyddion's data fields hold the top row first; the project's arrays hold the bottom row
 first (rows along +y), so both directions flip vertically. Gwyddion's offset is the field's
