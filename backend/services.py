@@ -16,14 +16,14 @@ from backend.acquisition.planner import InstrumentLimits
 from backend.acquisition.runner import Runner
 from backend.auth import load_or_create_token
 from backend.db.models import MergeJob, Run
-from backend.db.patch_store import read_merge, read_patch
+from backend.db.patch_store import read_merge_detail, read_patch
 from backend.db.session import make_engine, migrate, session_factory
 from backend.events import EventBus
 from backend.live_merge import LiveMergeService
 from backend.merge_jobs import MergeService
 from backend.settings import Settings
 from backend.status_cache import StatusCache
-from backend.viewer import HeightMap, Viewer
+from backend.viewer import MERGED_BUDGET, HeightMap, Viewer
 from hardware.microscope import Microscope, open_microscope
 
 log = logging.getLogger("mosaic_afm.server")
@@ -202,10 +202,13 @@ class ViewerFeed:
             if job is None or run is None or not job.result_group:
                 return
             path, group = run.file, job.result_group
-        heights, document = read_merge(path, group)
-        origin = (float(document["origin"][0]), float(document["origin"][1]))
+        heights, k, document = read_merge_detail(path, group, MERGED_BUDGET)
+        # a block's mean stands at the block's centre, one block a pixel
         pixel = (float(document["pixel_size"][0]), float(document["pixel_size"][1]))
-        self.viewer.show_mosaic(job_id, HeightMap(heights, origin, pixel))
+        origin = tuple(float(document["origin"][i]) + 0.5 * (k - 1) * pixel[i] for i in (0, 1))
+        self.viewer.show_mosaic(
+            job_id, HeightMap(heights, (origin[0], origin[1]), (k * pixel[0], k * pixel[1]))
+        )
 
 
 def _auto_merge(merges: MergeService, run_id: int) -> None:

@@ -3,7 +3,8 @@
 Runs in the server process on its own port. Coordinates are micrometres (a local origin per
 node, so float32 keeps sub-nm detail); heights are shown with a Z exaggeration the operator
 sets (node scale, so no array is sent again). Every node is a mesh with per-vertex colours in
-the AFM colour map; large maps are decimated so a scene stays under ~1 M vertices.
+the AFM colour map; a large map is shown as a level of detail (the means of blocks of its
+heights) so a scene stays under ~1 M vertices.
 
 Work arrives from the event bus (any thread) and is done on the viewer's own thread, so a
 scan or a merge never waits for the browser.
@@ -23,6 +24,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from backend.formats.exports import grid_triangles
+from merge.io.detail import block_means, detail_step
 from merge.io.preview import afm_colors
 
 log = logging.getLogger("mosaic_afm.viewer")
@@ -47,11 +49,12 @@ class HeightMap:
 
 
 def decimate(heights: FloatArray, budget: int) -> tuple[FloatArray, int]:
-    """Every ``k``-th row and column so that at most ``budget`` points remain; returns the
-    decimated map and ``k``."""
-    ny, nx = heights.shape
-    k = max(1, int(np.ceil(np.sqrt(ny * nx / max(budget, 4)))))
-    return heights[::k, ::k], k
+    """The means of ``k`` x ``k`` blocks (:func:`merge.io.detail.block_means`), ``k`` the least
+    that leaves at most ``budget`` points; returns the level of detail and ``k``."""
+    k = detail_step(heights.shape, budget)
+    if k == 1:
+        return np.asarray(heights, dtype=np.float64), 1
+    return block_means(heights, k), k
 
 
 def mesh_of(
@@ -59,9 +62,10 @@ def mesh_of(
 ) -> tuple[NDArray[np.float32], NDArray[np.uint32], NDArray[np.uint8], tuple[float, float]]:
     """Vertices (µm, local to the map's origin; heights relative to ``zero``), triangles
     over finite cells, vertex colours, and the origin (µm) to place the node at."""
-    heights, k = decimate(np.asarray(hmap.heights, dtype=np.float64), budget)
+    heights, k = decimate(hmap.heights, budget)
     ny, nx = heights.shape
     dx, dy = hmap.pixel_size[0] * k * UM, hmap.pixel_size[1] * k * UM
+    centre = 0.5 * (k - 1)  # a block's mean stands at its centre
     jj, ii = np.meshgrid(np.arange(nx), np.arange(ny))
     finite = np.isfinite(heights)
     fill = np.where(finite, heights, np.nanmin(heights) if finite.any() else 0.0)
@@ -69,7 +73,10 @@ def mesh_of(
     faces = grid_triangles(finite)
     lo, hi = np.nanpercentile(heights, [1, 99]) if finite.any() else (0.0, 1.0)
     colours = afm_colors((heights - lo) / max(hi - lo, 1e-12)).reshape(-1, 3)
-    origin = (hmap.origin[0] * UM, hmap.origin[1] * UM)
+    origin = (
+        (hmap.origin[0] + centre * hmap.pixel_size[0]) * UM,
+        (hmap.origin[1] + centre * hmap.pixel_size[1]) * UM,
+    )
     return verts.astype(np.float32), faces.astype(np.uint32), colours, origin
 
 

@@ -31,6 +31,7 @@ from numpy.typing import NDArray
 from sqlalchemy.orm import Session
 
 from backend.db.models import Event, PatchRecord, Run
+from merge.io.detail import block_means, detail_step
 
 FloatArray = NDArray[np.float64]
 
@@ -227,6 +228,20 @@ def write_mosaic(path: Path, name: str, heights: FloatArray, document: dict[str,
         f.flush()
     _fsync(path)
     return name
+
+
+def read_merge_detail(
+    path: Path, group: str, budget: int
+) -> tuple[FloatArray, int, dict[str, Any]]:
+    """A stored merge result's mosaic as a level of detail of at most ``budget`` heights (the
+    means of ``k`` x ``k`` blocks, read a band at a time: a large mosaic is never read whole),
+    ``k`` and its document; KeyError if absent."""
+    with locked(path), h5py.File(path, "r") as f:
+        if group not in f or not f[group].attrs.get("complete", False):
+            raise KeyError(f"merge result {group} is not stored in {path.name}")
+        g = f[group]
+        k = detail_step(g["mosaic"].shape, budget)
+        return block_means(g["mosaic"], k), k, json.loads(g.attrs["document"])
 
 
 def read_merge(path: Path, group: str) -> tuple[FloatArray, dict[str, Any]]:

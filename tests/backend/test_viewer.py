@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from backend.server_process import free_port
 from backend.viewer import HeightMap, Viewer, decimate, mesh_of
@@ -13,6 +14,19 @@ def test_decimation_keeps_the_vertex_budget() -> None:
     out, k = decimate(heights, 1_000_000)
     assert out.size <= 1_000_000 and k == 2
     assert decimate(np.zeros((10, 10)), 1_000_000)[1] == 1
+
+
+def test_a_large_map_is_shown_as_block_means_not_aliased() -> None:
+    # texture at the pixel scale (a period of two pixels): every k-th pixel (k = 3) would show
+    # it at full height, aliased to a period of six; the means of blocks of three leave a third
+    # of it, each at its block's centre
+    jj = np.mgrid[0:3000, 0:2000][1]
+    heights = np.where(jj % 2 == 0, 1e-9, -1e-9)
+    hmap = HeightMap(heights, (0.0, 0.0), (1e-9, 1e-9))
+    verts, _, _, origin = mesh_of(hmap, budget=10**6, zero=0.0)
+    assert len(verts) <= 10**6
+    assert np.abs(verts[:, 2]).max() == pytest.approx(1e-3 / 3)  # µm
+    assert origin == pytest.approx((1e-3, 1e-3))  # half a 3-pixel block, in µm
 
 
 def test_meshes_are_local_float32_with_vertex_colours_and_skip_nan() -> None:

@@ -10,7 +10,15 @@ import pytest
 from sqlalchemy.orm import Session
 
 from backend.db.models import PatchRecord, Run
-from backend.db.patch_store import dataset_name, mark_stored, read_patch, reconcile, write_patch
+from backend.db.patch_store import (
+    dataset_name,
+    mark_stored,
+    read_merge_detail,
+    read_patch,
+    reconcile,
+    write_merge,
+    write_patch,
+)
 from backend.db.session import make_engine, migrate, session_factory
 
 
@@ -130,3 +138,13 @@ def test_a_large_mosaic_is_stored_in_tiles(tmp_path: Path, monkeypatch: pytest.M
     back, said = patch_store.read_merge(path, large)
     np.testing.assert_array_equal(back, heights)
     assert said == doc
+
+
+def test_a_stored_mosaic_is_read_as_a_level_of_detail(tmp_path: Path) -> None:
+    heights = np.random.default_rng(3).normal(0.0, 1e-9, (700, 600))
+    path = tmp_path / "run.h5"
+    group = write_merge(path, 1, heights, {"shape": [700, 600]})
+    detail, k, said = read_merge_detail(path, group, 10_000)
+    assert k == 7 and detail.shape == (100, 86) and detail.size <= 10_000
+    assert detail[0, 0] == pytest.approx(heights[:7, :7].mean(), rel=1e-12)
+    assert said == {"shape": [700, 600]}
