@@ -284,7 +284,7 @@ def _run_level(
     # noise the level is done
     slope = _slope_rms(bank) if lv.raw else np.inf
     effect = np.inf
-    for _ in range(level.max_iter):
+    for step in range(level.max_iter):
         if cancel is not None and cancel():
             raise MergeCancelled("merge cancelled")
         checkpoint()
@@ -304,7 +304,10 @@ def _run_level(
         # then in directions the data do not constrain, e.g. XY over a flat overlap)
         stalls = stalls + 1 if abs(previous - rms) <= STALL * rms else 0
         previous = rms
-        effect, last_effect = _height_effect(delta, slope), effect
+        # the level's first step moves from the last level's optimum to this one's (smoothing
+        # and stride change it): no ratio of convergence to extrapolate from
+        last_effect = effect if step > 1 else np.inf
+        effect = _height_effect(delta, slope)
         settled = _remaining(effect, last_effect) < HEIGHT_TOL * fit.noise
         if motion < level.tol or stalls >= STALLS or settled:
             return True
@@ -313,9 +316,12 @@ def _run_level(
 
 def _step(fit: Fit, lv: LevelSetup, cand: Runs) -> tuple[float, FloatArray]:
     """One Gauss-Newton step of every patch not held: the system at the current placement, its
-    priors, the solve, the move and the gauge; the residual RMS (pixel units) and the step
-    ``delta`` (n, 6). The system is dropped with the step (a mosaic's holds a few bytes per
-    pixel, which the next one's build would otherwise find still held)."""
+    priors, the solve, the move and the gauge; the residual RMS (pixel units) and how far every
+    patch moved, gauge included (n, 6: translation, spin and plane times the radius, as the
+    solve's unknowns). The solve's own step also holds a common motion the gauge takes back
+    (the shift prior pulls towards the start, the gauge to the nominal places): counted, it
+    looked like motion that never converges. The system is dropped with the step (a mosaic's
+    holds a few bytes per pixel, which the next one's build would otherwise find still held)."""
     state, bank, base = fit.state, lv.bank, fit.base
     # scan lines as correlated noise (merge.refine.lines) only on the raw heights: smoothing
     # spreads every line's offset over its neighbours, and on the coarse levels the start's
@@ -330,10 +336,15 @@ def _step(fit: Fit, lv: LevelSetup, cand: Runs) -> tuple[float, FloatArray]:
         spin_sigma=SPIN_PRIOR * bank.radius,
     )
     delta = solve_system(stats, priors, held=lv.held)
+    s0, spin0, slope0 = state.s.copy(), state.spin(), state.slope.copy()
     state.update(delta, bank.radius)
     if lv.held is None:  # held patches hold the gauge
         state.fix_gauge(bank.centre, bank.point_count)
-    return stats.rms, delta
+    radius = bank.radius[:, None]
+    moved = np.column_stack(
+        [state.s - s0, (state.spin() - spin0)[:, None] * radius, (state.slope - slope0) * radius]
+    )
+    return stats.rms, moved
 
 
 #: Every how many rows of nodes :func:`_slope_rms` takes (an RMS over millions of nodes needs no

@@ -1,10 +1,11 @@
 """One Gauss-Newton step of the default method: the normal system solved with its priors.
 
-Levenberg damping relative to each patch's own curvature keeps directions its data do not see
-(XY on a flat overlap) where they are; Gaussian priors on the drift plane, the shift from the
-start and the spin enter with the data's weight per unit residual, so the step is that of a
-proper posterior. One sparse factorisation of the whole mosaic's system: every patch moves
-against all others at once.
+Levenberg damping keeps directions a patch's own data barely see (XY on a flat overlap) where
+they are; directions they see well it leaves free, or it would slow every motion of many patches
+together, whose stiffness falls with the square of the mosaic's side. Gaussian priors on the
+drift plane, the shift from the start and the spin enter with the data's weight per unit
+residual, so the step is that of a proper posterior. One sparse factorisation of the whole
+mosaic's system: every patch moves against all others at once.
 """
 
 from __future__ import annotations
@@ -14,14 +15,23 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 from scipy.sparse import coo_matrix
-from scipy.sparse.linalg import spsolve
 
+from merge.core.sparse import solve_symmetric
 from merge.refine.normal_system import NormalSystem
 
 FloatArray = NDArray[np.float64]
 
-#: Levenberg damping, relative to the largest curvature of each patch's own unknowns.
+#: Levenberg damping, relative to the largest curvature of each patch's own unknowns, of the
+#: directions whose own curvature is below :data:`WEAK` of that: where it changes a patch's own
+#: step by a percent or more. Along the others it acted only on motions of many patches
+#: together: a smooth shift of the whole mosaic, held by overlaps whose stiffness over a side of
+#: N patches falls as 1 / N², was damped as much as the data held it from 100 x 100 patches on
+#: (10,000 patches: the first level's steps fell by 0.6 a step, 17 iterations in all).
 DAMPING = 1e-4
+WEAK = 1e-2
+#: Damping of the well-seen directions: only enough to keep the common motions no data see (the
+#: gauge, removed after every step) from making the system singular.
+FLOOR = 1e-9
 
 
 @dataclass(frozen=True)
@@ -47,11 +57,13 @@ def solve_system(
     """
     n = len(system.g)
     rows, cols, vals = system.rows, system.cols, system.vals
-    # Levenberg damping relative to each patch's own curvature: directions a patch's data do not
-    # constrain (XY on a flat overlap) stay put instead of following noise
-    on_diag = rows == cols
-    dvals = np.bincount(rows[on_diag], weights=vals[on_diag], minlength=6 * n).reshape(n, 6)
-    lam = np.broadcast_to(DAMPING * dvals.max(axis=1, keepdims=True) + 1e-12, (n, 6)).copy()
+    # Levenberg damping of the directions a patch's own data barely constrain (XY on a flat
+    # overlap): they stay put instead of following noise
+    mu, V = np.linalg.eigh(system.diag)
+    top = np.clip(mu[:, -1:], 0.0, None)
+    damp = np.where(mu < WEAK * top, DAMPING, FLOOR) * top + 1e-12
+    D = np.einsum("nij,nj,nkj->nik", V, damp, V)
+    lam = np.zeros((n, 6))
     g = system.g.copy()
     if system.rscale > 0:
         r2 = system.rscale**2
@@ -64,15 +76,19 @@ def solve_system(
             lam[:, cols_] += k
             g[:, cols_] -= k * value
     if held is not None:
-        lam[held] += 1e9 * (float(dvals.max(initial=0.0)) + 1.0)
-    idx = np.arange(6 * n)
+        lam[held] += 1e9 * (float(top.max(initial=0.0)) + 1.0)
+    D[:, np.arange(6), np.arange(6)] += lam
+    ii, jj = np.meshgrid(np.arange(6), np.arange(6), indexing="ij")
+    base = 6 * np.arange(n)[:, None, None]
     M = coo_matrix(
         (
-            np.concatenate([vals, lam.ravel()]),
-            (np.concatenate([rows, idx]), np.concatenate([cols, idx])),
+            np.concatenate([vals, D.ravel()]),
+            (
+                np.concatenate([rows, (base + ii).ravel()]),
+                np.concatenate([cols, (base + jj).ravel()]),
+            ),
         ),
         shape=(6 * n, 6 * n),
     ).tocsc()
-    x = spsolve(M, g.ravel())
-    out: FloatArray = np.asarray(x, dtype=np.float64).reshape(n, 6)
+    out: FloatArray = solve_symmetric(M, g.ravel()).reshape(n, 6)
     return out
