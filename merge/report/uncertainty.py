@@ -23,10 +23,10 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.linalg import qr
 from scipy.sparse import bmat, coo_matrix, csc_matrix
-from scipy.sparse.linalg import splu
 
 from merge.core.overlap import overlap_groups
 from merge.core.selected_inverse import diagonal_blocks, slabs
+from merge.core.sparse import factor_symmetric
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
@@ -211,7 +211,7 @@ def _translation_blocks(
     gauge = np.where((B.diagonal() >= stiff)[:, None], 0.0, gauge)
     held = B + _diagonal(GAUGE_HOLD / PIN * stiff * _gauge_holds(gauge))
     C = diagonal_blocks(held, 6, parts)
-    CG = np.asarray(splu(held).solve(np.ascontiguousarray(gauge)))
+    CG = np.asarray(factor_symmetric(held).solve(np.ascontiguousarray(gauge)))
     Kg = np.linalg.pinv(gauge.T @ gauge, hermitian=True)
     mid = Kg @ (gauge.T @ CG) @ Kg
     Gt = gauge.reshape(n, 6, -1)[:, :3, :]

@@ -14,7 +14,8 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
-from scipy.sparse.linalg import spsolve
+
+from merge.core.sparse import solve_symmetric
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
@@ -129,6 +130,5 @@ def _solve(
     wm = np.einsum("kij,kj->ki", W, m)
     np.add.at(rhs, (a[:, None] * d + np.arange(d)).ravel(), wm.ravel())
     np.add.at(rhs, (b[:, None] * d + np.arange(d)).ravel(), -wm.ravel())
-    x = spsolve(system, rhs)
-    out: FloatArray = np.asarray(x, dtype=np.float64).reshape(n, d)
+    out: FloatArray = solve_symmetric(system, rhs).reshape(n, d)
     return out
