@@ -55,6 +55,7 @@ from merge.core.patchset import Patch
 from merge.core.progress import checkpoint
 from merge.core.transforms import PatchTransform
 from merge.refine.bank import SurfaceBank
+from merge.refine.convergence import height_effect, remaining, slope_rms
 from merge.refine.normal_system import build_normal_system
 from merge.refine.runs import Runs
 from merge.refine.solve import Priors, solve_system
@@ -83,9 +84,10 @@ STALL = 1e-4
 #: 9 patches of 512 x 512 costs a second). Bench draws, against none: iterations -19 % (the
 #: variations -24 %), every map/floor within 0.01 or better (grid draws 5, 7: 1.17, 1.15 ->
 #: 1.08, 1.10); at 0.2 the grating's XY starts to suffer (draw 3: 2.7 -> 4.5 nm). What the
-#: steps still to come would move (:func:`_remaining`) counts, not the last step alone: where
-#: every step is a fifth of the one before, the step after one of 0.15 is not needed (50 TGX1
-#: patches: 9 -> 8 iterations; 100 variations -4 %, map/floor within 0.02 either way).
+#: steps still to come would move (:func:`merge.refine.convergence.remaining`) counts, not the
+#: last step alone: where every step is a fifth of the one before, the step after one of 0.15
+#: is not needed (50 TGX1 patches: 9 -> 8 iterations; 100 variations -4 %, map/floor within
+#: 0.02 either way).
 HEIGHT_TOL = 0.1
 #: Iterations in a row the cost must stall for: along a grating's stripes the patches creep
 #: (their few defects hold them loosely), and the cost may pause once on the way (grid draws
@@ -282,7 +284,7 @@ def _run_level(
     stalls = 0
     # on the raw heights, once the steps still to come move no height by HEIGHT_TOL of the
     # noise the level is done
-    slope = _slope_rms(bank) if lv.raw else np.inf
+    slope = slope_rms(bank) if lv.raw else np.inf
     effect = np.inf
     for step in range(level.max_iter):
         if cancel is not None and cancel():
@@ -307,8 +309,8 @@ def _run_level(
         # the level's first step moves from the last level's optimum to this one's (smoothing
         # and stride change it): no ratio of convergence to extrapolate from
         last_effect = effect if step > 1 else np.inf
-        effect = _height_effect(delta, slope)
-        settled = _remaining(effect, last_effect) < HEIGHT_TOL * fit.noise
+        effect = height_effect(delta, slope)
+        settled = remaining(effect, last_effect) < HEIGHT_TOL * fit.noise
         if motion < level.tol or stalls >= STALLS or settled:
             return True
     return False
@@ -345,54 +347,6 @@ def _step(fit: Fit, lv: LevelSetup, cand: Runs) -> tuple[float, FloatArray]:
         [state.s - s0, (state.spin() - spin0)[:, None] * radius, (state.slope - slope0) * radius]
     )
     return stats.rms, moved
-
-
-#: Every how many rows of nodes :func:`_slope_rms` takes (an RMS over millions of nodes needs no
-#: more: a third of a second of 400 patches' refinement went into all of them).
-SLOPE_SAMPLE = 7
-
-
-def _slope_rms(bank: SurfaceBank) -> float:
-    """RMS of the surfaces' slopes (central differences a pixel either side, as the look-ups
-    take them) over every :data:`SLOPE_SAMPLE`-th row of nodes (dimensionless: the slope's
-    length, both axes summed, per node)."""
-    total, count, m = 0.0, 0, bank.nodes
-    for c in range(len(bank.centre)):
-        grid = bank.grid(c).astype(np.float64)
-        rows = np.arange(m, len(grid) - m, SLOPE_SAMPLE)
-        gx = (grid[rows, 2 * m :] - grid[rows, : -2 * m]) / (2.0 * bank.dx[c])
-        gy = (grid[rows + m, m:-m] - grid[rows - m, m:-m]) / (2.0 * bank.dy[c])
-        g2 = gx**2 + gy**2
-        valid = np.isfinite(g2)
-        total += float(g2[valid].sum())
-        count += int(valid.sum())
-    return float(np.sqrt(total / count)) if count else 0.0
-
-
-def _height_effect(delta: FloatArray, slope: float) -> float:
-    """The largest height change (pixel units) a step ``delta`` (n, 6) makes anywhere, on
-    surfaces of RMS ``slope``: its Z and drift plane directly, its XY and spin through the
-    slopes."""
-    if not np.isfinite(slope) or len(delta) == 0:
-        return np.inf
-    xy = np.hypot(delta[:, 0], delta[:, 1]) + np.abs(delta[:, 3])
-    z = np.abs(delta[:, 2]) + np.hypot(delta[:, 4], delta[:, 5])
-    return float((z + slope * xy).max())
-
-
-def _remaining(effect: float, last: float) -> float:
-    """How far the steps still to come will move (same units as ``effect``, the last step's
-    effect; ``last`` the one before).
-
-    Gauss-Newton near its solution converges linearly: every step the previous one times about
-    the same ratio, so what remains is the last step times ``ratio / (1 - ratio)``, counted as
-    no more than the last step itself: with a ratio over a half (or none yet), the tail is
-    slow to trust and the last step alone decides, as it did before this rule.
-    """
-    if not (np.isfinite(last) and last > 0):
-        return effect
-    ratio = effect / last
-    return effect * min(1.0, ratio / (1.0 - ratio)) if ratio < 1.0 else effect
 
 
 def _plane_sigma(plane: FloatArray, drift_prior: float) -> FloatArray:

@@ -15,10 +15,13 @@ Each patch has six unknowns, in pixel units: translation (3), spin about z times
 radius, and the drift plane times the radius. The system is sparse: one 6 x 6 block per patch and
 per overlapping pair.
 
-Rows come in runs, one per directed pair (source, destination). They are processed in blocks of
-whole runs, so the temporaries stay a few megabytes however large the mosaic (large temporaries
-cost page faults on every allocation, which dominated the time of 400-patch mosaics), and the
-blocks are shared among the cores (:mod:`merge.core.parallel`).
+Rows come in runs, one per directed pair (source, destination), stored as rectangles of the
+source's points (:mod:`merge.refine.runs`). They are made and processed in blocks of whole
+runs, so the temporaries stay a few megabytes however large the mosaic (large temporaries cost
+page faults on every allocation, which dominated the time of 400-patch mosaics), and the blocks
+are shared among the cores (:mod:`merge.core.parallel`). Three passes: every row's residual and
+slopes (kept, 8 bytes a row) with the robust scale, which needs all of them; the scan lines'
+sums, for the size of their offsets; the information of every run.
 """
 
 from __future__ import annotations

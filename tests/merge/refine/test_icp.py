@@ -13,7 +13,8 @@ from merge import pipeline, run
 from merge.core.overlap import overlapping_pairs
 from merge.core.transforms import PatchTransform
 from merge.refine import icp
-from merge.refine.icp import FAST_DRIFT_SHARE, _height_effect, _plane_sigma, _remaining
+from merge.refine.convergence import height_effect, remaining
+from merge.refine.icp import FAST_DRIFT_SHARE, _plane_sigma
 from tests.conftest import SHARED_DATA, Synthetic
 
 GRID = SHARED_DATA / "grid.npy"
@@ -58,19 +59,19 @@ def test_a_step_moves_heights_directly_in_z_and_through_the_slopes_in_xy() -> No
     delta[0, :2] = [0.3, 0.4]  # 0.5 px of XY on slopes of RMS 0.2: 0.1 px of height
     delta[1, 2] = 0.05  # Z
     delta[1, 4:] = [0.03, 0.04]  # the drift plane, at the patch radius
-    assert _height_effect(delta, 0.2) == pytest.approx(0.1)
-    assert _height_effect(delta, 0.0) == pytest.approx(0.1)  # 0.05 + 0.05 of patch 1
-    assert _height_effect(delta, np.inf) == np.inf  # not the raw level: never by this rule
+    assert height_effect(delta, 0.2) == pytest.approx(0.1)
+    assert height_effect(delta, 0.0) == pytest.approx(0.1)  # 0.05 + 0.05 of patch 1
+    assert height_effect(delta, np.inf) == np.inf  # not the raw level: never by this rule
 
 
 def test_what_remains_of_a_geometric_convergence_is_its_tail() -> None:
     # steps shrinking by 5 each: 1, 0.2, 0.04, ... leave 0.05 after the second
-    assert _remaining(0.2, 1.0) == pytest.approx(0.05)
+    assert remaining(0.2, 1.0) == pytest.approx(0.05)
     # slow convergence (ratio over a half) or a first step: the last step alone
-    assert _remaining(0.8, 1.0) == 0.8
-    assert _remaining(0.2, np.inf) == 0.2
-    assert _remaining(1.5, 1.0) == 1.5  # growing: no tail to sum
-    assert _remaining(np.inf, np.inf) == np.inf  # coarse levels: never by this rule
+    assert remaining(0.8, 1.0) == 0.8
+    assert remaining(0.2, np.inf) == 0.2
+    assert remaining(1.5, 1.0) == 1.5  # growing: no tail to sum
+    assert remaining(np.inf, np.inf) == np.inf  # coarse levels: never by this rule
 
 
 def test_the_raw_level_stops_once_steps_move_no_height_by_a_tenth_of_the_noise(
