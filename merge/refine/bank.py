@@ -230,7 +230,8 @@ class SurfaceBank:
         loc += np.einsum("kji,kj->ki", R[src], s[dst] - s[src])[:, None, :]
         lo = loc[:, :, :2].min(axis=1) - margin
         hi = loc[:, :, :2].max(axis=1) + margin
-        # in the source's point grid: pixel (i, j) lies at ((j, i) - half / pitch) * pitch
+        # in the source's point grid (``pitch`` apart): point (t_y, t_x) lies at
+        # (t_x, t_y) * pitch - half, so the box holds t from lo / pitch + half / pitch on
         pitch = np.column_stack([self.dx[src], self.dy[src]]) * self.stride
         first = self.half[src] / pitch
         g_lo = np.maximum(np.ceil(lo / pitch + first), 0).astype(np.intp)
