@@ -20,6 +20,7 @@ from numpy.typing import NDArray
 
 from merge.core.heightfield import Border, slope_noise, smooth_nan, upsample2
 from merge.core.patchset import Patch
+from merge.core.progress import checkpoint
 from merge.refine.runs import RowBlock, Runs
 
 FloatArray = NDArray[np.float64]
@@ -134,6 +135,8 @@ class SurfaceBank:
             if len(levelled) >= UPSAMPLE_BATCH or (levelled and c == n - 1):
                 self._fill_spline_nodes(levelled, offset)
                 levelled = {}
+            if c % UPSAMPLE_BATCH == 0:
+                checkpoint()  # 10,000 patches' nodes take seconds: a cancel stops here
         step, m = stride * self.nodes, self.nodes
         for c in range(n):
             at = self.grid(c)[m:-m:step, m:-m:step]
