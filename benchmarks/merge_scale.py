@@ -225,7 +225,8 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
     print(
         f"{'patches':>8}{'px':>5}{'wall s':>9}{'iter':>6}{'peak GB':>9}{'B/px':>7}"
-        f"{'B/px all':>9}{'fixed MB':>9}{'XY nm':>8}{'Z nm':>7}{'map nm':>8}{'floor':>7}{'t/t400':>8}{'n/n400':>8}"
+        f"{'B/px all':>9}{'fixed MB':>9}{'XY nm':>8}{'Z nm':>7}{'map nm':>8}{'floor':>7}"
+        f"{'t/t400':>8}{'n/n400':>8}"
     )
     with tempfile.TemporaryDirectory() as tmp:
         for side, pixels in sizes:
