@@ -345,25 +345,17 @@ def _assemble(
     np.add.at(g, b_seg, np.einsum("kij,kj->ki", T, ga))
     np.add.at(diag, a_seg, Baa)
     np.add.at(diag, b_seg, Bbb)
-    # the triplets of the four blocks of every run, written where they go (a list of parts
-    # concatenated held them twice: a few bytes per pixel of a mosaic of small patches)
-    k = len(a_seg)
-    size = 36 * k
-    a_rows, a_cols = np.empty(4 * size, dtype=np.intp), np.empty(4 * size, dtype=np.intp)
-    vals = np.empty(4 * size)
-    ii, jj = np.meshgrid(np.arange(6), np.arange(6), indexing="ij")
-    for part, (ra, cb, blk) in enumerate(
-        (
-            (a_seg, a_seg, Baa),
-            (b_seg, b_seg, Bbb),
-            (a_seg, b_seg, Bab),
-            (b_seg, a_seg, np.swapaxes(Bab, 1, 2)),
-        )
-    ):
-        at = slice(part * size, (part + 1) * size)
-        a_rows[at].reshape(k, 6, 6)[:] = ra[:, None, None] * 6 + ii
-        a_cols[at].reshape(k, 6, 6)[:] = cb[:, None, None] * 6 + jj
-        vals[at].reshape(k, 6, 6)[:] = blk
+    # one block per patch (its diagonal) and one per pair of patches above the diagonal, with its
+    # transpose below: the four blocks of every run summed where they meet (both directions of
+    # a pair fall on the same two places), a third of the triplets of four per run
+    lo, hi = np.minimum(a_seg, b_seg), np.maximum(a_seg, b_seg)
+    pair, at = np.unique(lo * n + hi, return_inverse=True)
+    off = np.zeros((len(pair), 6, 6))
+    np.add.at(off, at, np.where((a_seg < b_seg)[:, None, None], Bab, np.swapaxes(Bab, 1, 2)))
+    first, second = pair // n, pair % n
+    a_rows, a_cols, vals = _block_triplets(
+        (np.arange(n), np.arange(n), diag), (first, second, off), (second, first, off)
+    )
     return (
         a_rows,
         a_cols,
@@ -371,3 +363,23 @@ def _assemble(
         g,
         diag,
     )
+
+
+def _block_triplets(
+    *parts: tuple[IntArray, IntArray, FloatArray],
+) -> tuple[IntArray, IntArray, FloatArray]:
+    """Triplets of 6 x 6 blocks: per part the block rows (k,), block columns (k,) and blocks
+    (k, 6, 6), the last part's blocks transposed (the mirror of the one before)."""
+    size = sum(36 * len(r) for r, _, _ in parts)
+    rows, cols = np.empty(size, dtype=np.intp), np.empty(size, dtype=np.intp)
+    vals = np.empty(size)
+    ii, jj = np.meshgrid(np.arange(6), np.arange(6), indexing="ij")
+    start = 0
+    for j, (r, c, blk) in enumerate(parts):
+        k = len(r)
+        at = slice(start, start + 36 * k)
+        rows[at].reshape(k, 6, 6)[:] = r[:, None, None] * 6 + ii
+        cols[at].reshape(k, 6, 6)[:] = c[:, None, None] * 6 + jj
+        vals[at].reshape(k, 6, 6)[:] = np.swapaxes(blk, 1, 2) if j == len(parts) - 1 else blk
+        start += 36 * k
+    return rows, cols, vals
