@@ -354,7 +354,9 @@ def _assemble(
     np.add.at(off, at, np.where((a_seg < b_seg)[:, None, None], Bab, np.swapaxes(Bab, 1, 2)))
     first, second = pair // n, pair % n
     a_rows, a_cols, vals = _block_triplets(
-        (np.arange(n), np.arange(n), diag), (first, second, off), (second, first, off)
+        (np.arange(n), np.arange(n), diag),
+        (first, second, off),
+        (second, first, np.swapaxes(off, 1, 2)),
     )
     return (
         a_rows,
@@ -369,17 +371,17 @@ def _block_triplets(
     *parts: tuple[IntArray, IntArray, FloatArray],
 ) -> tuple[IntArray, IntArray, FloatArray]:
     """Triplets of 6 x 6 blocks: per part the block rows (k,), block columns (k,) and blocks
-    (k, 6, 6), the last part's blocks transposed (the mirror of the one before)."""
+    (k, 6, 6)."""
     size = sum(36 * len(r) for r, _, _ in parts)
     rows, cols = np.empty(size, dtype=np.intp), np.empty(size, dtype=np.intp)
     vals = np.empty(size)
     ii, jj = np.meshgrid(np.arange(6), np.arange(6), indexing="ij")
     start = 0
-    for j, (r, c, blk) in enumerate(parts):
+    for r, c, blk in parts:
         k = len(r)
         at = slice(start, start + 36 * k)
         rows[at].reshape(k, 6, 6)[:] = r[:, None, None] * 6 + ii
         cols[at].reshape(k, 6, 6)[:] = c[:, None, None] * 6 + jj
-        vals[at].reshape(k, 6, 6)[:] = np.swapaxes(blk, 1, 2) if j == len(parts) - 1 else blk
+        vals[at].reshape(k, 6, 6)[:] = blk
         start += 36 * k
     return rows, cols, vals
