@@ -25,6 +25,7 @@ from backend.settings import Settings
 from backend.status_cache import StatusCache
 from backend.viewer import MERGED_BUDGET, HeightMap, Viewer
 from hardware.microscope import Microscope, open_microscope
+from merge.io.detail import detail_frame
 
 log = logging.getLogger("mosaic_afm.server")
 
@@ -203,12 +204,12 @@ class ViewerFeed:
                 return
             path, group = run.file, job.result_group
         heights, k, document = read_merge_detail(path, group, MERGED_BUDGET)
-        # a block's mean stands at the block's centre, one block a pixel
-        pixel = (float(document["pixel_size"][0]), float(document["pixel_size"][1]))
-        origin = tuple(float(document["origin"][i]) + 0.5 * (k - 1) * pixel[i] for i in (0, 1))
-        self.viewer.show_mosaic(
-            job_id, HeightMap(heights, (origin[0], origin[1]), (k * pixel[0], k * pixel[1]))
+        origin, pixel = detail_frame(
+            (float(document["origin"][0]), float(document["origin"][1])),
+            (float(document["pixel_size"][0]), float(document["pixel_size"][1])),
+            k,
         )
+        self.viewer.show_mosaic(job_id, HeightMap(heights, origin, pixel))
 
 
 def _auto_merge(merges: MergeService, run_id: int) -> None:

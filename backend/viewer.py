@@ -24,7 +24,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from backend.formats.exports import grid_triangles
-from merge.io.detail import block_means, detail_step
+from merge.io.detail import block_means, detail_frame, detail_step
 from merge.io.preview import afm_colors
 
 log = logging.getLogger("mosaic_afm.viewer")
@@ -64,8 +64,8 @@ def mesh_of(
     over finite cells, vertex colours, and the origin (µm) to place the node at."""
     heights, k = decimate(hmap.heights, budget)
     ny, nx = heights.shape
-    dx, dy = hmap.pixel_size[0] * k * UM, hmap.pixel_size[1] * k * UM
-    centre = 0.5 * (k - 1)  # a block's mean stands at its centre
+    (ox, oy), (px, py) = detail_frame(hmap.origin, hmap.pixel_size, k)
+    dx, dy = px * UM, py * UM
     jj, ii = np.meshgrid(np.arange(nx), np.arange(ny))
     finite = np.isfinite(heights)
     fill = np.where(finite, heights, np.nanmin(heights) if finite.any() else 0.0)
@@ -73,10 +73,7 @@ def mesh_of(
     faces = grid_triangles(finite)
     lo, hi = np.nanpercentile(heights, [1, 99]) if finite.any() else (0.0, 1.0)
     colours = afm_colors((heights - lo) / max(hi - lo, 1e-12)).reshape(-1, 3)
-    origin = (
-        (hmap.origin[0] + centre * hmap.pixel_size[0]) * UM,
-        (hmap.origin[1] + centre * hmap.pixel_size[1]) * UM,
-    )
+    origin = (ox * UM, oy * UM)
     return verts.astype(np.float32), faces.astype(np.uint32), colours, origin
 
 

@@ -12,7 +12,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from backend.formats.gwy import write_gwy
-from backend.formats.image import FloatArray, FormatError
+from backend.formats.image import FloatArray, FormatError, top_down_bands
 from backend.formats.tiff import write_tiff
 from merge.io.png import encode_png
 from merge.io.preview import render_panels
@@ -80,8 +80,8 @@ def write_stl(path: Path, verts: FloatArray, faces: IntArray) -> None:
 
 def _any_finite(h: FloatArray) -> bool:
     """Whether ``h`` (2-D) holds a finite height, read a few MB at a time."""
-    rows = max(1, (8 << 20) // (8 * max(h.shape[1], 1)))
-    return any(bool(np.isfinite(h[lo : lo + rows]).any()) for lo in range(0, len(h), rows))
+    bands = top_down_bands(h.shape[0], h.shape[1], itemsize=h.itemsize, budget=8 << 20)
+    return any(bool(np.isfinite(h[lo:hi]).any()) for lo, hi in bands)
 
 
 def export_heights(

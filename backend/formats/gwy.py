@@ -15,7 +15,13 @@ from typing import Any
 
 import numpy as np
 
-from backend.formats.image import AfmImage, FloatArray, FormatError, choose_channel
+from backend.formats.image import (
+    AfmImage,
+    FloatArray,
+    FormatError,
+    choose_channel,
+    top_down_bands,
+)
 
 _SCALARS = {"b": "<?", "c": "<B", "i": "<i", "q": "<q", "d": "<d"}
 _ARRAYS = {"C": "<u1", "I": "<i4", "Q": "<i8", "D": "<f8"}
@@ -202,20 +208,8 @@ class _Field:
                 _name("data") + b"D" + struct.pack("<I", self.nx * self.ny),
             ]
         )
-        size = len(body) + 8 * self.nx * self.ny
-        if size > MAX_OBJECT:
-            raise FormatError(
-                f"{self.nx} x {self.ny} heights are more than a .gwy file can hold (4 GB a "
-                "field); export them as .tif (BigTIFF) or .npy"
-            )
+        size = len(body) + 8 * self.nx * self.ny  # within the container's, which is checked
         return _name("GwyDataField") + struct.pack("<I", size) + body
-
-
-def _row_blocks(ny: int, nx: int) -> list[tuple[int, int]]:
-    """Row ranges ``[lo, hi)`` of about :data:`BLOCK_BYTES` of doubles, top row (``ny - 1``)
-    first: Gwyddion's order."""
-    rows = max(1, BLOCK_BYTES // (8 * max(nx, 1)))
-    return [(max(0, hi - rows), hi) for hi in range(ny, 0, -rows)]
 
 
 def write_gwy(
@@ -235,11 +229,11 @@ def write_gwy(
     copies of a mosaic's heights); a field of more than 4 GB cannot be held by the format and
     is refused with a :class:`FormatError`.
     """
-    h = heights if isinstance(heights, np.ndarray) else np.asarray(heights)
+    h = np.asarray(heights)  # a memory map stays mapped
     if h.ndim != 2:
         raise FormatError(f"{path}: a .gwy field needs a 2-D map, got shape {h.shape}")
     ny, nx = h.shape
-    blocks = _row_blocks(ny, nx)
+    blocks = top_down_bands(ny, nx, itemsize=8, budget=BLOCK_BYTES)
     low, holes = np.inf, False
     for lo, hi in blocks:
         block = np.asarray(h[lo:hi], dtype=np.float64)

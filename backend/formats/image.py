@@ -62,3 +62,12 @@ def choose_channel(path: str, channels: list[str], wanted: str | None) -> int:
     raise FormatError(
         f"{path}: no height channel among {', '.join(channels)}; choose one with --channel"
     )
+
+
+def top_down_bands(ny: int, nx: int, *, itemsize: int, budget: int) -> list[tuple[int, int]]:
+    """Row ranges ``[lo, hi)`` of a map of ``ny`` rows of ``nx`` values (``itemsize`` bytes
+    each), at most ``budget`` bytes a band (a row at least), the top row (``ny - 1``) first:
+    the order of TIFF and Gwyddion files, whose first row is the top of the image. A large
+    map is converted and written a band at a time."""
+    rows = max(1, budget // (itemsize * max(nx, 1)))
+    return [(max(0, hi - rows), hi) for hi in range(ny, 0, -rows)]

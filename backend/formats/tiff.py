@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from backend.formats.image import AfmImage, FloatArray, FormatError
+from backend.formats.image import AfmImage, FloatArray, FormatError, top_down_bands
 from backend.formats.park import is_park, read_park
 
 #: Bytes of heights from which a TIFF is written as BigTIFF: a classic TIFF's offsets are 32
@@ -33,15 +33,16 @@ def write_tiff(path: str | Path, heights: FloatArray, *, pixel_size: tuple[float
     first, each converted as it goes: a memory-mapped mosaic is never copied whole."""
     import tifffile
 
-    h = heights if isinstance(heights, np.ndarray) else np.asarray(heights)
+    h = np.asarray(heights)  # a memory map stays mapped
     if h.ndim != 2:
         raise FormatError(f"{path}: a TIFF export needs a 2-D map, got shape {h.shape}")
     ny, nx = h.shape
-    rows = max(1, STRIP_BYTES // (4 * max(nx, 1)))
+    bands = top_down_bands(ny, nx, itemsize=4, budget=STRIP_BYTES)
+    rows = bands[0][1] - bands[0][0] if bands else 1
 
     def strips() -> Iterator[bytes]:
-        for hi in range(ny, 0, -rows):
-            yield np.asarray(h[max(0, hi - rows) : hi][::-1], dtype="<f4").tobytes()
+        for lo, hi in bands:
+            yield np.asarray(h[lo:hi][::-1], dtype="<f4").tobytes()
 
     tifffile.imwrite(
         str(path),

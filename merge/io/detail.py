@@ -43,6 +43,18 @@ def detail_step(shape: tuple[int, ...], budget: int) -> int:
     return k
 
 
+def detail_frame(
+    origin: tuple[float, float], pixel_size: tuple[float, float], k: int
+) -> tuple[tuple[float, float], tuple[float, float]]:
+    """Where the values of :func:`block_means` stand: the first block's centre, and one block
+    a pixel (``origin`` the centre of pixel (0, 0), any unit)."""
+    centre = 0.5 * (k - 1)
+    return (
+        (origin[0] + centre * pixel_size[0], origin[1] + centre * pixel_size[1]),
+        (k * pixel_size[0], k * pixel_size[1]),
+    )
+
+
 def block_means(heights: Rows, k: int) -> FloatArray:
     """Mean of every ``k`` x ``k`` block of ``heights`` (ny, nx), NaN ignored (NaN where a block
     holds none); blocks at the far edges are what is left. Returns (ceil(ny / k), ceil(nx / k)).
