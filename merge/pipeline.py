@@ -28,6 +28,7 @@ from numpy.typing import NDArray
 
 from merge.config import MergeConfig
 from merge.core.overlap import moved_boxes, overlap_groups, overlapping_pairs
+from merge.core.parallel import one_blas_thread
 from merge.core.patchset import Patch, PatchSet
 from merge.core.progress import Report, stage, tracking
 from merge.core.transforms import PatchTransform
@@ -155,7 +156,7 @@ def run(
     says what was taken out (nothing, and no second merge, where no bend stands out of the
     noise). ``progress`` then counts the iterations of both merges in one sequence.
     """
-    with tracking(status, cancel):
+    with tracking(status, cancel), one_blas_thread():
         return _run(patch_set, config or MergeConfig(), progress=progress, cancel=cancel)
 
 

@@ -35,6 +35,7 @@ from numpy.typing import NDArray
 from merge.config import MergeConfig
 from merge.core.errors import MergeCancelled
 from merge.core.overlap import moved_boxes, overlapping_pairs
+from merge.core.parallel import one_blas_thread
 from merge.core.patchset import Patch, PatchSet
 from merge.core.transforms import PatchTransform
 from merge.live.canvas import LiveCanvas
@@ -142,6 +143,7 @@ class LiveMerge:
 
     # -- changes ----------------------------------------------------------------------------
 
+    @one_blas_thread()
     def add(self, patch: Patch) -> LiveUpdate:
         """Add ``patch`` and refine its neighbourhood; a patch of an id already held replaces
         it (a re-scan)."""
@@ -208,6 +210,7 @@ class LiveMerge:
         del self.transforms[k]
         del self.complete[k]
 
+    @one_blas_thread()
     def polish(self, *, cancel: Callable[[], bool] | None = None) -> bool:
         """The full simultaneous refinement of every patch from where it is, if due; whether
         it ran to the end (a ``cancel`` that turns true stops it, the mosaic as it was)."""
@@ -220,6 +223,7 @@ class LiveMerge:
         self._draw(np.arange(len(self.patches)))
         return True
 
+    @one_blas_thread()
     def result(self) -> MergeResult:
         """The final mosaic: a full refinement to convergence, the report and the render,
         as :func:`merge.run` returns them."""

@@ -7,8 +7,9 @@ import signal
 import threading
 
 import pytest
+from threadpoolctl import threadpool_info, threadpool_limits
 
-from merge.core.parallel import WORKERS, each
+from merge.core.parallel import WORKERS, each, one_blas_thread
 
 
 def test_each_item_is_worked_exactly_once() -> None:
@@ -44,3 +45,39 @@ def test_threads_are_kept_between_calls_and_renewed_in_a_forked_child() -> None:
         os._exit(0 if sorted(seen) == list(range(10)) else 1)
     _, status = os.waitpid(pid, 0)
     assert os.waitstatus_to_exitcode(status) == 0
+
+
+def _blas_threads() -> set[int]:
+    return {lib["num_threads"] for lib in threadpool_info() if lib["user_api"] == "blas"}
+
+
+def test_blas_is_held_to_one_thread_until_the_last_holder_ends() -> None:
+    import numpy  # noqa: F401  (its BLAS is loaded)
+
+    with threadpool_limits(limits=2, user_api="blas"):
+        before = _blas_threads()  # 2 (OpenBLAS takes no more threads than it was built for)
+        entered, release = threading.Event(), threading.Event()
+
+        def other_merge() -> None:
+            with one_blas_thread():
+                entered.set()
+                release.wait(10)
+
+        thread = threading.Thread(target=other_merge)
+        thread.start()
+        assert entered.wait(10)
+        assert _blas_threads() == {1}
+        with one_blas_thread():
+            release.set()
+            thread.join(10)
+            assert _blas_threads() == {1}  # the other merge ended, this one still runs
+        assert _blas_threads() == before
+
+
+@one_blas_thread()
+def _decorated() -> set[int]:
+    return _blas_threads()
+
+
+def test_the_hold_decorates_a_function() -> None:
+    assert _decorated() == {1}
