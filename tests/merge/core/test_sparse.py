@@ -2,10 +2,16 @@
 
 from __future__ import annotations
 
-import numpy as np
-from scipy.sparse import csc_matrix, random
+import threading
+from collections.abc import Callable
 
-from merge.core.sparse import factor_symmetric, solve_symmetric
+import numpy as np
+import pytest
+from scipy.sparse import csc_matrix, diags, eye, kron, random
+
+from merge.core.errors import MergeCancelled
+from merge.core.progress import tracking
+from merge.core.sparse import LISTEN_FROM, _listening, factor_symmetric, solve_symmetric
 
 
 def test_symmetric_solves_equal_the_dense_ones() -> None:
@@ -16,3 +22,45 @@ def test_symmetric_solves_equal_the_dense_ones() -> None:
     dense = np.linalg.solve(A.toarray(), b)
     np.testing.assert_allclose(solve_symmetric(A, b[:, 0]), dense[:, 0], rtol=1e-9, atol=1e-12)
     np.testing.assert_allclose(factor_symmetric(A).solve(b), dense, rtol=1e-9, atol=1e-12)
+
+
+def _slow_work(release: threading.Event, began: threading.Event) -> Callable[[], int]:
+    def work() -> int:
+        began.set()
+        release.wait(10)  # a factorisation that takes as long as the test wants
+        return 7
+
+    return work
+
+
+def test_a_cancel_stops_a_large_factorisation_at_once() -> None:
+    release, began = threading.Event(), threading.Event()
+    cancel = threading.Event()
+    threading.Timer(0.2, cancel.set).start()
+    with tracking(None, cancel.is_set), pytest.raises(MergeCancelled):
+        _listening(_slow_work(release, began), LISTEN_FROM)
+    assert began.is_set() and not release.is_set()  # heard while the work still ran
+    release.set()
+
+
+def test_a_helper_thread_hands_back_its_result_and_its_error() -> None:
+    release, began = threading.Event(), threading.Event()
+    release.set()
+    assert _listening(_slow_work(release, began), LISTEN_FROM) == 7
+
+    def failing() -> int:
+        raise RuntimeError("singular")
+
+    with pytest.raises(RuntimeError, match="singular"):
+        _listening(failing, LISTEN_FROM)
+
+
+def test_large_symmetric_solves_on_the_helper_equal_the_small_path() -> None:
+    n = 110  # a grid of n x n unknowns, past LISTEN_FROM
+    line = diags([-np.ones(n - 1), 4.1 * np.ones(n), -np.ones(n - 1)], [-1, 0, 1])
+    A = csc_matrix(kron(eye(n), line) - kron(diags([np.ones(n - 1)] * 2, [-1, 1]), eye(n)))
+    assert A.shape[0] >= LISTEN_FROM
+    b = np.random.default_rng(3).normal(size=A.shape[0])
+    x = solve_symmetric(A, b)
+    np.testing.assert_allclose(A @ x, b, atol=1e-9)
+    np.testing.assert_allclose(factor_symmetric(A).solve(b), x, atol=1e-9)
