@@ -15,7 +15,9 @@ motion of the gauge; every 4th point along both axes from 1,600 patches up) and 
 mosaic against the true surface, same gauge; every few mosaic pixels on the large ones), and
 the floor (the map error of the true transforms through the same renderer). The time of each
 size against that of 400 patches, beside the ratio of patches, says whether the time is
-linear (equal ratios).
+linear (equal ratios). ``cancel s`` is how long a cancel could wait: the merge is handed a
+cancel that never fires, and the longest time between two of its looks is timed (start to
+the first look and the last look to the end included).
 
 Prints a table and writes JSON (``--json``, default ``benchmarks/results/merge_scale.json``).
 Run: ``python benchmarks/merge_scale.py [--sides 10,20,30,40] [--large] [--big]``
@@ -53,22 +55,49 @@ def _memory(field: str) -> int:
     raise RuntimeError(f"no {field} in /proc/self/status")
 
 
+class _Looks:
+    """A cancel that never fires and times the merge's looks at it: the longest wait between
+    two (what a cancel could wait)."""
+
+    def __init__(self) -> None:
+        self.last: float | None = None
+        self.longest = 0.0
+
+    def __call__(self) -> bool:
+        now = time.perf_counter()
+        if self.last is not None:
+            self.longest = max(self.longest, now - self.last)
+        self.last = now
+        return False
+
+    def wrap(self, run: Any) -> Any:
+        def run_listened(*args: Any, **kwargs: Any) -> Any:
+            self.last = time.perf_counter()
+            out = run(*args, cancel=self, **kwargs)
+            self()
+            return out
+
+        return run_listened
+
+
 def child(manifest: str, out: str, warm: str) -> int:
     """Run the CLI's merge in this process, after a merge of the small patch set ``warm``; print
-    its wall time and memory as JSON."""
+    its wall time, memory and longest wait for a cancel as JSON."""
+    import merge
     from backend.cli import main as cli_main
-    from merge import pipeline  # noqa: F401  (the merge's own imports count as the base)
 
     base = _memory("VmRSS")
     if cli_main(["merge", warm, "--out", out + "-warm", "--quiet"]) != 0:
         return 1
     warmed = _memory("VmRSS")
+    looks = _Looks()
+    merge.run = looks.wrap(merge.run)  # the CLI's merge, given a cancel
     clock = time.perf_counter()
     code = cli_main(["merge", manifest, "--out", out, "--quiet"])
     wall = time.perf_counter() - clock
     peak = _memory("VmHWM")
     said = {"code": code, "wall_s": wall, "base_bytes": base, "warm_bytes": warmed}
-    print(json.dumps(said | {"peak_bytes": peak}))
+    print(json.dumps(said | {"peak_bytes": peak, "cancel_wait_s": looks.longest}))
     return code
 
 
@@ -193,6 +222,7 @@ def one_size(side: int, pixels: int, work: Path) -> dict[str, Any]:
         "bytes_per_pixel": (ran["peak_bytes"] - ran["warm_bytes"]) / input_pixels,
         "bytes_per_pixel_all": (ran["peak_bytes"] - ran["base_bytes"]) / input_pixels,
         "fixed_mb": (ran["warm_bytes"] - ran["base_bytes"]) / 1e6,
+        "cancel_wait_s": ran["cancel_wait_s"],
         "reg_xy_nm": exy * 1e9,
         "reg_z_nm": ez * 1e9,
         "map_nm": merr * 1e9,
@@ -226,7 +256,7 @@ def main(argv: list[str] | None = None) -> int:
     print(
         f"{'patches':>8}{'px':>5}{'wall s':>9}{'iter':>6}{'peak GB':>9}{'B/px':>7}"
         f"{'B/px all':>9}{'fixed MB':>9}{'XY nm':>8}{'Z nm':>7}{'map nm':>8}{'floor':>7}"
-        f"{'t/t400':>8}{'n/n400':>8}"
+        f"{'t/t400':>8}{'n/n400':>8}{'cancel s':>9}"
     )
     with tempfile.TemporaryDirectory() as tmp:
         for side, pixels in sizes:
@@ -241,7 +271,7 @@ def main(argv: list[str] | None = None) -> int:
                 f"{r['peak_gb']:>9.2f}{r['bytes_per_pixel']:>7.0f}"
                 f"{r['bytes_per_pixel_all']:>9.0f}{r['fixed_mb']:>9.0f}{r['reg_xy_nm']:>8.2f}"
                 f"{r['reg_z_nm']:>7.2f}{r['map_nm']:>8.2f}{r['floor_nm']:>7.2f}"
-                f"{ratio:>8.2f}{r['patch_ratio_400']:>8.2f}",
+                f"{ratio:>8.2f}{r['patch_ratio_400']:>8.2f}{r['cancel_wait_s']:>9.2f}",
                 flush=True,
             )
             for stage, seconds in r["timings"].items():
