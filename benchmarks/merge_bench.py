@@ -20,6 +20,13 @@ With ``--sweep N`` (``make bench``: 10), the default method on N further draws o
 but the large grid, counting gross failures (map error over 3 floors, or XY over 10 nm on a
 textured case): the rare draw that eight do not show.
 
+With ``--gratings N`` (``make bench``: 10), the edge-ramp and period sweep of TGX1-like
+chessboards (:func:`grating_cases`: edge ramps of 50, 100 and 200 nm, periods of 2 and 3 µm,
+steps of 0.3 and 0.6 µm, at the paper's grid and at 1 µm patches of 200 x 200 px): the default
+method on N draws of each, map error over the floor (median and worst) and the XY error
+against the Cramér-Rao bound of ``crb.py`` (median over the draws, over the bound's RMS on the
+first draw). ``--cases none --draws 1 --no-scaling --gratings 10`` runs the sweep alone.
+
 Prints a table and writes JSON (``--json``, default ``benchmarks/results/merge_bench.json``).
 Run: ``make bench`` or
 ``python benchmarks/merge_bench.py [--quick] [--cases a,b] [--draws N] [--sweep N]``.
@@ -183,6 +190,74 @@ CASES = [
         methods=("default", "zlevel", "nominal"),
     ),
 ]
+
+
+#: The grating sweep: edge ramps (``Chessboard.edge_width``, bottom to top of an edge), periods
+#: and steps of TGX1-like chessboards, metres, and the two geometries.
+RAMPS = (50e-9, 100e-9, 200e-9)
+PERIODS = (2e-6, 3e-6)
+STEPS = (0.3e-6, 0.6e-6)
+GEOMETRIES = ("paper", "1um")
+
+
+def grating_case(ramp: float, period: float, step: float, geometry: str) -> Case:
+    """A TGX1-like chessboard of the sweep at the paper's grid or in 1 µm patches of 200 x 200
+    px at 20 % overlap (as ``tgx1-1um``), the typical drift."""
+    name = f"{geometry}-r{ramp * 1e9:.0f}-p{period * 1e6:g}-s{step * 1e6:g}"
+
+    def surface(seed: int) -> Surface:
+        return Chessboard(period=period, step=step, edge_width=ramp, seed=seed)
+
+    if geometry == "paper":
+        return dataclasses.replace(
+            paper_grid(name, surface, DriftModel.typical()), methods=("default",)
+        )
+    if geometry == "1um":
+        return Case(
+            name,
+            surface,
+            rows=4,
+            cols=4,
+            patch_size=(1e-6, 1e-6),
+            pixels=(200, 200),
+            overlap=(0.2, 0.2),
+            drift=DriftModel.typical(),
+            methods=("default",),
+        )
+    raise ValueError(f"unknown geometry {geometry!r}: use one of {', '.join(GEOMETRIES)}")
+
+
+def grating_cases() -> list[tuple[str, float, float, float, Case]]:
+    """Every case of the sweep with its geometry, ramp, period and step."""
+    return [
+        (geometry, ramp, period, step, grating_case(ramp, period, step, geometry))
+        for geometry in GEOMETRIES
+        for period in PERIODS
+        for step in STEPS
+        for ramp in RAMPS
+    ]
+
+
+def grating_row(case: Case, count: int, work: Path) -> dict[str, Any]:
+    """The default method on ``count`` draws of a sweep case: map error over the floor, XY
+    error, and the Cramér-Rao bound of XY on the first draw (RMS over 8 samples)."""
+    from crb import efficient_errors  # a script beside this one
+
+    runs = [default_run(case, k, work) for k in range(count)]
+    surface, synth = case.synthesize()
+    bound = efficient_errors(synth, surface, case.drift, samples=8)["reg_xy_nm"]
+    ratio = np.array([v["map_over_floor"] for v in runs])
+    xy = np.array([v["reg_xy_nm"] for v in runs])
+    return {
+        "case": case.name,
+        "draws": count,
+        "map_over_floor_median": float(np.median(ratio)),
+        "map_over_floor_worst": float(ratio.max()),
+        "reg_xy_nm_median": float(np.median(xy)),
+        "crb_xy_nm": bound,
+        "xy_over_crb": float(np.median(xy) / bound),
+        "runs": runs,
+    }
 
 
 def map_error(
@@ -421,6 +496,12 @@ def main(argv: list[str] | None = None) -> int:
         help=f"further draws per paper-grid and real case, from draw {SWEEP_FIRST}, counting gross "
         "failures (default 0: none)",
     )
+    parser.add_argument(
+        "--gratings",
+        type=int,
+        default=0,
+        help="draws per case of the edge-ramp and period sweep of chessboards (default 0: none)",
+    )
     parser.add_argument("--json", default=str(ROOT / "benchmarks" / "results" / "merge_bench.json"))
     args = parser.parse_args(argv)
     chosen = [c for c in CASES if not args.cases or c.name in args.cases.split(",")]
@@ -485,6 +566,23 @@ def main(argv: list[str] | None = None) -> int:
                     f"{', '.join(str(k) for k in sw['gross']) or '-'}",
                     flush=True,
                 )
+        gratings = []
+        if args.gratings > 0:
+            print(
+                f"\nTGX1-like chessboards: default method over {args.gratings} draws each"
+                f"\n{'geometry':<9}{'ramp nm':>8}{'period µm':>10}{'step µm':>8}"
+                f"{'map/floor med':>14}{'worst':>7}{'XY nm med':>10}{'CRB XY nm':>10}{'XY/CRB':>8}"
+            )
+            for geometry, ramp, period, step, case in grating_cases():
+                g = grating_row(case, args.gratings, Path(tmp))
+                where = {"geometry": geometry, "ramp": ramp, "period": period, "step": step}
+                gratings.append(g | where)
+                print(
+                    f"{geometry:<9}{ramp * 1e9:>8.0f}{period * 1e6:>10g}{step * 1e6:>8g}"
+                    f"{g['map_over_floor_median']:>14.2f}{g['map_over_floor_worst']:>7.2f}"
+                    f"{g['reg_xy_nm_median']:>10.2f}{g['crb_xy_nm']:>10.2f}{g['xy_over_crb']:>8.2f}",
+                    flush=True,
+                )
         print(f"\n{'patches (64 x 64 px)':<22}{'wall s':>8}{'ms/patch':>10}{'peak MiB':>10}")
         scale_rows = [] if args.no_scaling else scaling(Path(tmp))
         for row in scale_rows:
@@ -494,7 +592,13 @@ def main(argv: list[str] | None = None) -> int:
                 flush=True,
             )
     Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-    doc = {"merge": results, "draws": spread, "sweep": swept, "scaling": scale_rows}
+    doc = {
+        "merge": results,
+        "draws": spread,
+        "sweep": swept,
+        "gratings": gratings,
+        "scaling": scale_rows,
+    }
     Path(args.json).write_text(json.dumps(doc, indent=1) + "\n")
     print(f"\nwrote {args.json}")
     return 0
