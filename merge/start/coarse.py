@@ -34,11 +34,12 @@ from numpy.typing import NDArray
 from merge.core.patchset import Patch
 from merge.core.progress import checkpoint
 from merge.start.averaging import Lattice, averaged_on_lattice
-from merge.start.lattice import overlap_information, overlap_z_difference
+from merge.start.lattice import edge_direction, overlap_information, overlap_z_difference
 from merge.start.ncc import masked_ncc, pair_maps
 from merge.start.network import NetworkSolution, solve_pair_differences
 from merge.start.peaks import CorrelationPeak, find_peak
 from merge.start.placement import PairMap, place_patch
+from merge.start.texture import along_edge
 from merge.start.trust import (
     APERTURE,
     DOUBT,
@@ -67,6 +68,10 @@ PRECISION = 0.1
 #: texture along it (roughness beside a step) carries this many times the slope energy of the
 #: noise: a tenth more or less noise than estimated cannot fake it.
 TEXTURE = 1.0
+#: Information (per cell²) along a straight edge that the texture beside it located
+#: (:mod:`merge.start.texture`): a precision of a cell, as the least the texture rule above
+#: grants (the start needs no better; the refinement measures it on the raw heights).
+ALONG_EDGE = APERTURE / PRECISION**2
 #: Pairs correlated together through one set of FFTs: their maps and transforms are the coarse
 #: start's working memory (64 pairs: 180 bytes per input pixel of 100 patches of 64 x 64 px;
 #: 16: 64, the start as fast within the spread of its timings).
@@ -206,7 +211,7 @@ def _xy_offsets(
             pred = x_start[pairs[j, 0]] - x_start[pairs[j, 1]]
             e = lat.expected(j)
             centre = (e[0] + pred[1] / lat.cell, e[1] + pred[0] / lat.cell)
-            _measure(lat, corr, j, centre, 2.0)
+            _measure(lat, corr, j, centre, 2.0, radius=radius)
         sol = solve_pair_differences(n, pairs, corr.xy_m, corr.xy_w, prior=xy_prior)
     return drop_unconstrained(sol.x, pairs, corr.xy_w * sol.robust[:, None, None])
 
@@ -230,7 +235,7 @@ def _first_pass(lat: Lattice, corr: Correlations, radius: float) -> None:
             prior=SHIFT_PRIOR,
             ambiguity=AMBIGUITY,
         )
-        _accept(lat, corr, i, peak)
+        _accept(lat, corr, i, peak, radius=radius)
         if not corr.xy_w[i].any():  # a copy: the maps are views of their whole batch's
             corr.keep(i, (ncc.copy(), count.copy(), zero))
 
@@ -278,9 +283,16 @@ def _correlation(
 
 
 def _measure(
-    lat: Lattice, corr: Correlations, i: int, centre: tuple[float, float], rad: float
+    lat: Lattice,
+    corr: Correlations,
+    i: int,
+    centre: tuple[float, float],
+    rad: float,
+    *,
+    radius: float,
 ) -> None:
-    """Pair ``i`` measured again: its peak within ``rad`` cells of ``centre`` (dy, dx)."""
+    """Pair ``i`` measured again: its peak within ``rad`` cells of ``centre`` (dy, dx) (and the
+    texture's along an edge within the first pass's ``radius``)."""
     peak = None
     if lat.measurable(i):
         peak = find_peak(
@@ -291,12 +303,16 @@ def _measure(
             prior=SHIFT_PRIOR,
             ambiguity=AMBIGUITY,
         )
-    _accept(lat, corr, i, peak)
+    _accept(lat, corr, i, peak, radius=radius)
 
 
-def _accept(lat: Lattice, corr: Correlations, i: int, peak: CorrelationPeak | None) -> None:
+def _accept(
+    lat: Lattice, corr: Correlations, i: int, peak: CorrelationPeak | None, *, radius: float
+) -> None:
     """Pair ``i``'s measurement from ``peak``: its shift and information, or none where the
-    peak lies at the window's border or neither scores nor stands out of chance."""
+    peak lies at the window's border or neither scores nor stands out of chance. Along a
+    straight edge whose information is the texture's beside it, the shift is the texture's
+    own, searched within ``radius`` cells (:mod:`merge.start.texture`), or not measured."""
     a, b = lat.pairs[i]
     corr.xy_w[i] = 0.0
     if peak is None or peak.at_border:
@@ -305,18 +321,30 @@ def _accept(lat: Lattice, corr: Correlations, i: int, peak: CorrelationPeak | No
         return
     cell = lat.cell
     corr.score[i] = peak.score
-    e = lat.expected(i)
-    corr.xy_m[i] = [(peak.shift[1] - e[1]) * cell, (peak.shift[0] - e[0]) * cell]
     s_pair = float(np.hypot(lat.sigma[a], lat.sigma[b]) / np.sqrt(2.0))
-    info = overlap_information(
-        lat.levelled[a],
-        lat.levelled[b],
-        peak.integer_shift,
-        s_pair,
-        precision=PRECISION,
-        aperture=APERTURE,
-        texture=TEXTURE,
-    )
+    at = (lat.levelled[a], lat.levelled[b], peak.integer_shift, s_pair)
+    info = overlap_information(*at, precision=PRECISION, aperture=APERTURE, texture=TEXTURE)
+    dy, dx = peak.shift
+    edge = edge_direction(*at, precision=PRECISION, aperture=APERTURE)
+    if edge is not None:
+        moved = along_edge(
+            lat.levelled[a],
+            lat.levelled[b],
+            peak,
+            edge,
+            radius=radius,
+            min_overlap=int(lat.least_overlap[i]),
+            accept=MIN_SCORE,
+            significance=SIGNIFICANCE,
+        )
+        across = np.eye(2) - np.outer(edge, edge)
+        along = 0.0  # nothing measured along the edge ...
+        if moved is not None:  # ... but what its texture measured
+            dx, dy = dx + moved * edge[0], dy + moved * edge[1]
+            along = max(float(edge @ info @ edge), ALONG_EDGE)
+        info = across @ info @ across + along * np.outer(edge, edge)
+    e = lat.expected(i)
+    corr.xy_m[i] = [(dx - e[1]) * cell, (dy - e[0]) * cell]
     corr.xy_w[i] = along_ridge_removed(info, peak.ridge) / cell**2
 
 

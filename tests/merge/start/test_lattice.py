@@ -11,6 +11,7 @@ from merge.core.downsample import GridSample
 from merge.start.lattice import (
     coherence,
     correlated_channels,
+    edge_direction,
     fill_empty_lines,
     overlap_information,
     overlap_z_difference,
@@ -123,3 +124,30 @@ def test_coherence_tells_stripes_from_roughness() -> None:
     assert coherence(0.3 * xx + 0.1 * yy) == 0.0
     stripes[:, :20] = np.nan
     assert coherence(stripes) > 0.95
+
+
+def test_an_edge_only_one_image_holds_in_the_overlap_measures_nothing() -> None:
+    # image a has a second edge across the rows of the overlap that image b does not hold
+    # there (the shift is wrong): from a alone the overlap claimed the shift along the first
+    rng = np.random.default_rng(3)
+    cols, rows = np.arange(30.0), np.arange(20.0)
+    along_y = np.tile(300e-9 * np.tanh((cols - 15.0) / 2.0), (20, 1))
+    a = along_y + np.tanh((rows[:, None] - 2.0) / 1.0) * 300e-9
+    b = along_y.copy()
+    a, b = (x + rng.normal(0.0, 1e-9, x.shape) for x in (a, b))
+    kw = {"precision": 0.1, "aperture": 0.01}
+    one_sided = overlap_information(a, a, (0, 0), 1e-9, **kw)
+    assert np.linalg.eigvalsh(one_sided).min() > 1.0  # a alone: both directions
+    info = overlap_information(a, b, (0, 0), 1e-9, **kw)
+    assert info[1, 1] < 1e-3 and info[0, 0] == pytest.approx(100.0)  # nothing along y
+    edge = edge_direction(a, b, (0, 0), 1e-9, **kw)
+    assert edge is not None and abs(edge[1]) == pytest.approx(1.0, abs=1e-3)  # along y
+
+
+def test_structure_both_ways_or_none_has_no_edge_direction() -> None:
+    rng = np.random.default_rng(4)
+    rough = gaussian_filter(rng.normal(0.0, 5e-9, (30, 40)), 1.0)
+    kw = {"precision": 0.1, "aperture": 0.01}
+    assert edge_direction(rough, rough, (1, 2), 1e-10, **kw) is None
+    flat = rng.normal(0.0, 1e-9, (30, 40))
+    assert edge_direction(flat, flat, (1, 2), 1e-9, **kw) is None

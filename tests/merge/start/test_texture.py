@@ -1,0 +1,74 @@
+"""The shift along a straight edge, measured on the texture beside it."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.ndimage import gaussian_filter
+
+from merge.start.peaks import CorrelationPeak
+from merge.start.texture import along_edge, texture_image
+
+ALONG_Y = np.array([0.0, 1.0])
+
+
+def _field(seed: int, rough: float = 4e-9) -> np.ndarray:
+    """A step along y (its ramp across columns 38-42) with roughness beside it, 90 x 80 cells."""
+    rng = np.random.default_rng(seed)
+    cols = np.arange(80.0)
+    step = np.tile(300e-9 * np.tanh((cols - 40.0) / 1.5), (90, 1))
+    return step + gaussian_filter(rng.normal(0.0, rough, step.shape), 1.0)
+
+
+def _pair(field: np.ndarray, dy: int, seed: int, noise: float = 0.5e-9) -> tuple:
+    """Images a and b of ``field``, b's rows ``dy`` further on: ``b[y - dy] = a[y]``."""
+    rng = np.random.default_rng(seed)
+    a = field[20:70] + rng.normal(0.0, noise, (50, 80))
+    b = field[20 + dy : 70 + dy] + rng.normal(0.0, noise, (50, 80))
+    return a, b
+
+
+def _peak_at(shift: tuple[int, int]) -> CorrelationPeak:
+    return CorrelationPeak(
+        shift=(float(shift[0]), float(shift[1])),
+        integer_shift=shift,
+        score=0.9,
+        overlap=1000,
+        at_border=False,
+        window=np.zeros(1),
+    )
+
+
+def test_the_texture_is_the_roughness_with_the_step_masked() -> None:
+    field = _field(0)
+    tex = texture_image(field)
+    assert np.isnan(tex[:, 37:44]).all()  # the ramp and a margin about it
+    faces = np.isfinite(tex)
+    assert faces[:, :28].all() and faces[:, 52:].all()  # the faces beyond the margin
+    assert np.nanstd(tex) < 3e-9  # roughness, not the 600 nm step
+
+
+@pytest.mark.parametrize(("dy", "seed"), [(7, 1), (-5, 2), (3, 3)])
+def test_along_an_edge_the_texture_finds_the_shift_the_edge_left_open(dy: int, seed: int) -> None:
+    a, b = _pair(_field(seed), dy, seed + 10)
+    # the edge's peak, at the wrong place along the edge: b[y + s] = a[y] at s = -dy
+    moved = along_edge(
+        a,
+        b,
+        _peak_at((0, 0)),
+        ALONG_Y,
+        radius=10,
+        min_overlap=200,
+        accept=0.3,
+        significance=3.0,
+    )
+    assert moved is not None
+    assert moved == pytest.approx(-dy, abs=0.3)
+
+
+def test_a_bare_edge_under_noise_measures_nothing_along_it() -> None:
+    a, b = _pair(_field(4, rough=0.0), 6, 14, noise=1e-9)
+    moved = along_edge(
+        a, b, _peak_at((0, 0)), ALONG_Y, radius=10, min_overlap=200, accept=0.3, significance=3.0
+    )
+    assert moved is None
