@@ -15,6 +15,7 @@ from numpy.typing import NDArray
 
 from merge.config import MergeConfig
 from merge.core.patchset import Patch
+from merge.core.progress import checkpoint
 from merge.core.transforms import PatchTransform
 from merge.refine.scanner import ScanDistortion
 from merge.render import Mosaic
@@ -101,6 +102,7 @@ def patch_reports(
     """
     reports, warnings = [], []
     for c, p in enumerate(patches):
+        checkpoint()
         f = fits[c]
         held = f.xy_sigma_local < XY_CONSTRAINED_FRACTION * min(p.pixel_size)
         xy_ok = f.correspondences > 0 and held

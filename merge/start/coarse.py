@@ -336,6 +336,7 @@ def _accept(
             min_overlap=int(lat.least_overlap[i]),
             accept=MIN_SCORE,
             significance=SIGNIFICANCE,
+            ambiguity=AMBIGUITY,
         )
         across = np.eye(2) - np.outer(edge, edge)
         along = 0.0  # nothing measured along the edge ...
@@ -371,6 +372,7 @@ def _z_offsets(lat: Lattice, translation: FloatArray) -> FloatArray:
     k = len(pairs)
     z_m, z_w = np.zeros(k), np.zeros(k)
     for i in range(k):
+        checkpoint()
         a, b = int(pairs[i, 0]), int(pairs[i, 1])
         e = lat.expected(i)
         pred = translation[a, :2] - translation[b, :2]

@@ -15,6 +15,7 @@ from numpy.typing import NDArray
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
+from merge.core.progress import checkpoint
 from merge.core.sparse import solve_symmetric
 
 FloatArray = NDArray[np.float64]
@@ -85,6 +86,7 @@ def solve_pair_differences(
     x = np.zeros((n, d))
     res = m.copy()
     for it in range(robust_iterations + 1):
+        checkpoint()  # a round of 10,000 patches takes a second
         x = _solve(n, pairs, m, W0 * factor[:, None, None], prior)
         res = m - (x[pairs[:, 0]] - x[pairs[:, 1]])
         if it == robust_iterations or not use.any():

@@ -22,6 +22,7 @@ from numpy.typing import NDArray
 from scipy import ndimage
 
 from merge.core.heightfield import smooth_nan
+from merge.start.lattice import coherence
 from merge.start.ncc import masked_ncc
 from merge.start.peaks import CorrelationPeak, find_peak
 
@@ -35,6 +36,11 @@ STEEP = 4.0
 #: ... and so are this many cells about them (what the smoothing's removal leaves of a ramp's
 #: curvature reaches about as far).
 MARGIN = 2
+#: A texture more one-dimensional than this (:func:`merge.start.lattice.coherence`) is the
+#: structure itself, not a roughness: the stripes of a grating a few cells wide outlive the
+#: smoothing's removal, every shift along them scores 0.98, and such peaks moved a real
+#: grating's pairs by up to 18 cells along its stripes. Roughness scores 0.1-0.3.
+ISOTROPIC = 0.5
 
 
 def texture_image(levelled: FloatArray) -> FloatArray:
@@ -61,13 +67,19 @@ def along_edge(
     min_overlap: int,
     accept: float,
     significance: float,
+    ambiguity: float,
 ) -> float | None:
     """How far (cells, along the unit ``direction`` (x, y)) the texture's shift lies from the
-    edge's ``peak`` of levelled images ``a`` and ``b``; None where the texture's correlation
-    peak within ``radius`` cells does not count (at the window's border, or scoring below
-    ``accept`` without standing ``significance`` robust spreads above chance).
+    edge's ``peak`` of levelled images ``a`` and ``b``; None where the texture is not a
+    roughness (:data:`ISOTROPIC`) or its correlation peak within ``radius`` cells does not
+    count: at the window's border, with peaks within ``ambiguity`` of its score on its own
+    ridge (:func:`merge.start.peaks.find_peak`), or scoring below ``accept`` without standing
+    ``significance`` robust spreads above chance.
     """
-    ncc, count, zero = masked_ncc(texture_image(a), texture_image(b))
+    ta, tb = texture_image(a), texture_image(b)
+    if max(coherence(ta), coherence(tb)) > ISOTROPIC:
+        return None
+    ncc, count, zero = masked_ncc(ta, tb)
     found = find_peak(
         ncc,
         count,
@@ -75,8 +87,9 @@ def along_edge(
         expected=(float(peak.integer_shift[0]), float(peak.integer_shift[1])),
         radius=(radius, radius),
         min_overlap=min_overlap,
+        ambiguity=ambiguity,
     )
-    if found is None or found.at_border:
+    if found is None or found.at_border or found.ridge:
         return None
     if found.score < accept and found.excess < significance:
         return None

@@ -6,8 +6,9 @@ import numpy as np
 import pytest
 from scipy.ndimage import gaussian_filter
 
+from merge.start.lattice import coherence
 from merge.start.peaks import CorrelationPeak
-from merge.start.texture import along_edge, texture_image
+from merge.start.texture import ISOTROPIC, along_edge, texture_image
 
 ALONG_Y = np.array([0.0, 1.0])
 
@@ -61,6 +62,7 @@ def test_along_an_edge_the_texture_finds_the_shift_the_edge_left_open(dy: int, s
         min_overlap=200,
         accept=0.3,
         significance=3.0,
+        ambiguity=0.1,
     )
     assert moved is not None
     assert moved == pytest.approx(-dy, abs=0.3)
@@ -69,6 +71,38 @@ def test_along_an_edge_the_texture_finds_the_shift_the_edge_left_open(dy: int, s
 def test_a_bare_edge_under_noise_measures_nothing_along_it() -> None:
     a, b = _pair(_field(4, rough=0.0), 6, 14, noise=1e-9)
     moved = along_edge(
-        a, b, _peak_at((0, 0)), ALONG_Y, radius=10, min_overlap=200, accept=0.3, significance=3.0
+        a,
+        b,
+        _peak_at((0, 0)),
+        ALONG_Y,
+        radius=10,
+        min_overlap=200,
+        accept=0.3,
+        significance=3.0,
+        ambiguity=0.1,
+    )
+    assert moved is None
+
+
+def test_stripes_a_few_cells_wide_are_structure_not_texture() -> None:
+    # a grating whose stripes outlive the smoothing's removal: every shift along them scores
+    # alike, so nothing is measured along them
+    rng = np.random.default_rng(6)
+    yy, xx = np.mgrid[0:90, 0:80].astype(float)
+    field = 50e-9 * np.sin(2 * np.pi * (xx - yy) / 6.0) + rng.normal(0.0, 0.3e-9, xx.shape)
+    a, b = field[20:70], field[28:78]
+    assert coherence(texture_image(a)) > ISOTROPIC  # the stripes outlive the smoothing
+    assert coherence(texture_image(_field(7)[:, :30])) < ISOTROPIC  # roughness beside a step
+    diagonal = np.array([1.0, 1.0]) / np.sqrt(2.0)
+    moved = along_edge(
+        a,
+        b,
+        _peak_at((0, 0)),
+        diagonal,
+        radius=10,
+        min_overlap=200,
+        accept=0.3,
+        significance=3.0,
+        ambiguity=0.1,
     )
     assert moved is None
