@@ -115,7 +115,7 @@ def test_no_run_starts_without_the_reserve(tmp_path: Path) -> None:
 
 
 def test_a_full_disk_during_a_merge_fails_it_and_the_next_one_runs(
-    disk_server: tuple[Server, Path],
+    disk_server: tuple[Server, Path], caplog: pytest.LogCaptureFixture
 ) -> None:
     server, disk = disk_server
     rid = _start(server)
@@ -124,8 +124,16 @@ def test_a_full_disk_during_a_merge_fails_it_and_the_next_one_runs(
     assert r.status_code == 202, r.text
     job = r.json()["id"]
     ballast = fill(disk)  # the worker starts now; its result has nowhere to go
-    time.sleep(3.0)
-    os.remove(ballast)
+    try:
+        # full until the merge has failed on it, however long that takes (a fixed wait let
+        # a slow merge write its result after the disk had room again); the failure is
+        # recorded once the database can write again
+        deadline = time.monotonic() + 120.0
+        while not any(r.getMessage() == f"merge {job} failed" for r in caplog.records):
+            assert time.monotonic() < deadline, "the merge never met the full disk"
+            time.sleep(0.1)
+    finally:
+        os.remove(ballast)
     ended = server.wait_merge(job)
     print("merge during a full disk:", ended["state"], ended["message"])
     assert ended["state"] == "failed", ended
