@@ -55,6 +55,7 @@ def mosaic_bounds(
     lo = np.array([np.inf, np.inf])
     hi = -lo
     for p, tr in zip(patches, transforms, strict=True):
+        checkpoint()
         q = tr.apply(_corners(p))
         lo = np.minimum(lo, q[:, :2].min(axis=0))
         hi = np.maximum(hi, q[:, :2].max(axis=0))

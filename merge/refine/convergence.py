@@ -13,6 +13,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
+from merge.core.progress import checkpoint
 from merge.refine.bank import SurfaceBank
 
 FloatArray = NDArray[np.float64]
@@ -28,6 +29,7 @@ def slope_rms(bank: SurfaceBank) -> float:
     length, both axes summed, per node)."""
     total, count, m = 0.0, 0, bank.nodes
     for c in range(len(bank.centre)):
+        checkpoint()
         grid = bank.grid(c).astype(np.float64)
         rows = np.arange(m, len(grid) - m, SLOPE_SAMPLE)
         gx = (grid[rows, 2 * m :] - grid[rows, : -2 * m]) / (2.0 * bank.dx[c])

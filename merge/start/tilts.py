@@ -28,6 +28,7 @@ from numpy.typing import NDArray
 
 from merge.core.downsample import GridSample
 from merge.core.heightfield import smooth_nan
+from merge.core.progress import checkpoint
 from merge.start.ncc import pair_maps
 from merge.start.network import solve_pair_differences
 from merge.start.peaks import find_peak
@@ -63,7 +64,10 @@ def own_plane_change(heights: FloatArray) -> float:
 
 def levelled_one_by_one(heights: Sequence[FloatArray]) -> bool:
     """Whether (nearly) every patch had its own least-squares plane subtracted."""
-    change = np.array([own_plane_change(h) for h in heights])
+    change = np.empty(len(heights))
+    for c, h in enumerate(heights):
+        checkpoint()
+        change[c] = own_plane_change(h)
     known = np.isfinite(change)
     if not known.any():
         return False
