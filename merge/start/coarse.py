@@ -26,7 +26,7 @@ doubt (:mod:`merge.start.trust` names them); :func:`_measure` measures their pai
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
@@ -34,12 +34,12 @@ from numpy.typing import NDArray
 from merge.core.patchset import Patch
 from merge.core.progress import checkpoint
 from merge.start.averaging import Lattice, averaged_on_lattice
-from merge.start.lattice import edge_direction, overlap_information, overlap_z_difference
+from merge.start.lattice import overlap_measurement, overlap_z_difference
 from merge.start.ncc import masked_ncc, pair_maps
 from merge.start.network import NetworkSolution, solve_pair_differences
 from merge.start.peaks import CorrelationPeak, find_peak
 from merge.start.placement import PairMap, place_patch
-from merge.start.texture import along_edge
+from merge.start.texture import along_edge, texture_image
 from merge.start.trust import (
     APERTURE,
     DOUBT,
@@ -72,6 +72,9 @@ TEXTURE = 1.0
 #: (:mod:`merge.start.texture`): a precision of a cell, as the least the texture rule above
 #: grants (the start needs no better; the refinement measures it on the raw heights).
 ALONG_EDGE = APERTURE / PRECISION**2
+#: Textures of patches kept for the pairs that follow (a patch's pairs come one after the
+#: other; a few megabytes).
+TEXTURES = 64
 #: Pairs correlated together through one set of FFTs: their maps and transforms are the coarse
 #: start's working memory (64 pairs: 180 bytes per input pixel of 100 patches of 64 x 64 px;
 #: 16: 64, the start as fast within the spread of its timings).
@@ -119,6 +122,8 @@ class Correlations:
     xy_w : (k, 2, 2) its information, 1 / m² (zero: not measured).
     score : (k,) its peak's NCC (NaN: none accepted).
     maps : the NCC maps computed, by pair (the second pass and the placements reuse them).
+    ridges : per pair, the offsets (dy, dx) of the peaks the first pass found as likely as its
+        own on its ridge (:attr:`merge.start.peaks.CorrelationPeak.ridge`), if any.
     """
 
     xy_m: FloatArray
@@ -127,6 +132,18 @@ class Correlations:
     maps: dict[int, tuple[FloatArray, FloatArray, tuple[int, int]]]
     #: bytes the maps hold (:data:`MAP_CACHE_BYTES` at most)
     held: int = 0
+    ridges: dict[int, tuple[tuple[int, int], ...]] = field(default_factory=dict)
+    #: the textures of the patches last asked for (:func:`merge.start.texture.texture_image`),
+    #: by patch, :data:`TEXTURES` at most: a patch's pairs come one after the other
+    textures: dict[int, FloatArray] = field(default_factory=dict)
+
+    def texture(self, lat: Lattice, c: int) -> FloatArray:
+        """Patch ``c``'s texture, computed once while it is among the last asked for."""
+        if c not in self.textures:
+            if len(self.textures) >= TEXTURES:
+                del self.textures[next(iter(self.textures))]  # the oldest
+            self.textures[c] = texture_image(lat.levelled[c])
+        return self.textures[c]
 
     @classmethod
     def empty(cls, k: int) -> Correlations:
@@ -322,14 +339,20 @@ def _accept(
     cell = lat.cell
     corr.score[i] = peak.score
     s_pair = float(np.hypot(lat.sigma[a], lat.sigma[b]) / np.sqrt(2.0))
-    at = (lat.levelled[a], lat.levelled[b], peak.integer_shift, s_pair)
-    info = overlap_information(*at, precision=PRECISION, aperture=APERTURE, texture=TEXTURE)
+    info, edge = overlap_measurement(
+        lat.levelled[a],
+        lat.levelled[b],
+        peak.integer_shift,
+        s_pair,
+        precision=PRECISION,
+        aperture=APERTURE,
+        texture=TEXTURE,
+    )
     dy, dx = peak.shift
-    edge = edge_direction(*at, precision=PRECISION, aperture=APERTURE)
     if edge is not None:
         moved = along_edge(
-            lat.levelled[a],
-            lat.levelled[b],
+            corr.texture(lat, a),
+            corr.texture(lat, b),
             peak,
             edge,
             radius=radius,
@@ -346,7 +369,13 @@ def _accept(
         info = across @ info @ across + along * np.outer(edge, edge)
     e = lat.expected(i)
     corr.xy_m[i] = [(dx - e[1]) * cell, (dy - e[0]) * cell]
-    corr.xy_w[i] = along_ridge_removed(info, peak.ridge) / cell**2
+    # a pair whose first pass found its shift ambiguous along a ridge stays so in the second
+    # pass, whose narrow window cannot see the ridge: on a chessboard's face at 1 µm patches
+    # (draw 3) a pair re-measured 16 cells along its ridge claimed both directions, and its
+    # corner patch merged 375 nm off
+    known = corr.ridges.get(i, ())
+    corr.ridges[i] = known or peak.ridge
+    corr.xy_w[i] = along_ridge_removed(info, known + peak.ridge) / cell**2
 
 
 def _pair_map(lat: Lattice, corr: Correlations, i: int, c: int, x: FloatArray) -> PairMap:

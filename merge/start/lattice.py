@@ -17,7 +17,7 @@ from numpy.typing import NDArray
 
 from merge.core.downsample import GridSample
 from merge.core.heightfield import smooth_nan
-from merge.core.information import signal_information
+from merge.core.information import psd_part
 
 FloatArray = NDArray[np.float64]
 
@@ -161,7 +161,29 @@ def overlap_information(
     it, and ``aperture`` of the capped information (a precision of ``precision / sqrt(aperture)``
     cells: a cell with the start's 0.1 and 0.01).
     """
+    return _counted(_structure_information(a, b, shift, sigma), precision, aperture, texture)
+
+
+def overlap_measurement(
+    a: FloatArray,
+    b: FloatArray,
+    shift: tuple[int, int],
+    sigma: float,
+    *,
+    precision: float,
+    aperture: float,
+    texture: float = np.inf,
+) -> tuple[FloatArray, FloatArray | None]:
+    """:func:`overlap_information` and :func:`edge_direction` of one overlap (same arguments),
+    its structure found once."""
     found = _structure_information(a, b, shift, sigma)
+    return _counted(found, precision, aperture, texture), _edge(found, precision, aperture)
+
+
+def _counted(
+    found: tuple[FloatArray, int] | None, precision: float, aperture: float, texture: float
+) -> FloatArray:
+    """What :func:`overlap_information` counts of an overlap's structure (``found``)."""
     if found is None:
         return np.zeros((2, 2))
     info, n = found
@@ -191,7 +213,13 @@ def edge_direction(
     ``aperture`` of that across it, which is at least ``aperture`` of the cap ``1 /
     precision²``; same arguments as :func:`overlap_information`), or None: no edge, or
     structure both ways."""
-    found = _structure_information(a, b, shift, sigma)
+    return _edge(_structure_information(a, b, shift, sigma), precision, aperture)
+
+
+def _edge(
+    found: tuple[FloatArray, int] | None, precision: float, aperture: float
+) -> FloatArray | None:
+    """What :func:`edge_direction` finds in an overlap's structure (``found``)."""
     if found is None:
         return None
     vals, vecs = np.linalg.eigh(found[0])
@@ -217,26 +245,27 @@ def _structure_information(
     draw 1: its patch merged 87 nm off).
     """
     where = _overlap(a.shape, b.shape, shift)
-    if where is None or where[0].stop - where[0].start < 2 or where[1].stop - where[1].start < 2:
+    if where is None or where[0].stop - where[0].start < 3 or where[1].stop - where[1].start < 3:
         return None
     ya, xa, yb, xb = where
-    ok = np.isfinite(a[ya, xa]) & np.isfinite(b[yb, xb])
-    infos, counts = [], []
-    for image in (a[ya, xa], b[yb, xb]):
-        gy, gx = (np.asarray(v, dtype=np.float64) for v in np.gradient(image))
-        valid = ok & np.isfinite(gx) & np.isfinite(gy)
-        gx, gy = gx[valid], gy[valid]
-        tensor = np.array([[gx @ gx, gx @ gy], [gx @ gy, gy @ gy]])
-        # Noise is not texture: a central difference of white noise has variance σ²/2, which
-        # would otherwise claim precision along a straight edge (the aperture problem) or on a
-        # flat terrace.
-        infos.append(signal_information(tensor, gx.size * sigma**2 / 2.0) / (2.0 * sigma**2))
-        counts.append(gx.size)
-    weaker = min(infos, key=lambda m: float(np.linalg.eigvalsh(m)[0]))
-    _, vecs = np.linalg.eigh(weaker)
-    each = [np.einsum("ij,ik,kj->j", vecs, m, vecs) for m in infos]
-    info: FloatArray = (vecs * np.minimum(*each)) @ vecs.T
-    return info, min(counts)
+    both = np.stack([a[ya, xa], b[yb, xb]])
+    # central differences on the overlap's inner cells (the noise's share below is theirs)
+    gx = 0.5 * (both[:, 1:-1, 2:] - both[:, 1:-1, :-2])
+    gy = 0.5 * (both[:, 2:, 1:-1] - both[:, :-2, 1:-1])
+    g = np.stack([gx, gy], axis=1).reshape(2, 2, -1)  # (2 images, x and y, cells)
+    valid = np.isfinite(g).all(axis=(0, 1))
+    if not valid.all():
+        g = g[:, :, valid]
+    n = int(g.shape[2])
+    tensors = g @ g.transpose(0, 2, 1)
+    # Noise is not texture: a central difference of white noise has variance σ²/2, which would
+    # otherwise claim precision along a straight edge (the aperture problem) or on a flat terrace.
+    infos = psd_part(tensors - n * sigma**2 / 2.0 * np.eye(2)) / (2.0 * sigma**2)
+    vals, vecs = np.linalg.eigh(infos)
+    weaker = vecs[int(np.argmin(vals[:, 0]))]
+    each = np.einsum("ij,mik,kj->mj", weaker, infos, weaker)
+    info: FloatArray = (weaker * each.min(axis=0)) @ weaker.T
+    return info, n
 
 
 def overlap_z_difference(a: FloatArray, b: FloatArray, shift: tuple[int, int]) -> tuple[float, int]:

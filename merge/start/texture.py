@@ -1,18 +1,19 @@
 """The shift along a straight edge, measured on the texture beside it.
 
 Where an overlap holds a straight edge (a grating's step) and a fine texture on the faces beside
-it (its roughness), the texture measures the shift along the edge: the start's information
-counts it (:func:`merge.start.lattice.overlap_information`, its ``texture`` rule). But the
-correlation of heights and slopes that found the peak is the edge's: a roughness of 1.5 nm
-beside a step of 600 nm weighs a ten-thousandth of its score, so along the edge the peak sits
-wherever noise and the overlap's size put it, and that place was then taken as measured (a
-TGX1-like chessboard with 100 nm ramps at the paper's grid, draw 1: a pair 152 nm off along its
-edge with a precision of 2 nm claimed, its patch merged 87 nm off).
+it (its roughness), the texture measures the shift along the edge. But the correlation of
+heights and slopes that found the peak is the edge's: a roughness of 1.5 nm beside a step of
+600 nm weighs a ten-thousandth of its score, so along the edge the peak sits wherever noise and
+the overlap's size put it, and that place was taken as measured wherever the information counted
+the texture (:func:`merge.start.lattice.overlap_information`, its ``texture`` rule) or another
+edge leaked into the overlap (a TGX1-like chessboard with 100 nm ramps at the paper's grid,
+draw 1: a pair 152 nm off along its edge with a precision of 2 nm claimed, its patch merged
+87 nm off).
 
-So that component is measured again on the texture alone: the heights less their smoothing,
-with the edges and a margin about them masked (:func:`texture_image`), correlated near the
-edge's peak (:func:`along_edge`). Where the texture's own peak does not stand out, nothing is
-measured along the edge.
+So along every straight edge (:func:`merge.start.lattice.edge_direction`) the shift is measured
+again on the texture alone: the heights less their smoothing, with the edges and a margin about
+them masked (:func:`texture_image`), correlated near the edge's peak (:func:`along_edge`). Where
+the texture's own peak does not stand out, nothing is measured along the edge.
 """
 
 from __future__ import annotations
@@ -58,8 +59,8 @@ def texture_image(levelled: FloatArray) -> FloatArray:
 
 
 def along_edge(
-    a: FloatArray,
-    b: FloatArray,
+    ta: FloatArray,
+    tb: FloatArray,
     peak: CorrelationPeak,
     direction: FloatArray,
     *,
@@ -70,13 +71,13 @@ def along_edge(
     ambiguity: float,
 ) -> float | None:
     """How far (cells, along the unit ``direction`` (x, y)) the texture's shift lies from the
-    edge's ``peak`` of levelled images ``a`` and ``b``; None where the texture is not a
+    edge's ``peak`` of two levelled images, whose textures (:func:`texture_image`) are ``ta``
+    and ``tb``; None where the texture is not a
     roughness (:data:`ISOTROPIC`) or its correlation peak within ``radius`` cells does not
     count: at the window's border, with peaks within ``ambiguity`` of its score on its own
     ridge (:func:`merge.start.peaks.find_peak`), or scoring below ``accept`` without standing
     ``significance`` robust spreads above chance.
     """
-    ta, tb = texture_image(a), texture_image(b)
     if max(coherence(ta), coherence(tb)) > ISOTROPIC:
         return None
     ncc, count, zero = masked_ncc(ta, tb)

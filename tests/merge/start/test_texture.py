@@ -54,8 +54,8 @@ def test_along_an_edge_the_texture_finds_the_shift_the_edge_left_open(dy: int, s
     a, b = _pair(_field(seed), dy, seed + 10)
     # the edge's peak, at the wrong place along the edge: b[y + s] = a[y] at s = -dy
     moved = along_edge(
-        a,
-        b,
+        texture_image(a),
+        texture_image(b),
         _peak_at((0, 0)),
         ALONG_Y,
         radius=10,
@@ -71,8 +71,8 @@ def test_along_an_edge_the_texture_finds_the_shift_the_edge_left_open(dy: int, s
 def test_a_bare_edge_under_noise_measures_nothing_along_it() -> None:
     a, b = _pair(_field(4, rough=0.0), 6, 14, noise=1e-9)
     moved = along_edge(
-        a,
-        b,
+        texture_image(a),
+        texture_image(b),
         _peak_at((0, 0)),
         ALONG_Y,
         radius=10,
@@ -95,8 +95,8 @@ def test_stripes_a_few_cells_wide_are_structure_not_texture() -> None:
     assert coherence(texture_image(_field(7)[:, :30])) < ISOTROPIC  # roughness beside a step
     diagonal = np.array([1.0, 1.0]) / np.sqrt(2.0)
     moved = along_edge(
-        a,
-        b,
+        texture_image(a),
+        texture_image(b),
         _peak_at((0, 0)),
         diagonal,
         radius=10,
