@@ -135,10 +135,11 @@ class Correlations:
     ridges: dict[int, tuple[tuple[int, int], ...]] = field(default_factory=dict)
     #: the textures of the patches last asked for (:func:`merge.start.texture.texture_image`),
     #: by patch, :data:`TEXTURES` at most: a patch's pairs come one after the other
-    textures: dict[int, FloatArray] = field(default_factory=dict)
+    textures: dict[int, FloatArray | None] = field(default_factory=dict)
 
-    def texture(self, lat: Lattice, c: int) -> FloatArray:
-        """Patch ``c``'s texture, computed once while it is among the last asked for."""
+    def texture(self, lat: Lattice, c: int) -> FloatArray | None:
+        """Patch ``c``'s texture (None: not a roughness), computed once while it is among the
+        last asked for."""
         if c not in self.textures:
             if len(self.textures) >= TEXTURES:
                 del self.textures[next(iter(self.textures))]  # the oldest
@@ -350,17 +351,20 @@ def _accept(
     )
     dy, dx = peak.shift
     if edge is not None:
-        moved = along_edge(
-            corr.texture(lat, a),
-            corr.texture(lat, b),
-            peak,
-            edge,
-            radius=radius,
-            min_overlap=int(lat.least_overlap[i]),
-            accept=MIN_SCORE,
-            significance=SIGNIFICANCE,
-            ambiguity=AMBIGUITY,
-        )
+        ta, tb = corr.texture(lat, a), corr.texture(lat, b)
+        moved = None
+        if ta is not None and tb is not None:
+            moved = along_edge(
+                ta,
+                tb,
+                peak,
+                edge,
+                radius=radius,
+                min_overlap=int(lat.least_overlap[i]),
+                accept=MIN_SCORE,
+                significance=SIGNIFICANCE,
+                ambiguity=AMBIGUITY,
+            )
         across = np.eye(2) - np.outer(edge, edge)
         along = 0.0  # nothing measured along the edge ...
         if moved is not None:  # ... but what its texture measured

@@ -44,10 +44,10 @@ MARGIN = 2
 ISOTROPIC = 0.5
 
 
-def texture_image(levelled: FloatArray) -> FloatArray:
+def texture_image(levelled: FloatArray) -> FloatArray | None:
     """The fine texture of a levelled image (h, w), same units: its heights less their
     smoothing over :data:`SMOOTH` cells, NaN on the edges (:data:`STEEP`, :data:`MARGIN`) and
-    wherever the heights are missing."""
+    wherever the heights are missing; None where that is not a roughness (:data:`ISOTROPIC`)."""
     base = smooth_nan(levelled, SMOOTH)
     gy, gx = np.gradient(base)
     slope = np.hypot(gx, gy)
@@ -55,7 +55,7 @@ def texture_image(levelled: FloatArray) -> FloatArray:
     edge = ~np.isfinite(slope) | (slope > STEEP * typical)
     edge = ndimage.binary_dilation(edge, iterations=MARGIN)
     out: FloatArray = np.where(edge | ~np.isfinite(levelled), np.nan, levelled - base)
-    return out
+    return out if coherence(out) <= ISOTROPIC else None
 
 
 def along_edge(
@@ -72,20 +72,32 @@ def along_edge(
 ) -> float | None:
     """How far (cells, along the unit ``direction`` (x, y)) the texture's shift lies from the
     edge's ``peak`` of two levelled images, whose textures (:func:`texture_image`) are ``ta``
-    and ``tb``; None where the texture is not a
-    roughness (:data:`ISOTROPIC`) or its correlation peak within ``radius`` cells does not
-    count: at the window's border, with peaks within ``ambiguity`` of its score on its own
+    and ``tb``; None where the correlation peak of the textures within ``radius`` cells does
+    not count: at the window's border, with peaks within ``ambiguity`` of its score on its own
     ridge (:func:`merge.start.peaks.find_peak`), or scoring below ``accept`` without standing
     ``significance`` robust spreads above chance.
     """
-    if max(coherence(ta), coherence(tb)) > ISOTROPIC:
+    # correlated on what the search needs (a third of the transforms of the whole images): of
+    # the first texture the cells the edge's peak overlaps, of the second those widened by
+    # the search radius; the crops' shift is the images' plus ``off``
+    dy, dx = peak.integer_shift
+    reach = int(np.ceil(radius)) + 1
+    rows_a = (max(0, -dy), min(ta.shape[0], tb.shape[0] - dy))
+    cols_a = (max(0, -dx), min(ta.shape[1], tb.shape[1] - dx))
+    if rows_a[1] - rows_a[0] < 2 or cols_a[1] - cols_a[0] < 2:
         return None
-    ncc, count, zero = masked_ncc(ta, tb)
+    rows_b = (max(0, rows_a[0] + dy - reach), min(tb.shape[0], rows_a[1] + dy + reach))
+    cols_b = (max(0, cols_a[0] + dx - reach), min(tb.shape[1], cols_a[1] + dx + reach))
+    off = (rows_a[0] - rows_b[0], cols_a[0] - cols_b[0])
+    ncc, count, zero = masked_ncc(
+        ta[rows_a[0] : rows_a[1], cols_a[0] : cols_a[1]],
+        tb[rows_b[0] : rows_b[1], cols_b[0] : cols_b[1]],
+    )
     found = find_peak(
         ncc,
         count,
         zero,
-        expected=(float(peak.integer_shift[0]), float(peak.integer_shift[1])),
+        expected=(float(dy + off[0]), float(dx + off[1])),
         radius=(radius, radius),
         min_overlap=min_overlap,
         ambiguity=ambiguity,
@@ -94,5 +106,7 @@ def along_edge(
         return None
     if found.score < accept and found.excess < significance:
         return None
-    moved = np.array([found.shift[1] - peak.shift[1], found.shift[0] - peak.shift[0]])
+    moved = np.array(
+        [found.shift[1] - off[1] - peak.shift[1], found.shift[0] - off[0] - peak.shift[0]]
+    )
     return float(moved @ direction)
