@@ -133,6 +133,22 @@ def paper_grid(
     )
 
 
+def fine_grating(name: str, surface: Callable[[int], Surface]) -> Case:
+    """A grating as an AFM scans it finely: 4 x 4 patches of 1 µm in 200 x 200 pixels (5 nm),
+    20 % overlap, the typical drift (no paper method: 640 000 down-sampled points)."""
+    return Case(
+        name,
+        surface,
+        rows=4,
+        cols=4,
+        patch_size=(1e-6, 1e-6),
+        pixels=(200, 200),
+        overlap=(0.2, 0.2),
+        drift=DriftModel.typical(),
+        methods=("default", "zlevel", "nominal"),
+    )
+
+
 CASES = [
     paper_grid("tgx1", lambda seed: Chessboard(seed=seed), DriftModel.typical()),
     paper_grid("folded", lambda seed: FoldedSurface(seed=seed), DriftModel.typical()),
@@ -164,20 +180,8 @@ CASES = [
         start=(0.3e-6, 0.3e-6),
         textured=False,
     ),
-    # TGX1 as an AFM scans it finely: 1 µm patches of 200 x 200 pixels (5 nm), 20 % overlap;
-    # the flat faces' 25 nm roughness is all some overlaps hold (no paper method: 640 000
-    # down-sampled points)
-    Case(
-        "tgx1-1um",
-        lambda seed: Chessboard(seed=seed),
-        rows=4,
-        cols=4,
-        patch_size=(1e-6, 1e-6),
-        pixels=(200, 200),
-        overlap=(0.2, 0.2),
-        drift=DriftModel.typical(),
-        methods=("default", "zlevel", "nominal"),
-    ),
+    # TGX1 scanned finely: the flat faces' 25 nm roughness is all some overlaps hold
+    fine_grating("tgx1-1um", lambda seed: Chessboard(seed=seed)),
     Case(
         "grid20x20",
         lambda seed: FoldedSurface(seed=seed + 2),
@@ -201,8 +205,8 @@ GEOMETRIES = ("paper", "1um")
 
 
 def grating_case(ramp: float, period: float, step: float, geometry: str) -> Case:
-    """A TGX1-like chessboard of the sweep at the paper's grid or in 1 µm patches of 200 x 200
-    px at 20 % overlap (as ``tgx1-1um``), the typical drift."""
+    """A TGX1-like chessboard of the sweep at the paper's grid (:func:`paper_grid`) or in 1 µm
+    patches (:func:`fine_grating`), the typical drift."""
     name = f"{geometry}-r{ramp * 1e9:.0f}-p{period * 1e6:g}-s{step * 1e6:g}"
 
     def surface(seed: int) -> Surface:
@@ -213,17 +217,7 @@ def grating_case(ramp: float, period: float, step: float, geometry: str) -> Case
             paper_grid(name, surface, DriftModel.typical()), methods=("default",)
         )
     if geometry == "1um":
-        return Case(
-            name,
-            surface,
-            rows=4,
-            cols=4,
-            patch_size=(1e-6, 1e-6),
-            pixels=(200, 200),
-            overlap=(0.2, 0.2),
-            drift=DriftModel.typical(),
-            methods=("default",),
-        )
+        return dataclasses.replace(fine_grating(name, surface), methods=("default",))
     raise ValueError(f"unknown geometry {geometry!r}: use one of {', '.join(GEOMETRIES)}")
 
 

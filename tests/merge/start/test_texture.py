@@ -35,6 +35,22 @@ def _texture(image: np.ndarray) -> np.ndarray:
     return tex
 
 
+def _along_y(a: np.ndarray, b: np.ndarray) -> float | None:
+    """:func:`along_edge` of images ``a`` and ``b`` along y from a peak at (0, 0), by the
+    start's rules."""
+    return along_edge(
+        _texture(a),
+        _texture(b),
+        _peak_at((0, 0)),
+        ALONG_Y,
+        radius=10,
+        min_overlap=200,
+        accept=0.3,
+        significance=3.0,
+        ambiguity=0.1,
+    )
+
+
 def _peak_at(shift: tuple[int, int]) -> CorrelationPeak:
     return CorrelationPeak(
         shift=(float(shift[0]), float(shift[1])),
@@ -59,35 +75,14 @@ def test_the_texture_is_the_roughness_with_the_step_masked() -> None:
 def test_along_an_edge_the_texture_finds_the_shift_the_edge_left_open(dy: int, seed: int) -> None:
     a, b = _pair(_field(seed), dy, seed + 10)
     # the edge's peak, at the wrong place along the edge: b[y + s] = a[y] at s = -dy
-    moved = along_edge(
-        _texture(a),
-        _texture(b),
-        _peak_at((0, 0)),
-        ALONG_Y,
-        radius=10,
-        min_overlap=200,
-        accept=0.3,
-        significance=3.0,
-        ambiguity=0.1,
-    )
+    moved = _along_y(a, b)
     assert moved is not None
     assert moved == pytest.approx(-dy, abs=0.3)
 
 
 def test_a_bare_edge_under_noise_measures_nothing_along_it() -> None:
     a, b = _pair(_field(4, rough=0.0), 6, 14, noise=1e-9)
-    moved = along_edge(
-        _texture(a),
-        _texture(b),
-        _peak_at((0, 0)),
-        ALONG_Y,
-        radius=10,
-        min_overlap=200,
-        accept=0.3,
-        significance=3.0,
-        ambiguity=0.1,
-    )
-    assert moved is None
+    assert _along_y(a, b) is None
 
 
 def test_stripes_a_few_cells_wide_are_structure_not_texture() -> None:
