@@ -8,11 +8,12 @@ rows).
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 
 import numpy as np
 from numpy.typing import NDArray
 
+from merge.core.progress import checkpoint
 from merge.core.transforms import PatchTransform
 
 FloatArray = NDArray[np.float64]
@@ -52,30 +53,40 @@ def overlapping_pairs(boxes: FloatArray, *, margin: float = 0.0) -> IntArray:
     half = 0.5 * (b[:, 2:] - b[:, :2])
     reach = 2.0 * float(np.hypot(half[:, 0], half[:, 1]).max()) + 2.0 * margin
     axis = int(np.argmax(np.ptp(centres, axis=0)))
-    a, c = _within_reach(centres[:, axis], reach * (1.0 + 1e-9))
-    if len(a) == 0:
+    found = []
+    for a, c in _within_reach(centres[:, axis], reach * (1.0 + 1e-9)):
+        checkpoint()  # 10,000 patches have millions of candidates: a cancel stops between chunks
+        lo = np.maximum(b[a, :2], b[c, :2]) - margin
+        hi = np.minimum(b[a, 2:], b[c, 2:]) + margin
+        found.append(np.column_stack([a, c])[np.all(hi > lo, axis=1)])
+    if not found:
         return np.empty((0, 2), dtype=np.intp)
-    cand = np.column_stack([a, c])
-    lo = np.maximum(b[a, :2], b[c, :2]) - margin
-    hi = np.minimum(b[a, 2:], b[c, 2:]) + margin
-    keep = np.all(hi > lo, axis=1)
-    pairs = np.sort(cand[keep], axis=1)
+    pairs = np.sort(np.concatenate(found), axis=1)
     order = np.lexsort((pairs[:, 1], pairs[:, 0]))
     out: IntArray = pairs[order].astype(np.intp)
     return out
 
 
-def _within_reach(x: FloatArray, reach: float) -> tuple[IntArray, IntArray]:
+#: Patches whose candidates :func:`_within_reach` yields at a time.
+CHUNK = 1024
+
+
+def _within_reach(x: FloatArray, reach: float) -> Iterator[tuple[IntArray, IntArray]]:
     """Every pair ``(a[k], c[k])``, ``a != c``, once, whose ``x`` (n,) differ by at most
-    ``reach``."""
+    ``reach``, in chunks of the pairs of :data:`CHUNK` patches."""
     order = np.argsort(x, kind="stable")
     xs = x[order]
     n = len(xs)
     count = np.searchsorted(xs, xs + reach, side="right") - np.arange(n) - 1
-    first = np.repeat(np.arange(n), count)
-    # the k-th partner of a patch is the k-th after it in sorted order
-    step = np.arange(int(count.sum())) - np.repeat(np.cumsum(count) - count, count)
-    return order[first], order[first + 1 + step]
+    for lo in range(0, n, CHUNK):
+        hi = min(n, lo + CHUNK)
+        part = count[lo:hi]
+        if not part.sum():
+            continue
+        first = np.repeat(np.arange(lo, hi), part)
+        # the k-th partner of a patch is the k-th after it in sorted order
+        step = np.arange(int(part.sum())) - np.repeat(np.cumsum(part) - part, part)
+        yield order[first], order[first + 1 + step]
 
 
 def overlap_groups(pairs: IntArray, n: int) -> IntArray:

@@ -96,6 +96,8 @@ class Tracker:
 
     def tell(self, *, force: bool = False) -> None:
         now = self.clock()
+        if not self.stage:  # a look for a cancel before the first stage: nothing done to tell
+            return
         if self.report is not None and (force or now - self.last >= REPORT_EVERY):
             self.last = now
             self.report(Status(self.stage, self.detail, self.fraction(), now - self.began))

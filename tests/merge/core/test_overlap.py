@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from merge.core import overlap as overlap_module
 from merge.core.overlap import overlap_groups, overlapping_pairs
 
 
@@ -52,3 +54,14 @@ def test_groups_are_what_the_pairs_tie_together_through_others() -> None:
     assert label[3] == label[4] != label[0]
     assert len(set(label.tolist())) == 3 and label[5] not in label[:5]
     assert overlap_groups(np.empty((0, 2), dtype=np.intp), 3).tolist() == [0, 1, 2]
+
+
+def test_chunks_of_candidates_find_the_same_pairs(monkeypatch: pytest.MonkeyPatch) -> None:
+    # a large mosaic's candidates come a chunk of patches at a time (a cancel is heard between)
+    rng = np.random.default_rng(7)
+    lo = rng.uniform(0.0, 6.0, (30, 2))
+    boxes = np.column_stack([lo, lo + rng.uniform(0.2, 1.5, (30, 2))])
+    whole = overlapping_pairs(boxes, margin=0.1)
+    monkeypatch.setattr(overlap_module, "CHUNK", 4)
+    assert overlapping_pairs(boxes, margin=0.1).tolist() == whole.tolist()
+    assert whole.tolist() == _every_pair(boxes, 0.1)
