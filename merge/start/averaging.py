@@ -114,15 +114,17 @@ def averaged_on_lattice(
         )
         grids = [untilted(g, t, p.center) for g, t, p in zip(grids, tilt, patches, strict=True)]
     levelled = remove_common_plane(grids)
-    noise, textured = np.empty(n), np.empty(n, dtype=bool)
-    channels = []
-    for c, (g, lv) in enumerate(zip(grids, levelled, strict=True)):
+    noise = np.empty(n)
+    for c, g in enumerate(grids):
         checkpoint()  # 10,000 patches take seconds
         noise[c] = estimate_noise(g.heights)
-        sigma_c = noise[c] if np.isfinite(noise[c]) and noise[c] > 0 else 1e-12
-        textured[c] = texture(lv) > MIN_TEXTURE * sigma_c
-        channels.append(correlated_channels(lv))
     sigma = np.where(np.isfinite(noise) & (noise > 0), noise, 1e-12)
+    textured = np.empty(n, dtype=bool)
+    channels = []
+    for c, lv in enumerate(levelled):
+        checkpoint()
+        textured[c] = texture(lv) > MIN_TEXTURE * sigma[c]
+        channels.append(correlated_channels(lv))
     return Lattice(
         cell,
         pairs,

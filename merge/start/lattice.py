@@ -174,8 +174,10 @@ def overlap_measurement(
     aperture: float,
     texture: float = np.inf,
 ) -> tuple[FloatArray, FloatArray | None]:
-    """:func:`overlap_information` and :func:`edge_direction` of one overlap (same arguments),
-    its structure found once."""
+    """:func:`overlap_information` of one overlap (same arguments), and the unit direction
+    (x, y) along a straight edge in it, or None: no edge, or structure both ways. An edge is a
+    direction with less than ``aperture`` of the information across it, which is at least
+    ``aperture`` of the cap ``1 / precision²``. The structure is found once for both."""
     found = _structure_information(a, b, shift, sigma)
     return _counted(found, precision, aperture, texture), _edge(found, precision, aperture)
 
@@ -200,26 +202,10 @@ def _counted(
     return out
 
 
-def edge_direction(
-    a: FloatArray,
-    b: FloatArray,
-    shift: tuple[int, int],
-    sigma: float,
-    *,
-    precision: float,
-    aperture: float,
-) -> FloatArray | None:
-    """The unit direction (x, y) along a straight edge of the overlap (its information below
-    ``aperture`` of that across it, which is at least ``aperture`` of the cap ``1 /
-    precision²``; same arguments as :func:`overlap_information`), or None: no edge, or
-    structure both ways."""
-    return _edge(_structure_information(a, b, shift, sigma), precision, aperture)
-
-
 def _edge(
     found: tuple[FloatArray, int] | None, precision: float, aperture: float
 ) -> FloatArray | None:
-    """What :func:`edge_direction` finds in an overlap's structure (``found``)."""
+    """The edge :func:`overlap_measurement` finds in an overlap's structure (``found``)."""
     if found is None:
         return None
     vals, vecs = np.linalg.eigh(found[0])

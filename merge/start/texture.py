@@ -10,7 +10,7 @@ edge leaked into the overlap (a TGX1-like chessboard with 100 nm ramps at the pa
 draw 1: a pair 152 nm off along its edge with a precision of 2 nm claimed, its patch merged
 87 nm off).
 
-So along every straight edge (:func:`merge.start.lattice.edge_direction`) the shift is measured
+So along every straight edge (:func:`merge.start.lattice.overlap_measurement`) the shift is measured
 again on the texture alone: the heights less their smoothing, with the edges and a margin about
 them masked (:func:`texture_image`), correlated near the edge's peak (:func:`along_edge`). Where
 the texture's own peak does not stand out, nothing is measured along the edge.

@@ -11,9 +11,9 @@ from merge.core.downsample import GridSample
 from merge.start.lattice import (
     coherence,
     correlated_channels,
-    edge_direction,
     fill_empty_lines,
     overlap_information,
+    overlap_measurement,
     overlap_z_difference,
     remove_common_plane,
     texture,
@@ -140,7 +140,7 @@ def test_an_edge_only_one_image_holds_in_the_overlap_measures_nothing() -> None:
     assert np.linalg.eigvalsh(one_sided).min() > 1.0  # a alone: both directions
     info = overlap_information(a, b, (0, 0), 1e-9, **kw)
     assert info[1, 1] < 1e-3 and info[0, 0] == pytest.approx(100.0)  # nothing along y
-    edge = edge_direction(a, b, (0, 0), 1e-9, **kw)
+    edge = overlap_measurement(a, b, (0, 0), 1e-9, **kw)[1]
     assert edge is not None and abs(edge[1]) == pytest.approx(1.0, abs=1e-3)  # along y
 
 
@@ -148,6 +148,6 @@ def test_structure_both_ways_or_none_has_no_edge_direction() -> None:
     rng = np.random.default_rng(4)
     rough = gaussian_filter(rng.normal(0.0, 5e-9, (30, 40)), 1.0)
     kw = {"precision": 0.1, "aperture": 0.01}
-    assert edge_direction(rough, rough, (1, 2), 1e-10, **kw) is None
+    assert overlap_measurement(rough, rough, (1, 2), 1e-10, **kw)[1] is None
     flat = rng.normal(0.0, 1e-9, (30, 40))
-    assert edge_direction(flat, flat, (1, 2), 1e-9, **kw) is None
+    assert overlap_measurement(flat, flat, (1, 2), 1e-9, **kw)[1] is None
