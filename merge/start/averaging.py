@@ -147,6 +147,7 @@ def _nominal_overlaps(
     along either axis."""
     out = np.zeros(len(pairs))
     for i in range(len(pairs)):
+        checkpoint()
         a, b = int(pairs[i, 0]), int(pairs[i, 1])
         ha, wa = grids[a].heights.shape
         hb, wb = grids[b].heights.shape

@@ -18,6 +18,7 @@ from numpy.typing import NDArray
 from merge.core.downsample import GridSample
 from merge.core.heightfield import smooth_nan
 from merge.core.information import psd_part
+from merge.core.progress import checkpoint
 
 FloatArray = NDArray[np.float64]
 
@@ -30,6 +31,7 @@ def remove_common_plane(grids: Sequence[GridSample]) -> list[FloatArray]:
     """
     sxx = sxy = syy = sxz = syz = 0.0
     for g in grids:
+        checkpoint()  # 10,000 patches: a second for both loops
         yy, xx = np.meshgrid(g.y, g.x, indexing="ij")
         ok = np.isfinite(g.heights)
         if ok.sum() < 3:
@@ -48,6 +50,7 @@ def remove_common_plane(grids: Sequence[GridSample]) -> list[FloatArray]:
     a, b = ((syy * sxz - sxy * syz) / det, (sxx * syz - sxy * sxz) / det) if det > 0 else (0, 0)
     out = []
     for g in grids:
+        checkpoint()
         yy, xx = np.meshgrid(g.y, g.x, indexing="ij")
         out.append(g.heights - a * xx - b * yy)
     return out
