@@ -121,6 +121,8 @@ class Correlations:
     xy_m : (k, 2) each pair's XY shift off nominal, metres (x, y).
     xy_w : (k, 2, 2) its information, 1 / m² (zero: not measured).
     score : (k,) its peak's NCC (NaN: none accepted).
+    excess : (k,) how far that peak stands above the best chance gives in its window
+        (:attr:`merge.start.peaks.CorrelationPeak.excess`; NaN: none accepted).
     maps : the NCC maps computed, by pair (the second pass and the placements reuse them).
     ridges : per pair, the offsets (dy, dx) of the peaks the first pass found as likely as its
         own on its ridge (:attr:`merge.start.peaks.CorrelationPeak.ridge`), if any.
@@ -129,6 +131,7 @@ class Correlations:
     xy_m: FloatArray
     xy_w: FloatArray
     score: FloatArray
+    excess: FloatArray
     maps: dict[int, tuple[FloatArray, FloatArray, tuple[int, int]]]
     #: bytes the maps hold (:data:`MAP_CACHE_BYTES` at most)
     held: int = 0
@@ -149,7 +152,9 @@ class Correlations:
     @classmethod
     def empty(cls, k: int) -> Correlations:
         """Nothing measured yet, for ``k`` pairs."""
-        return cls(np.zeros((k, 2)), np.zeros((k, 2, 2)), np.full(k, np.nan), {})
+        return cls(
+            np.zeros((k, 2)), np.zeros((k, 2, 2)), np.full(k, np.nan), np.full(k, np.nan), {}
+        )
 
     def keep(self, i: int, m: tuple[FloatArray, FloatArray, tuple[int, int]]) -> None:
         """Keep pair ``i``'s NCC map for the later passes, while the cache has room."""
@@ -215,7 +220,7 @@ def _xy_offsets(
     # every patch's stage error is a priori within about half the searched range
     xy_prior = 1.0 / (0.5 * max_shift) ** 2
     _first_pass(lat, corr, radius)
-    drop_odd_scores(corr.score, corr.xy_w)
+    drop_odd_scores(corr.score, corr.xy_w, excess=corr.excess, significance=SIGNIFICANCE)
     sol = solve_pair_differences(n, pairs, corr.xy_m, corr.xy_w, prior=xy_prior)
     unmeasured = np.trace(corr.xy_w, axis1=1, axis2=2) == 0
     doubtful = unmeasured | (sol.robust < DOUBT)
@@ -338,7 +343,7 @@ def _accept(
     if peak.score < MIN_SCORE and peak.excess < SIGNIFICANCE:
         return
     cell = lat.cell
-    corr.score[i] = peak.score
+    corr.score[i], corr.excess[i] = peak.score, peak.excess
     s_pair = float(np.hypot(lat.sigma[a], lat.sigma[b]) / np.sqrt(2.0))
     info, edge = overlap_measurement(
         lat.levelled[a],

@@ -31,6 +31,18 @@ def test_a_peak_far_below_the_usual_score_is_not_a_measurement() -> None:
     assert all(w[i].any() for i in range(9)) and w[10].any()  # unmatched pairs are left alone
 
 
+def test_a_low_score_that_stands_out_of_its_window_is_kept() -> None:
+    # a grating: pairs holding an edge score 0.95-0.99; one holds only a face's roughness,
+    # which scores 0.5 but stands 5.5 spreads above the chance peaks of its own window
+    score = np.array([0.97, 0.96, 0.98, 0.99, 0.95, 0.97, 0.98, 0.96, 0.97, 0.50, 0.52])
+    excess = np.array([9.0] * 9 + [5.5, 1.0])
+    w = _weights(len(score))
+    drop_odd_scores(score, w, excess=excess, significance=3.0)
+    assert w[9].any()  # a real peak
+    assert not w[10].any()  # as likely as chance: dropped
+    assert all(w[i].any() for i in range(9))
+
+
 def test_scores_that_vary_widely_drop_nothing() -> None:
     # a sparse grating: peaks from 0.6 (roughness along an edge) to 0.99 (corners) are all real
     score = np.linspace(0.6, 0.99, 12)
