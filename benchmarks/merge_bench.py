@@ -59,7 +59,7 @@ from backend.synthetic import (
 from hardware.sim.drift import DriftModel
 from hardware.sim.surfaces import Chessboard, FoldedSurface, ImageSurface, Surface
 from hardware.sim.synth import SynthPatch, scan_fraction, synthesize
-from merge import Patch, PatchTransform, read_result, render_mosaic, write_patch_set
+from merge import Mosaic, Patch, PatchTransform, read_result, render_mosaic, write_patch_set
 
 FloatArray = NDArray[np.float64]
 ROOT = Path(__file__).resolve().parents[1]
@@ -273,8 +273,9 @@ def map_error(
     return float(np.sqrt(np.mean(d**2)))
 
 
-def floor_of(synth: list[SynthPatch], surface: Surface) -> float:
-    """Map error (m) of the true transforms through the same renderer: drift-free heights."""
+def true_mosaic(synth: list[SynthPatch]) -> Mosaic:
+    """The drift-free heights through the true transforms and the merge's own renderer: what
+    a merge that found every transform exactly would draw."""
     true_tr = [PatchTransform(s.rotation, s.translation) for s in synth]
     # the true rotations have no tilt, so the drift-free heights go through (R, t) exactly
     fixed = [
@@ -286,7 +287,12 @@ def floor_of(synth: list[SynthPatch], surface: Surface) -> float:
         )
         for s in synth
     ]
-    mosaic = render_mosaic(fixed, true_tr)
+    return render_mosaic(fixed, true_tr)
+
+
+def floor_of(synth: list[SynthPatch], surface: Surface) -> float:
+    """Map error (m) of the true transforms through the same renderer (:func:`true_mosaic`)."""
+    mosaic = true_mosaic(synth)
     return map_error(
         mosaic.heights, mosaic.origin, mosaic.pixel_size, surface, np.eye(3), np.zeros(3)
     )

@@ -13,7 +13,8 @@ is the merge's bytes per input pixel (target <= 60); ``B/px all`` counts the fix
 registration error (every measured point against its true place, after the one global rigid
 motion of the gauge; every 4th point along both axes from 1,600 patches up) and map error (the
 mosaic against the true surface, same gauge; every few mosaic pixels on the large ones), and
-the floor (the map error of the true transforms through the same renderer). The time of each
+the floor (the map error of the true transforms through the same renderer, scored the same
+way; ``map/floor`` their ratio: 1 is a merge that found every transform exactly). The time of each
 size against that of 400 patches, beside the ratio of patches, says whether the time is
 linear (equal ratios). ``cancel s`` is how long a cancel could wait: the merge is handed a
 cancel that never fires, and the longest time between two of its looks is timed (start to
@@ -38,7 +39,7 @@ from typing import Any
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from merge_bench import floor_of  # a script beside this one
+from merge_bench import true_mosaic  # a script beside this one
 
 ROOT = Path(__file__).resolve().parents[1]
 #: Patch side, metres, and overlap of every case (the issue's measurements).
@@ -208,8 +209,17 @@ def one_size(side: int, pixels: int, work: Path) -> dict[str, Any]:
     origin = (float(doc["origin"][0]), float(doc["origin"][1]))
     pixel = (float(doc["pixel_size"][0]), float(doc["pixel_size"][1]))
     merr = map_error(heights, origin, pixel, surface, G, g, stride=stride)
-    # the floor at full resolution, where it fits beside the mosaic
-    floor = floor_of(synth, surface) if n <= 1600 else float("nan")
+    del heights  # the floor's mosaic is drawn next: one at a time
+    truth = true_mosaic(synth)
+    floor = map_error(
+        truth.heights,
+        truth.origin,
+        truth.pixel_size,
+        surface,
+        np.eye(3),
+        np.zeros(3),
+        stride=stride,
+    )
     input_pixels = n * pixels * pixels
     return {
         "patches": n,
@@ -256,6 +266,7 @@ def main(argv: list[str] | None = None) -> int:
     print(
         f"{'patches':>8}{'px':>5}{'wall s':>9}{'iter':>6}{'peak GB':>9}{'B/px':>7}"
         f"{'B/px all':>9}{'fixed MB':>9}{'XY nm':>8}{'Z nm':>7}{'map nm':>8}{'floor':>7}"
+        f"{'map/floor':>10}"
         f"{'t/t400':>8}{'n/n400':>8}{'cancel s':>9}"
     )
     with tempfile.TemporaryDirectory() as tmp:
@@ -271,6 +282,7 @@ def main(argv: list[str] | None = None) -> int:
                 f"{r['peak_gb']:>9.2f}{r['bytes_per_pixel']:>7.0f}"
                 f"{r['bytes_per_pixel_all']:>9.0f}{r['fixed_mb']:>9.0f}{r['reg_xy_nm']:>8.2f}"
                 f"{r['reg_z_nm']:>7.2f}{r['map_nm']:>8.2f}{r['floor_nm']:>7.2f}"
+                f"{r['map_nm'] / r['floor_nm']:>10.3f}"
                 f"{ratio:>8.2f}{r['patch_ratio_400']:>8.2f}{r['cancel_wait_s']:>9.2f}",
                 flush=True,
             )
