@@ -193,6 +193,34 @@ class SurfaceBank:
         ok = inside & np.isfinite(h) & np.isfinite(gx) & np.isfinite(gy)
         return h, gx, gy, ok
 
+    def near_border(self, dst: Ints, p_local: FloatArray) -> NDArray[np.bool_]:
+        """(m,) whether the look-up of local point ``i`` on patch ``dst[i]`` falls within a pixel
+        of its border. There the slopes come from the nodes the continuation beyond the border
+        made of the border pixels (one-sided differences), so their noise is the looked-up
+        height's own."""
+        u = (p_local[:, 0] + self.half[dst, 0]) / self.dx[dst]
+        v = (p_local[:, 1] + self.half[dst, 1]) / self.dy[dst]
+        out: NDArray[np.bool_] = (
+            (u < 1.0) | (v < 1.0) | (u > self.nx[dst] - 2.0) | (v > self.ny[dst] - 2.0)
+        )
+        return out
+
+    def point_slopes(self, rows: RowBlock, at: IntArray) -> FloatArray:
+        """(len(at), 2) the slopes (dz/dx, dz/dy, in its source's frame) at the points of rows
+        ``at``: central differences a pixel either side, as the look-ups take them, which share
+        no noise with the point's own height. NaN on the source's border pixels (one-sided
+        there, so they do) and next to a hole."""
+        c, row, col = rows.src[at], rows.row[at], rows.col[at]
+        node = self.origin[c] + self.nodes * (row * self.grid_nx[c] + col)
+        a, m, line = self.height, self.nodes, self.nodes * self.grid_nx[c]
+        out = np.empty((len(at), 2))
+        out[:, 0] = a.take(node + m).astype(np.float64) - a.take(node - m)
+        out[:, 1] = a.take(node + line).astype(np.float64) - a.take(node - line)
+        out /= 2.0 * np.column_stack([self.dx[c], self.dy[c]])
+        border = (row == 0) | (col == 0) | (row == self.ny[c] - 1) | (col == self.nx[c] - 1)
+        out[border] = np.nan
+        return out
+
     def grid(self, c: int) -> NDArray[np.float32]:
         """Patch ``c``'s stored nodes (rows, :attr:`grid_nx`), a pixel's worth beyond every border
         included (a view, float32)."""

@@ -60,6 +60,19 @@ def residuals(
     points with one small matrix product. The residual is the height of the source point above
     the destination's surface and drift plane; its gradient with respect to the mosaic position
     is the destination's normal ``(-slope_x, -slope_y, 1)``. A point in a hole is not valid.
+
+    On the raw heights, within a pixel of the destination's border the slopes are the source's
+    own at its point, taken into the destination's frame (:func:`slopes_in_destination`). The
+    destination's there come from its continuation beyond the border: one-sided differences
+    that share the
+    border pixel's noise with the looked-up height (their product with the residual averages
+    the noise's variance, not zero), and a slope correlated with its residual biases every
+    step. Both ways of a pair have such a band, and their biases add. The source's slopes at
+    its own border pixels are one-sided too, and are not used: taken everywhere, border
+    included, they put 1 µm grating patches 0.78 nm off in XY (median of 4 draws; 0.32 with
+    the destination's everywhere, 0.27 with the source's within the band). The coarse levels
+    only bring patches near, on smoothed heights: the band there changed no result and cost
+    400 patches an iteration.
     """
     starts = rows.starts
     a, b = rows.src[starts[:-1]], rows.dst[starts[:-1]]
@@ -77,8 +90,31 @@ def residuals(
     slope = state.slope[rows.dst]
     r = np.where(ok, p_dst[:, 2] - np.einsum("mi,mi->m", slope, p_dst[:, :2]) - h, 0.0)
     grad = np.column_stack([gx, gy]) + slope
+    if bank.nodes > 1:  # the raw heights' spline (the band, above)
+        near = np.flatnonzero(ok & bank.near_border(rows.dst, p_dst))
+        run = np.searchsorted(starts, near, side="right") - 1
+        own = slopes_in_destination(bank.point_slopes(rows, near), M[run])
+        known = np.isfinite(own).all(axis=1)
+        grad[near[known]] = own[known]
     grad[~ok] = 0.0
     return r, ok, grad
+
+
+def slopes_in_destination(g: FloatArray, M: FloatArray) -> FloatArray:
+    """(m, 2) slopes ``g`` (m, 2) of source surfaces in their own frames, as slopes in the
+    destination's frames (drift plane included) through the maps ``M`` (m, 3, 3) of
+    :func:`_run_maps`: a surface step ``(dx, dy, g · (dx, dy))`` maps to ``M`` times it, so the
+    slope there is ``dz' (d(x', y') / d(x, y))⁻¹``."""
+    gx, gy = g[:, 0], g[:, 1]
+    j11 = M[:, 0, 0] + M[:, 0, 2] * gx
+    j12 = M[:, 0, 1] + M[:, 0, 2] * gy
+    j21 = M[:, 1, 0] + M[:, 1, 2] * gx
+    j22 = M[:, 1, 1] + M[:, 1, 2] * gy
+    zx = M[:, 2, 0] + M[:, 2, 2] * gx
+    zy = M[:, 2, 1] + M[:, 2, 2] * gy
+    det = j11 * j22 - j12 * j21
+    out: FloatArray = np.column_stack([zx * j22 - zy * j21, zy * j11 - zx * j12]) / det[:, None]
+    return out
 
 
 def lever_arms(points: FloatArray, rows: RowBlock, state: PatchState) -> FloatArray:
