@@ -56,16 +56,31 @@ def _placed(
 def _gauge(
     placed: list[tuple[FloatArray, FloatArray]],
 ) -> tuple[FloatArray, FloatArray, tuple[FloatArray, FloatArray]]:
-    """All placed and true points, and the global rigid transform that fits them best."""
+    """All placed and true points, and the gauge that fits them best: ``q = G p + g``.
+
+    The gauge is what no overlap can see: a rigid motion in XY, and in Z an offset and a plane
+    common to all patches. Drift planes are measured only against each other, so a merge levels
+    its mosaic up to that plane (it leaves the patches' mean plane at zero; the truth has its
+    drifts' mean). A 3-D rotation in its place tilts the mosaic to follow the plane and moves
+    every point sideways by the tilt times its height: a 4 x 4 mosaic of 1 µm patches (16
+    drifts: 1.4 mrad) on a grating 0.6 µm tall scored 0.38 nm of XY error where its points were
+    0.11 nm off.
+    """
     P, Q = np.concatenate([p for p, _ in placed]), np.concatenate([q for _, q in placed])
-    return P, Q, weighted_rigid_transform(P, Q)
+    R, t = weighted_rigid_transform(P[:, :2], Q[:, :2])
+    mid = P[:, :2].mean(axis=0)
+    A = np.column_stack([P[:, :2] - mid, np.ones(len(P))])
+    (a, b, c), *_ = np.linalg.lstsq(A, Q[:, 2] - P[:, 2], rcond=None)
+    G = np.eye(3)
+    G[:2, :2], G[2, :2] = R, (a, b)
+    return P, Q, (G, np.array([t[0], t[1], c - a * mid[0] - b * mid[1]]))
 
 
 def registration_error(
     synth: Sequence[SynthPatch], transforms: Sequence[PatchTransform], *, stride: int = 1
 ) -> tuple[float, float, tuple[FloatArray, FloatArray]]:
-    """RMS XY and Z error (metres) of where the merge puts every measured point, after the one
-    global rigid transform that fits best (the gauge), and that transform ``(G, g)``.
+    """RMS XY and Z error (metres) of where the merge puts every measured point, after the
+    gauge that fits best (:func:`_gauge`), and that gauge ``(G, g)``.
     ``stride``: every so many points along both axes of a patch (large mosaics)."""
     if stride < 1:
         raise ValueError(f"stride must be a positive integer, got {stride}")
@@ -77,7 +92,7 @@ def registration_error(
 
 def patch_errors(synth: Sequence[SynthPatch], transforms: Sequence[PatchTransform]) -> FloatArray:
     """Mean error (n, 3), metres, of where the merge puts each patch's points, after the global
-    rigid transform of :func:`registration_error`: what each patch's sigmas should cover."""
+    gauge of :func:`registration_error`: what each patch's sigmas should cover."""
     placed = _placed(synth, transforms)
     _, _, (G, g) = _gauge(placed)
     out: FloatArray = np.array([(p @ G.T + g - q).mean(axis=0) for p, q in placed])

@@ -4,8 +4,8 @@ Every case writes a patch set with its truth, runs the real CLI (``mosaic-afm me
 method and scores the result:
 
 * registration error: RMS over all patch points of the difference between where the merge puts
-  each point and where it truly is, XY and Z apart, after removing the one global rigid transform
-  that fits best (the gauge);
+  each point and where it truly is, XY and Z apart, after removing the gauge that fits best (what
+  no overlap sees: a rigid motion in XY, and a Z offset and plane common to all patches);
 * map error: RMS of the mosaic against the true surface (after the same global transform), and
   the floor — the true transforms through the same renderer — for comparison;
 * wall time and peak memory of the CLI process.

@@ -10,15 +10,15 @@ merges the mosaic, that process merges four patches: what any merging process ho
 fixed cost, ``fixed MB``) is then in its resident memory. The peak over that, per input pixel,
 is the merge's bytes per input pixel (target <= 60); ``B/px all`` counts the fixed cost too
 (the peak over the memory after the imports). The result is scored against the truth:
-registration error (every measured point against its true place, after the one global rigid
-motion of the gauge; every 4th point along both axes from 1,600 patches up) and map error (the
-mosaic against the true surface, same gauge; every few mosaic pixels on the large ones), and
-the floor (the map error of the true transforms through the same renderer, scored the same
-way; ``map/floor`` their ratio: 1 is a merge that found every transform exactly). The time of each
-size against that of 400 patches, beside the ratio of patches, says whether the time is
-linear (equal ratios). ``cancel s`` is how long a cancel could wait: the merge is handed a
-cancel that never fires, and the longest time between two of its looks is timed (start to
-the first look and the last look to the end included).
+registration error (every measured point against its true place, after the gauge: a rigid
+motion in XY, a Z offset and plane; every 4th point along both axes from 1,600 patches up) and
+map error (the mosaic against the true surface, same gauge; every few mosaic pixels on the
+large ones), and the floor (the map error of the true transforms through the same renderer,
+scored the same way; ``map/floor`` their ratio: 1 is a merge that found every transform
+exactly). The time of each size against that of 400 patches, beside the ratio of patches, says
+whether the time is linear (equal ratios). ``cancel s`` is how long a cancel could wait: the
+merge is handed a cancel that never fires, and the longest time between two of its looks is
+timed (start to the first look and the last look to the end included).
 
 Prints a table and writes JSON (``--json``, default ``benchmarks/results/merge_scale.json``).
 Run: ``python benchmarks/merge_scale.py [--sides 10,20,30,40] [--large] [--big]``

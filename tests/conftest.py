@@ -34,7 +34,7 @@ class Synthetic:
     surface: Surface
 
     def registration_error(self, transforms: list[PatchTransform]) -> tuple[float, float]:
-        """RMS XY and Z error (m) over all points after the best global rigid transform."""
+        """RMS XY and Z error (m) over all points after the gauge that fits best."""
         exy, ez, _ = registration_error(self.synth, transforms)
         return exy, ez
 

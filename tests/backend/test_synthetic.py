@@ -40,3 +40,29 @@ def test_a_stride_samples_the_same_error(small_mosaic: Synthetic) -> None:
 def test_a_stride_must_be_positive(small_mosaic: Synthetic) -> None:
     with pytest.raises(ValueError, match="stride must be a positive integer"):
         registration_error(small_mosaic.synth, [PatchTransform()] * 6, stride=0)
+
+
+def _exact(small_mosaic: Synthetic, plane: tuple[float, float]) -> list[PatchTransform]:
+    """The true transforms, each scan's Z drift taken out as its drift plane, with one plane
+    ``z += a x + b y`` added to the whole mosaic."""
+    out = []
+    for s in small_mosaic.synth:
+        (ny, nx), (dx, dy) = s.heights.shape, s.pixel_size
+        # the drift is z_drift (s - 1/2) at scan fraction s = (row nx + col) / (nx ny)
+        drift = np.array([-s.z_drift / (nx * ny * dx), -s.z_drift / (ny * dy)])
+        # the plane at the mosaic's place of every point: (a, b) . (R_xy p_xy + t_xy)
+        turn, ab, origin = s.rotation[:2, :2], np.array(plane), np.array(s.origin)
+        t = np.array(s.translation, dtype=float)
+        t[2] += 0.5 * s.z_drift + ab @ (turn @ origin + t[:2])
+        out.append(PatchTransform(s.rotation, t, drift + turn.T @ ab, origin))
+    return out
+
+
+def test_a_plane_common_to_all_patches_is_the_gauge_not_an_error(small_mosaic: Synthetic) -> None:
+    # drift planes are measured only against each other: a mosaic is levelled up to one plane,
+    # which a tilt of the gauge would turn into XY errors as large as the tilt times the heights
+    level = registration_error(small_mosaic.synth, _exact(small_mosaic, (0.0, 0.0)))
+    tilted = registration_error(small_mosaic.synth, _exact(small_mosaic, (1.5e-3, -2e-3)))
+    assert level[0] < 1e-12 and level[1] < 1e-12
+    assert tilted[0] < 2e-12 and tilted[1] < 2e-12
+    np.testing.assert_allclose(tilted[2][0][2, :2], (-1.5e-3, 2e-3), rtol=0.02)
