@@ -170,8 +170,7 @@ class SurfaceBank:
         (their values are meaningless).
         """
         nx, ny = self.nx[dst], self.ny[dst]
-        u = (p_local[:, 0] + self.half[dst, 0]) / self.dx[dst]
-        v = (p_local[:, 1] + self.half[dst, 1]) / self.dy[dst]
+        u, v = self._pixel_coords(dst, p_local)
         inside = (u >= 0) & (u <= nx - 1) & (v >= 0) & (v <= ny - 1)
         if self.nodes > 1:
             u, v = u * self.nodes, v * self.nodes
@@ -193,13 +192,18 @@ class SurfaceBank:
         ok = inside & np.isfinite(h) & np.isfinite(gx) & np.isfinite(gy)
         return h, gx, gy, ok
 
+    def _pixel_coords(self, dst: Ints, p_local: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """Local points ``i`` in pixels of patch ``dst[i]`` (column, row; 0 at its first)."""
+        u: FloatArray = (p_local[:, 0] + self.half[dst, 0]) / self.dx[dst]
+        v: FloatArray = (p_local[:, 1] + self.half[dst, 1]) / self.dy[dst]
+        return u, v
+
     def near_border(self, dst: Ints, p_local: FloatArray) -> NDArray[np.bool_]:
         """(m,) whether the look-up of local point ``i`` on patch ``dst[i]`` falls within a pixel
         of its border. There the slopes come from the nodes the continuation beyond the border
         made of the border pixels (one-sided differences), so their noise is the looked-up
         height's own."""
-        u = (p_local[:, 0] + self.half[dst, 0]) / self.dx[dst]
-        v = (p_local[:, 1] + self.half[dst, 1]) / self.dy[dst]
+        u, v = self._pixel_coords(dst, p_local)
         out: NDArray[np.bool_] = (
             (u < 1.0) | (v < 1.0) | (u > self.nx[dst] - 2.0) | (v > self.ny[dst] - 2.0)
         )
@@ -211,7 +215,7 @@ class SurfaceBank:
         no noise with the point's own height. NaN on the source's border pixels (one-sided
         there, so they do) and next to a hole."""
         c, row, col = rows.src[at], rows.row[at], rows.col[at]
-        node = self.origin[c] + self.nodes * (row * self.grid_nx[c] + col)
+        node = self._node(c, row, col)
         a, m, line = self.height, self.nodes, self.nodes * self.grid_nx[c]
         out = np.empty((len(at), 2))
         out[:, 0] = a.take(node + m).astype(np.float64) - a.take(node - m)
@@ -305,6 +309,10 @@ class SurfaceBank:
         out = np.empty((len(c), 3))
         out[:, 0] = rows.col * self.dx[c] - self.half[c, 0]
         out[:, 1] = rows.row * self.dy[c] - self.half[c, 1]
-        node = self.origin[c] + self.nodes * (rows.row * self.grid_nx[c] + rows.col)
-        out[:, 2] = self.height.take(node)
+        out[:, 2] = self.height.take(self._node(c, rows.row, rows.col))
+        return out
+
+    def _node(self, c: Ints, row: Ints, col: Ints) -> IntArray:
+        """Index in :attr:`height` of the node on pixel (``row``, ``col``) of patch ``c``."""
+        out: IntArray = self.origin[c] + self.nodes * (row * self.grid_nx[c] + col)
         return out

@@ -63,16 +63,15 @@ def residuals(
 
     On the raw heights, within a pixel of the destination's border the slopes are the source's
     own at its point, taken into the destination's frame (:func:`slopes_in_destination`). The
-    destination's there come from its continuation beyond the border: one-sided differences
-    that share the
-    border pixel's noise with the looked-up height (their product with the residual averages
-    the noise's variance, not zero), and a slope correlated with its residual biases every
-    step. Both ways of a pair have such a band, and their biases add. The source's slopes at
-    its own border pixels are one-sided too, and are not used: taken everywhere, border
-    included, they put 1 µm grating patches 0.78 nm off in XY (median of 4 draws; 0.32 with
-    the destination's everywhere, 0.27 with the source's within the band). The coarse levels
-    only bring patches near, on smoothed heights: the band there changed no result and cost
-    400 patches an iteration.
+    destination's there come from its continuation beyond the border: one-sided differences that
+    share the border pixel's noise with the looked-up height (their product with the residual
+    averages the noise's variance, not zero), and a slope correlated with its residual biases
+    every step. Both ways of a pair have such a band, and their biases add. The source's slopes
+    at its own border pixels are one-sided too, and are not used: taken everywhere, border
+    included, they put 1 µm grating patches 0.78 nm off in XY (median of 4 draws; 0.32 with the
+    destination's everywhere, 0.27 with the source's within the band). The coarse levels only
+    bring patches near, on smoothed heights: the band there changed no result and cost 400
+    patches an iteration.
     """
     starts = rows.starts
     a, b = rows.src[starts[:-1]], rows.dst[starts[:-1]]
