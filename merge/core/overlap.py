@@ -21,10 +21,24 @@ IntArray = NDArray[np.intp]
 
 
 def moved_boxes(boxes: FloatArray, transforms: Sequence[PatchTransform]) -> FloatArray:
-    """Nominal footprints ``(n, 4)`` shifted by each transform's XY translation (rotations are
-    small)."""
-    shift = np.array([tr.t[:2] for tr in transforms])
-    out: FloatArray = boxes + np.column_stack([shift, shift])
+    """Footprints ``(n, 4)`` ``(xmin, ymin, xmax, ymax)``, metres: the bounding boxes of the
+    nominal ones' corners (at height 0) where each patch's transform takes them.
+
+    A transform's translation alone is not where it moves the patch: its rotation turns the
+    patch about the mosaic's origin, and the translation takes that back only at the origin.
+    A spin of 10 mrad 12 µm from it moves a patch 0.12 µm from ``t``; shifting boxes by ``t``
+    lost the pairs of such patches with their neighbours.
+    """
+    b = np.asarray(boxes, dtype=np.float64).reshape(-1, 4)
+    if len(b) != len(transforms):
+        raise ValueError(f"{len(b)} boxes but {len(transforms)} transforms")
+    if not len(b):
+        return b.copy()
+    A = np.array([tr.R[:2, :2] for tr in transforms])  # (n, 2, 2)
+    t = np.array([tr.t[:2] for tr in transforms])
+    corners = np.stack([b[:, [0, 1]], b[:, [2, 1]], b[:, [2, 3]], b[:, [0, 3]]], axis=1)
+    moved = np.einsum("nij,ncj->nci", A, corners) + t[:, None, :]
+    out: FloatArray = np.concatenate([moved.min(axis=1), moved.max(axis=1)], axis=1)
     return out
 
 

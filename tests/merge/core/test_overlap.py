@@ -8,7 +8,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from merge.core import overlap as overlap_module
-from merge.core.overlap import overlap_groups, overlapping_pairs
+from merge.core.overlap import moved_boxes, overlap_groups, overlapping_pairs
+from merge.core.transforms import PatchTransform
 
 
 def _every_pair(boxes: np.ndarray, margin: float) -> list[list[int]]:
@@ -65,3 +66,26 @@ def test_chunks_of_candidates_find_the_same_pairs(monkeypatch: pytest.MonkeyPatc
     monkeypatch.setattr(overlap_module, "CHUNK", 4)
     assert overlapping_pairs(boxes, margin=0.1).tolist() == whole.tolist()
     assert whole.tolist() == _every_pair(boxes, 0.1)
+
+
+def test_a_box_moves_where_its_transform_takes_its_corners_not_by_the_translation() -> None:
+    """Two patches one above the other, 12 µm from the origin, spun 10 mrad either way: each
+    spin turns its patch about the origin by 0.12 µm, which the translation takes back only
+    there. Boxes shifted by the translation alone lost the pair (0.23 µm of overlap)."""
+    boxes = np.array([[12.0, 1.5, 13.0, 2.5], [12.0, 2.25, 13.0, 3.25]]) * 1e-6
+    transforms = []
+    for box, spin in zip(boxes, (0.01, -0.01), strict=True):
+        centre = 0.5 * (box[:2] + box[2:])
+        c, s = np.cos(spin), np.sin(spin)
+        R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+        t = np.append(centre - R[:2, :2] @ centre, 0.0)  # a spin about the patch's centre
+        transforms.append(PatchTransform(R, t))
+    moved = moved_boxes(boxes, transforms)
+    # about its own centre, a box only grows by its half sides times the spin
+    np.testing.assert_allclose(
+        0.5 * (moved[:, :2] + moved[:, 2:]), 0.5 * (boxes[:, :2] + boxes[:, 2:]), atol=1e-15
+    )
+    assert np.all(moved[:, 2:] - moved[:, :2] > boxes[:, 2:] - boxes[:, :2])
+    assert overlapping_pairs(moved).tolist() == [[0, 1]]
+    shifted = boxes + np.array([tr.t[:2] for tr in transforms]).repeat(2, axis=0).reshape(2, 4)
+    assert overlapping_pairs(shifted).tolist() == []  # the old rule lost it
