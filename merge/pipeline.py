@@ -32,7 +32,16 @@ from merge.core.parallel import one_blas_thread
 from merge.core.patchset import Patch, PatchSet
 from merge.core.progress import Report, stage, tracking
 from merge.core.transforms import PatchTransform
-from merge.refine import DEFAULT_LEVELS, Level, SurfaceBank, estimate_distortion, refine, undistort
+from merge.refine import (
+    DEFAULT_LEVELS,
+    Level,
+    RefineResult,
+    SurfaceBank,
+    estimate_distortion,
+    refine,
+    undistort,
+)
+from merge.refine.normal_system import NormalSystem
 from merge.render import render_mosaic
 from merge.report import MergeResult, assess, patch_reports
 from merge.start import coarse_cell, coarse_start
@@ -99,13 +108,22 @@ class Placement:
 @dataclass(frozen=True)
 class Solution:
     """The transforms the solver settled on and how it went; ``bank``, the refinement's raw
-    surfaces (reused by the assessment), None for the other methods."""
+    surfaces, and ``system``, its last step's system if that step settled the fit (both reused
+    by the assessment), None for the other methods."""
 
     transforms: list[PatchTransform]
     iterations: int = 0
     converged: bool = True
     history: tuple[float, ...] = ()
     bank: SurfaceBank | None = None
+    system: NormalSystem | None = None
+
+    @classmethod
+    def of_refinement(cls, fit: RefineResult) -> Solution:
+        """What :func:`merge.refine.refine` settled on."""
+        return cls(
+            fit.transforms, fit.iterations, fit.converged, tuple(fit.history), fit.bank, fit.system
+        )
 
 
 class Stopwatch:
@@ -229,7 +247,7 @@ def finish(
     transforms = solution.transforms
     with watch.step("report"), stage("report", 2, "the quality of every patch"):
         final_pairs = overlapping_pairs(moved_boxes(layout.boxes, transforms), margin=layout.cell)
-        fits = assess(patches, final_pairs, transforms, bank=solution.bank)
+        fits = assess(patches, final_pairs, transforms, bank=solution.bank, system=solution.system)
         reports, unheld = patch_reports(
             patches, transforms, fits, layout.linked, registered=cfg.method in ("default", "paper")
         )
@@ -328,8 +346,9 @@ def _solve(
         progress=progress,
         cancel=cancel,
         first_free=None if placed.complete else ~placed.measured_both,
+        report=True,
     )
-    return Solution(fit.transforms, fit.iterations, fit.converged, tuple(fit.history), fit.bank)
+    return Solution.of_refinement(fit)
 
 
 def _paper(

@@ -231,21 +231,23 @@ class LiveMerge:
             raise ValueError(f"need at least 2 patches to merge, have {len(self.patches)}")
         watch = Stopwatch()
         with watch.step("solve"):
-            fit = self._refine_all(DEFAULT_LEVELS[1:])
+            fit = self._refine_all(DEFAULT_LEVELS[1:], report=True)
         solution = Solution(list(self.transforms))
         if fit is not None:
-            solution = Solution(
-                fit.transforms, fit.iterations, fit.converged, tuple(fit.history), fit.bank
-            )
+            solution = Solution.of_refinement(fit)
         layout = layout_of(PatchSet(self.patches), self.config)
         return finish(self.patches, layout, solution, self.config, watch)
 
     def _refine_all(
-        self, levels: Sequence[Level], *, cancel: Callable[[], bool] | None = None
+        self,
+        levels: Sequence[Level],
+        *,
+        cancel: Callable[[], bool] | None = None,
+        report: bool = False,
     ) -> RefineResult | None:
         """Every patch refined at once from where it is, over ``levels`` (a cancel raises
         :class:`merge.MergeCancelled` and changes nothing); what it did (None: nothing to
-        refine)."""
+        refine). ``report``: as :func:`merge.refine.refine`'s."""
         if len(self.patches) < 2:
             return None
         cell = self.config.cell or default_cell(self.patches)
@@ -262,6 +264,7 @@ class LiveMerge:
             levels=levels,
             shift_prior=SHIFT_PRIOR_FRACTION * max_shift,
             cancel=cancel,
+            report=report,
         )
         self.transforms = list(fit.transforms)
         self._since_full = 0

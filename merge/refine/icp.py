@@ -56,7 +56,7 @@ from merge.core.progress import checkpoint
 from merge.core.transforms import PatchTransform
 from merge.refine.bank import SurfaceBank
 from merge.refine.convergence import height_effect, remaining, slope_rms
-from merge.refine.normal_system import build_normal_system
+from merge.refine.normal_system import NormalSystem, build_normal_system
 from merge.refine.runs import Runs
 from merge.refine.solve import Priors, solve_system
 from merge.refine.state import MosaicState
@@ -132,13 +132,16 @@ DEFAULT_LEVELS = (
 @dataclass(frozen=True)
 class RefineResult:
     """``T_mosaic_patch`` per patch, iterations and the residual RMS of each; ``bank``, the patches'
-    raw heights as surfaces (for :func:`merge.report.quality.assess`, which needs the same)."""
+    raw heights as surfaces (for :func:`merge.report.quality.assess`, which needs the same);
+    ``system``, with ``report=True``, the last step's system with its signal share when that
+    step settled the fit (:func:`refine`), else None."""
 
     transforms: list[PatchTransform]
     iterations: int
     converged: bool
     history: list[float]
     bank: SurfaceBank
+    system: NormalSystem | None = None
 
 
 @dataclass
@@ -155,6 +158,7 @@ class Fit:
     noise: float
     iteration: int = 0
     history: list[float] = field(default_factory=list)
+    system: NormalSystem | None = None
 
 
 @dataclass(frozen=True)
@@ -184,6 +188,7 @@ def refine(
     cancel: Callable[[], bool] | None = None,
     first_free: NDArray[np.bool_] | None = None,
     held: NDArray[np.bool_] | None = None,
+    report: bool = False,
 ) -> RefineResult:
     """Refine all patch transforms at once.
 
@@ -216,6 +221,13 @@ def refine(
         Patches held at their start in every level (they hold the gauge; only pairs with a
         patch not held enter the system): a neighbourhood refined against the mosaic around it
         (:mod:`merge.live`). Default none.
+    report : bool, keyword-only
+        Keep, for the report (:func:`merge.report.quality.assess`), the system of the last step
+        (``RefineResult.system``, built with its signal share) when that step settled the fit:
+        it moved no height by :data:`HEIGHT_TOL` of the noise, or no patch by the raw level's
+        tolerance. The report then builds no system of its own at the transforms one such step
+        further on (400 patches: half a second of five); a fit that ended otherwise (out of
+        iterations, a stalled cost, patches held) keeps none.
     """
     pairs = np.asarray(pairs, dtype=np.intp).reshape(-1, 2)
     scale = float(np.median([min(p.pixel_size) for p in patches]))
@@ -230,8 +242,10 @@ def refine(
         if li == 1:
             plane_sigma = _plane_sigma(state.slope * lv.bank.radius[:, None], drift_prior / scale)
         lv = replace(lv, plane_sigma=plane_sigma, shift_sigma=shift_prior / scale)
-        level_converged = _run_level(fit, lv, level, progress=progress, cancel=cancel)
-        if li == len(levels) - 1:
+        last = li == len(levels) - 1
+        keep = report and last and lv.raw and held is None
+        level_converged = _run_level(fit, lv, level, progress=progress, cancel=cancel, keep=keep)
+        if last:
             converged = level_converged
     return RefineResult(
         transforms=state.to_transforms(base, scale),
@@ -239,6 +253,7 @@ def refine(
         converged=converged,
         history=fit.history,
         bank=base,
+        system=fit.system,
     )
 
 
@@ -275,8 +290,12 @@ def _run_level(
     *,
     progress: Progress | None,
     cancel: Callable[[], bool] | None,
+    keep: bool = False,
 ) -> bool:
-    """Iterate one level until it converges (True) or runs out of iterations (False)."""
+    """Iterate one level until it converges (True) or runs out of iterations (False); with
+    ``keep``, its steps' systems (but the first's) carry their signal share, and the last
+    one's is kept in ``fit.system`` if that step settled the level (:func:`refine`'s
+    ``report``)."""
     state, bank = fit.state, lv.bank
     cand = bank.candidates(lv.pairs, state.R, state.s, lv.margin)
     moved = 0.0
@@ -292,7 +311,13 @@ def _run_level(
         checkpoint()
         if moved > 0.5 * lv.margin:
             cand, moved = bank.candidates(lv.pairs, state.R, state.s, lv.margin), 0.0
-        rms, delta = _step(fit, lv, cand)
+        fit.system = None  # a step's system is dropped before the next one is built
+        # the level's first step is never the last but where no patch moves: its system goes
+        # without the signal share, which costs a tenth of a build
+        signal = keep and step > 0
+        rms, delta, stats = _step(fit, lv, cand, signal=signal)
+        fit.system = stats if signal else None
+        del stats
         motion = float(
             (np.abs(delta[:, :3]).max(axis=1) + np.abs(delta[:, 3:]).max(axis=1)).max(initial=0)
         )
@@ -311,24 +336,31 @@ def _run_level(
         last_effect = effect if step > 1 else np.inf
         effect = height_effect(delta, slope)
         settled = remaining(effect, last_effect) < HEIGHT_TOL * fit.noise
-        if motion < level.tol or stalls >= STALLS or settled:
+        if motion < level.tol or settled:
+            return True  # the report's system (if kept) is this step's
+        if stalls >= STALLS:
+            fit.system = None  # the last step may have moved patches along a flat overlap
             return True
+    fit.system = None
     return False
 
 
-def _step(fit: Fit, lv: LevelSetup, cand: Runs) -> tuple[float, FloatArray]:
+def _step(
+    fit: Fit, lv: LevelSetup, cand: Runs, *, signal: bool = False
+) -> tuple[float, FloatArray, NormalSystem]:
     """One Gauss-Newton step of every patch not held: the system at the current placement, its
     priors, the solve, the move and the gauge; the residual RMS (pixel units) and how far every
     patch moved, gauge included (n, 6: translation, spin and plane times the radius, as the
     solve's unknowns). The solve's own step also holds a common motion the gauge takes back
     (the shift prior pulls towards the start, the gauge to the nominal places): counted, it
-    looked like motion that never converges. The system is dropped with the step (a mosaic's
-    holds a few bytes per pixel, which the next one's build would otherwise find still held)."""
+    looked like motion that never converges. The step's system is returned too (with its
+    signal share if ``signal``); the caller drops it before the next one's build (a mosaic's
+    holds a few bytes per pixel, which that build would otherwise find still held)."""
     state, bank, base = fit.state, lv.bank, fit.base
     # scan lines as correlated noise (merge.refine.lines) only on the raw heights: smoothing
     # spreads every line's offset over its neighbours, and on the coarse levels the start's
     # misfit along lines would pass for offsets
-    stats = build_normal_system(bank, cand, state, fit.noise, lines=lv.raw)
+    stats = build_normal_system(bank, cand, state, fit.noise, lines=lv.raw, signal=signal)
     priors = Priors(
         plane=state.slope * bank.radius[:, None],
         plane_sigma=lv.plane_sigma,
@@ -346,7 +378,7 @@ def _step(fit: Fit, lv: LevelSetup, cand: Runs) -> tuple[float, FloatArray]:
     moved = np.column_stack(
         [state.s - s0, (state.spin() - spin0)[:, None] * radius, (state.slope - slope0) * radius]
     )
-    return stats.rms, moved
+    return stats.rms, moved, stats
 
 
 def _plane_sigma(plane: FloatArray, drift_prior: float) -> FloatArray:

@@ -55,22 +55,28 @@ def assess(
     transforms: Sequence[PatchTransform],
     *,
     bank: SurfaceBank | None = None,
+    system: NormalSystem | None = None,
 ) -> list[PatchFit]:
     """Per-patch quality of given transforms on the full-resolution heights (no update).
 
     Used for every method, so their reports compare like with like. ``bank``: the patches' raw
     heights as surfaces, if already built (:attr:`merge.refine.icp.RefineResult.bank`).
+    ``system``: the raw heights' system over ``pairs`` with its signal share, if already built
+    where the transforms differ from these by a settled step (:attr:`RefineResult.system
+    <merge.refine.icp.RefineResult>`: no height moved by a tenth of the noise); else it is built
+    at ``transforms``.
     """
     scale = float(np.median([min(p.pixel_size) for p in patches]))
     if bank is None:
         bank = SurfaceBank(patches, scale, 0.0, 1)
     state = MosaicState.from_transforms(transforms, bank, scale)
-    margin = 1.5 * float(max(bank.dx.max(), bank.dy.max()))
-    cand = bank.candidates(
-        np.asarray(pairs, dtype=np.intp).reshape(-1, 2), state.R, state.s, margin
-    )
     noise = patch_noise((p.heights for p in patches), scale)
-    system = build_normal_system(bank, cand, state, noise, signal=True)
+    if system is None or system.signal_vals is None:
+        margin = 1.5 * float(max(bank.dx.max(), bank.dy.max()))
+        cand = bank.candidates(
+            np.asarray(pairs, dtype=np.intp).reshape(-1, 2), state.R, state.s, margin
+        )
+        system = build_normal_system(bank, cand, state, noise, signal=True)
     checkpoint(1, "the uncertainty of every patch")
     n = len(patches)
     xy, z = np.full(n, np.inf), np.full(n, np.inf)

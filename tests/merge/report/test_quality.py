@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -9,6 +11,7 @@ from hardware.sim.drift import DriftModel
 from hardware.sim.surfaces import FoldedSurface
 from merge import Patch, PatchSet, PatchTransform
 from merge.core.overlap import overlapping_pairs
+from merge.refine import DEFAULT_LEVELS, refine
 from merge.report.quality import PatchFit, assess
 from tests.conftest import Synthetic, make_synthetic
 
@@ -80,3 +83,29 @@ def test_flat_overlaps_leave_xy_unseen_and_a_lone_patch_unmeasured() -> None:
     # (but for the noise estimate, a median over the patches that now counts one more)
     alone = _assess(PatchSet(patches[:3]), [PatchTransform() for _ in patches[:3]])
     assert [f.z_sigma for f in fits[:3]] == pytest.approx([f.z_sigma for f in alone], rel=0.05)
+
+
+def test_the_refinements_settled_system_reports_as_a_build_at_its_result(
+    small_mosaic: Synthetic,
+) -> None:
+    """The report takes the system of the refinement's last step when that step settled the
+    fit: the transforms it reports on are one such step further, and a system built there
+    reports the same within a few per cent (the residuals it holds still have that step's
+    misfit in them)."""
+    patches = list(small_mosaic.patch_set)
+    boxes = np.array([p.footprint for p in patches])
+    pairs = overlapping_pairs(boxes, margin=1e-7)
+    start = [PatchTransform() for _ in patches]
+    fit = refine(patches, pairs, start, report=True)
+    assert fit.converged and fit.system is not None and fit.system.signal_vals is not None
+    kept = assess(patches, pairs, fit.transforms, bank=fit.bank, system=fit.system)
+    fresh = assess(patches, pairs, fit.transforms, bank=fit.bank)
+    for k, f in zip(kept, fresh, strict=True):
+        assert abs(k.correspondences - f.correspondences) <= 0.002 * f.correspondences
+        assert k.residual_rms == pytest.approx(f.residual_rms, rel=0.01)
+        assert k.xy_sigma == pytest.approx(f.xy_sigma, rel=0.03)
+        assert k.z_sigma == pytest.approx(f.z_sigma, rel=0.05)
+    # not asked for, or out of iterations before the fit settled: none kept
+    assert refine(patches, pairs, start).system is None
+    short = tuple(replace(lv, max_iter=1) for lv in DEFAULT_LEVELS)
+    assert refine(patches, pairs, start, levels=short, report=True).system is None
