@@ -44,7 +44,7 @@ class Mosaic:
 
 def _corners(p: Patch) -> FloatArray:
     x0, y0, x1, y1 = p.footprint
-    z = float(np.nanmedian(p.heights))
+    z = p.median_height
     return np.array([[x0, y0, z], [x1, y0, z], [x1, y1, z], [x0, y1, z]])
 
 
@@ -149,7 +149,7 @@ def resample_patch(
     """
     xmin, ymin, dx, dy = grid.xmin, grid.ymin, grid.dx, grid.dy
     R, t = tr.R, tr.t
-    zc = float(np.nanmedian(p.heights))
+    zc = p.median_height
     q = tr.apply(_corners(p))
     j0 = max(int(np.floor((q[:, 0].min() - xmin) / dx)) - 1, 0)
     j1 = min(int(np.ceil((q[:, 0].max() - xmin) / dx)) + 1, grid.nx - 1)

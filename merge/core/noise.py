@@ -35,12 +35,13 @@ def estimate_noise(heights: FloatArray) -> float:
     return float(np.median(np.abs(d2)) * _SECOND_DIFF_MAD_TO_SIGMA)
 
 
-def patch_noise(heights: Iterable[FloatArray], scale: float) -> float:
-    """Median of :func:`estimate_noise` over patches' ``heights`` (metres), in units of
-    ``scale`` (metres, the typical pixel); a thousandth of it where nothing could be estimated."""
-    each = []
-    for h in heights:
-        checkpoint()  # 10,000 patches take a second
-        each.append(estimate_noise(h))
-    noise = float(np.nanmedian(each)) / scale
+def patch_noise(each: Iterable[float], scale: float) -> float:
+    """Median of the patches' noise (metres: :func:`estimate_noise`, as
+    :attr:`merge.core.patchset.Patch.noise` keeps it), in units of ``scale`` (metres, the
+    typical pixel); a thousandth of it where nothing could be estimated."""
+    values = []
+    for value in each:
+        checkpoint()  # estimated as they are asked for, 10,000 patches take a second
+        values.append(value)
+    noise = float(np.nanmedian(values)) / scale
     return noise if np.isfinite(noise) and noise > 0 else 1e-3

@@ -10,11 +10,13 @@ from __future__ import annotations
 
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 from numpy.typing import NDArray
 
 from merge.core.errors import PatchSetError
+from merge.core.noise import estimate_noise
 
 FloatArray = NDArray[np.float64]
 
@@ -97,6 +99,18 @@ class Patch:
         """Nominal centre of the patch, metres."""
         x0, y0, x1, y1 = self.footprint
         return 0.5 * (x0 + x1), 0.5 * (y0 + y1)
+
+    @cached_property
+    def median_height(self) -> float:
+        """Median of the measured heights, metres (once per patch: the start, the refinement
+        and the render each place the patch's frame at it)."""
+        return float(np.nanmedian(self.heights))
+
+    @cached_property
+    def noise(self) -> float:
+        """Standard deviation of the white height noise, metres
+        (:func:`merge.core.noise.estimate_noise`, once per patch)."""
+        return estimate_noise(self.heights)
 
     def pixel_coordinates(self) -> tuple[FloatArray, FloatArray]:
         """Nominal stage coordinates of every pixel: ``(X, Y)``, each ``(ny, nx)``, metres."""

@@ -31,7 +31,7 @@ def frame_offset(
     where the start's ``translation`` (n, 3) put them."""
     offsets = []
     for p, t0, tr in zip(patches, translation, placed, strict=True):
-        centre = np.array([*p.center, float(np.nanmedian(p.heights))])
+        centre = np.array([*p.center, p.median_height])
         offsets.append(tr.apply(centre[None])[0] - (centre + t0))
     out: FloatArray = np.mean(offsets, axis=0)
     return out

@@ -123,7 +123,7 @@ class SurfaceBank:
             # the frame's height is the raw heights' median whatever the smoothing, so one
             # placement means the same on every level (a smoothed median moved up to 0.8 px on
             # TGX1's two-level faces: every level began with patches jumped in Z)
-            self.centre[c] = (cx, cy, float(np.nanmedian(p.heights)) / scale)
+            self.centre[c] = (cx, cy, p.median_height / scale)
             hl = h - self.centre[c, 2]
             if self.nodes > 1:
                 levelled[c] = hl  # upsampled in batches (_fill_spline_nodes)

@@ -233,7 +233,7 @@ def refine(
     scale = float(np.median([min(p.pixel_size) for p in patches]))
     base = SurfaceBank(patches, scale, 0.0, 1)
     state = MosaicState.from_transforms(start, base, scale)
-    fit = Fit(state, state.s.copy(), base, scale, patch_noise((p.heights for p in patches), scale))
+    fit = Fit(state, state.s.copy(), base, scale, patch_noise((p.noise for p in patches), scale))
     plane_sigma = np.full(2, drift_prior / scale)  # the first level: as loose along both axes
     converged = False
     for li, level in enumerate(levels):

@@ -70,7 +70,7 @@ def assess(
     if bank is None:
         bank = SurfaceBank(patches, scale, 0.0, 1)
     state = MosaicState.from_transforms(transforms, bank, scale)
-    noise = patch_noise((p.heights for p in patches), scale)
+    noise = patch_noise((p.noise for p in patches), scale)
     if system is None or system.signal_vals is None:
         margin = 1.5 * float(max(bank.dx.max(), bank.dy.max()))
         cand = bank.candidates(

@@ -2,6 +2,7 @@ import numpy as np
 import pytest
 
 from merge import Patch, PatchSet, PatchSetError
+from merge.core.noise import estimate_noise
 
 
 def make(pid: str = "p0", shape: tuple[int, int] = (4, 5), **kw: object) -> Patch:
@@ -56,3 +57,14 @@ def test_patch_set_needs_two_unique_patches_and_sorts_by_order() -> None:
     assert ps.subset(["b", "a"]).ids == ["a", "b"]
     with pytest.raises(PatchSetError, match="no patch"):
         ps.subset(["zz"])
+
+
+def test_median_height_and_noise_are_the_patch_heights_own_computed_once() -> None:
+    rng = np.random.default_rng(3)
+    heights = 1e-8 * np.add.outer(np.arange(32.0), np.arange(40.0)) + rng.normal(0, 1e-9, (32, 40))
+    heights[5, 7] = np.nan
+    p = Patch("a", heights, (0.0, 0.0), (1e-8, 1e-8))
+    assert p.median_height == float(np.nanmedian(heights))
+    assert p.noise == estimate_noise(heights)
+    assert p.noise == pytest.approx(1e-9, rel=0.15)  # a plane's second differences vanish
+    assert "noise" in vars(p) and "median_height" in vars(p)  # kept on the patch
