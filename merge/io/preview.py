@@ -18,11 +18,24 @@ INK = (20, 20, 20)
 
 
 def afm_colors(values: FloatArray) -> UInt8Array:
-    """The gold "AFM hot" colour map of values in [0, 1] (NaN -> dark grey), ``(..., 3)`` uint8."""
-    v = np.clip(np.nan_to_num(values, nan=0.0), 0.0, 1.0)
-    rgb = np.stack([2.0 * v, 2.0 * v - 0.5, 2.0 * v - 1.0], axis=-1)
-    out: UInt8Array = (np.clip(rgb, 0.0, 1.0) * 255 + 0.5).astype(np.uint8)
-    out[np.isnan(values)] = NO_DATA
+    """The gold "AFM hot" colour map of values in [0, 1] (NaN -> dark grey), ``(..., 3)`` uint8.
+
+    One channel at a time, in place: the three channels as floats at once were the largest
+    temporaries of writing a small mosaic's result.
+    """
+    v = np.asarray(values, dtype=np.float64)
+    out: UInt8Array = np.empty((*v.shape, 3), dtype=np.uint8)
+    scaled = np.nan_to_num(v, nan=0.0)  # a copy
+    np.clip(scaled, 0.0, 1.0, out=scaled)
+    scaled *= 2.0
+    channel = np.empty_like(scaled)
+    for k, offset in enumerate((0.0, 0.5, 1.0)):
+        np.subtract(scaled, offset, out=channel)
+        np.clip(channel, 0.0, 1.0, out=channel)
+        channel *= 255
+        channel += 0.5
+        out[..., k] = channel  # truncated, as a cast to uint8 rounds these
+    out[np.isnan(v)] = NO_DATA
     return out
 
 
@@ -62,9 +75,9 @@ def render_panels(panels_in: list[tuple[str, Mosaic]], *, size: int = 420) -> UI
     mosaics = [m for _, m in panels_in]
     panels = [fit_size(m.heights, size) for m in mosaics]
     # the colour scale from what the panels show (not a copy of every mosaic's heights)
-    both = np.concatenate([p.ravel() for p in panels])
-    both = both[np.isfinite(both)]
-    lo, hi = np.percentile(both, [1, 99]) if both.size else (0.0, 1.0)
+    both = np.concatenate([p[np.isfinite(p)] for p in panels])
+    lo, hi = np.percentile(both, [1, 99], overwrite_input=True) if both.size else (0.0, 1.0)
+    del both
     hi = hi if hi > lo else lo + 1e-9
     ph = max(p.shape[0] for p in panels)
     margin, title_h, bar_w, label_w = 16, 30, 18, 70
