@@ -69,9 +69,11 @@ def residuals(
     every step. Both ways of a pair have such a band, and their biases add. The source's slopes
     at its own border pixels are one-sided too, and are not used: taken everywhere, border
     included, they put 1 µm grating patches 0.78 nm off in XY (median of 4 draws; 0.32 with the
-    destination's everywhere, 0.27 with the source's within the band). The coarse levels only
-    bring patches near, on smoothed heights: the band there changed no result and cost 400
-    patches an iteration.
+    destination's everywhere, 0.27 with the source's within the band). Within the band they are
+    averaged over three lines (:meth:`SurfaceBank.point_slopes`), 3/8 of a lone central
+    difference's noise variance: the bench's grating 0.71 -> 0.68 nm XY, worst map 1.92 ->
+    1.87 x the floor. The coarse levels only bring patches near, on smoothed heights: the band
+    there changed no result and cost 400 patches an iteration.
     """
     starts = rows.starts
     a, b = rows.src[starts[:-1]], rows.dst[starts[:-1]]

@@ -120,3 +120,24 @@ def test_slopes_at_the_destination_border_share_no_noise_with_the_residual() -> 
     assert len(o) > 1000
     assert abs(o.mean()) > 6 * err  # the problem: the destination's slopes carry the bias
     assert abs(u.mean()) < 3 * u.std() / np.sqrt(len(u))
+
+
+def test_a_points_own_slopes_are_three_lines_central_differences_free_of_its_noise() -> None:
+    bank, state = side_by_side(1.0, 5)
+    rows = bank.rows(bank.candidates(np.array([[0, 1]]), state.R, state.s, 1.5))
+    g = bank.point_slopes(rows, np.arange(len(rows.src)))
+    h = bank.point_xyz(rows)[:, 2]
+    border = (rows.row == 0) | (rows.col == 0) | (rows.row == 255) | (rows.col == 47)
+    assert np.isnan(g[border]).all() and np.isfinite(g[~border]).all()
+    g, h = g[~border], h[~border]
+    # unit white noise: 3/16 per pitch² averaged over three lines (a lone central difference:
+    # 1/2), and none of it shared with the point's own height
+    np.testing.assert_allclose(g.var(axis=0), 3 / 16, rtol=0.15)
+    for k in range(2):
+        score = g[:, k] * h
+        assert abs(score.mean()) < 4 * score.std() / np.sqrt(len(score))
+    # on a plane, its slopes
+    plane = 0.3 * np.arange(48.0) - 0.2 * np.arange(256.0)[:, None]
+    tilted = [Patch(str(k), plane, (k * 36.0, 0.0), (1.0, 1.0)) for k in range(2)]
+    slopes = SurfaceBank(tilted, 1.0, 0.0, 1).point_slopes(rows, np.flatnonzero(~border))
+    np.testing.assert_allclose(slopes, np.tile([0.3, -0.2], (len(slopes), 1)), atol=1e-5)
