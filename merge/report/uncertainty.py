@@ -50,8 +50,10 @@ SHARE = 0.25
 #: matrix-matrix problem. Its memory and time grow as the square and cube of the size (400
 #: patches: 0.47 s, and 150 MB, the whole merge's peak), and so did a sparse LU's one column at
 #: a time (1,600 patches: 22 s), so larger systems get only the diagonal blocks, slab by slab
-#: (:mod:`merge.core.selected_inverse`: 400 patches in 0.3 s, 1,600 in 1.2 s).
-DENSE_MAX = 1200
+#: (:mod:`merge.core.selected_inverse`: 400 patches in 0.3 s, 1,600 in 1.2 s). From 100 patches
+#: on the slabs are faster too (12 ms against 22, the sigmas within 5e-5 of the dense ones) and
+#: the dense matrices were the report's peak there (10 MB, 25 bytes per input pixel).
+DENSE_MAX = 300
 
 
 def tied_groups(rows: IntArray, cols: IntArray, n: int) -> IntArray:

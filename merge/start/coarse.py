@@ -75,10 +75,6 @@ ALONG_EDGE = APERTURE / PRECISION**2
 #: Textures of patches kept for the pairs that follow (a patch's pairs come one after the
 #: other; a few megabytes).
 TEXTURES = 64
-#: Pairs correlated together through one set of FFTs: their maps and transforms are the coarse
-#: start's working memory (64 pairs: 180 bytes per input pixel of 100 patches of 64 x 64 px;
-#: 16: 64, the start as fast within the spread of its timings).
-BATCH = 16
 #: Search radius of a patch placed against all its neighbours, in first-pass radii: wider, since
 #: a patch whose links all failed may be the one whose stage error exceeded the first search,
 #: and the pooled score of all its pairs is far less prone to chance peaks than one pair's.
@@ -243,9 +239,7 @@ def _first_pass(lat: Lattice, corr: Correlations, radius: float) -> None:
     """Every measurable pair correlated (batched by image shapes through one set of FFTs) and
     its peak within ``radius`` cells of the nominal shift accepted or not."""
     todo = [i for i in range(len(lat.pairs)) if lat.measurable(i)]
-    for i, ncc, count, zero in pair_maps(
-        lat.channels, lat.pairs, todo, weights=CHANNEL_WEIGHTS, batch=BATCH
-    ):
+    for i, ncc, count, zero in pair_maps(lat.channels, lat.pairs, todo, weights=CHANNEL_WEIGHTS):
         checkpoint(1)
         e = lat.expected(i)
         peak = find_peak(

@@ -66,8 +66,21 @@ def masked_ncc(
 
 
 #: Pairs whose images are transformed together in :func:`pair_maps` (their spectra held at once:
-#: with 512, 40 bytes per input pixel of 100 patches of 64 x 64 px).
+#: with 512, 40 bytes per input pixel of 100 patches of 64 x 64 px), at most.
 SPECTRA_PAIRS = 128
+#: Pairs whose NCC maps :func:`pair_maps` computes together, at most (64 pairs: 180 bytes per
+#: input pixel of 100 patches of 64 x 64 px; 16: 64, as fast within the spread of the timings).
+MAP_BATCH = 16
+#: Share of all pairs in one chunk of either kind: a small mosaic's chunks are smaller than the
+#: caps above, so its working set stays a share of its data (100 patches of 64 x 64 px: 30 and
+#: 4 pairs, the coarse start's peak 30 -> 16 MB, 74 -> 40 bytes per input pixel; 400 patches
+#: reach the caps).
+SPECTRA_SHARE, MAP_SHARE = 1 / 12, 1 / 96
+
+
+def chunk_size(pairs: int, share: float, cap: int, least: int) -> int:
+    """Pairs of ``pairs`` to take at a time: ``share`` of them, within ``[least, cap]``."""
+    return int(np.clip(int(pairs * share), least, cap))
 
 
 def _channel_weights(weights: Sequence[float] | None, channels: int) -> FloatArray:
@@ -254,14 +267,19 @@ def pair_maps(
     which: Sequence[int],
     *,
     weights: Sequence[float] | None = None,
-    batch: int = 64,
+    batch: int | None = None,
 ) -> Iterator[tuple[int, FloatArray, FloatArray, tuple[int, int]]]:
     """:func:`masked_ncc` of the pairs ``which`` (rows of ``pairs``, indices into ``images``).
 
     ``images`` are (h, w) or (channels, h, w) arrays. Pairs of equal shapes share one FFT
-    lattice, every image on it is transformed once, and their NCC maps are computed up to
-    ``batch`` pairs at a time. Yields ``(row, ncc, count, zero)`` per pair.
+    lattice, every image on it is transformed once (:data:`SPECTRA_PAIRS` pairs' at a time at
+    most), and their NCC maps are computed up to ``batch`` pairs at a time (default
+    :data:`MAP_BATCH` at most; both fewer for few pairs, :data:`SPECTRA_SHARE`). The maps are
+    the same however the pairs are cut. Yields ``(row, ncc, count, zero)`` per pair.
     """
+    spectra = chunk_size(len(which), SPECTRA_SHARE, SPECTRA_PAIRS, 16)
+    if batch is None:
+        batch = chunk_size(len(which), MAP_SHARE, MAP_BATCH, 4)
     stacks = [np.asarray(x, dtype=np.float64) for x in images]
     stacks = [x[None] if x.ndim == 2 else x for x in stacks]
     if any(x.ndim != 3 or x.shape[0] != stacks[0].shape[0] for x in stacks):
@@ -275,8 +293,8 @@ def pair_maps(
         # spectra for so many pairs at a time: for all pairs of a large mosaic at once they
         # took 60 bytes per input pixel (pairs come in patch order, so a chunk's images are
         # mostly its own and few are transformed twice)
-        for first in range(0, len(every), SPECTRA_PAIRS):
-            members = every[first : first + SPECTRA_PAIRS]
+        for first in range(0, len(every), spectra):
+            members = every[first : first + spectra]
             yield from _group_maps(lattice, stacks, pairs, members, w, batch)
 
 

@@ -3,7 +3,7 @@ import pytest
 from scipy.ndimage import gaussian_filter
 
 from merge.start import ncc as ncc_module
-from merge.start.ncc import _Lattice, best_shift, masked_ncc, pair_maps
+from merge.start.ncc import _Lattice, best_shift, chunk_size, masked_ncc, pair_maps
 
 
 def texture(seed: int, shape: tuple[int, int] = (60, 60)) -> np.ndarray:
@@ -76,9 +76,19 @@ def test_pair_maps_in_chunks_equal_them_at_once(monkeypatch: pytest.MonkeyPatch)
     pairs = np.array([[0, 1], [1, 2], [2, 3], [3, 4], [4, 5], [0, 5], [1, 4]])
     whole = {i: (m, c) for i, m, c, _ in pair_maps(images, pairs, range(len(pairs)))}
     monkeypatch.setattr(ncc_module, "SPECTRA_PAIRS", 2)
-    for i, m, c, _ in pair_maps(images, pairs, range(len(pairs))):
-        np.testing.assert_array_equal(c, whole[i][1])
-        np.testing.assert_allclose(m, whole[i][0], atol=1e-9)
+    for batch in (None, 1, 3):  # maps computed so many pairs at a time
+        for i, m, c, _ in pair_maps(images, pairs, range(len(pairs)), batch=batch):
+            np.testing.assert_array_equal(c, whole[i][1])
+            np.testing.assert_allclose(m, whole[i][0], atol=1e-9)
+
+
+def test_few_pairs_are_taken_in_smaller_chunks() -> None:
+    # a small mosaic's working set is a share of its data; a large one's is capped
+    assert chunk_size(360, ncc_module.SPECTRA_SHARE, ncc_module.SPECTRA_PAIRS, 16) == 30
+    assert chunk_size(360, ncc_module.MAP_SHARE, ncc_module.MAP_BATCH, 4) == 4
+    assert chunk_size(40, ncc_module.SPECTRA_SHARE, ncc_module.SPECTRA_PAIRS, 16) == 16
+    big = chunk_size(60_000, ncc_module.SPECTRA_SHARE, ncc_module.SPECTRA_PAIRS, 16)
+    assert big == ncc_module.SPECTRA_PAIRS
 
 
 def test_full_images_score_by_summed_areas_as_by_masks() -> None:
