@@ -274,8 +274,9 @@ def pair_maps(
     ``images`` are (h, w) or (channels, h, w) arrays. Pairs of equal shapes share one FFT
     lattice, every image on it is transformed once (:data:`SPECTRA_PAIRS` pairs' at a time at
     most), and their NCC maps are computed up to ``batch`` pairs at a time (default
-    :data:`MAP_BATCH` at most; both fewer for few pairs, :data:`SPECTRA_SHARE`). The maps are
-    the same however the pairs are cut. Yields ``(row, ncc, count, zero)`` per pair.
+    :data:`MAP_BATCH` at most). A few pairs take fewer: :data:`SPECTRA_SHARE` and
+    :data:`MAP_SHARE` of them, at least 16 and 4 (:func:`chunk_size`). The maps are the same
+    however the pairs are cut. Yields ``(row, ncc, count, zero)`` per pair.
     """
     spectra = chunk_size(len(which), SPECTRA_SHARE, SPECTRA_PAIRS, 16)
     if batch is None:
