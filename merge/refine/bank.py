@@ -227,7 +227,7 @@ class SurfaceBank:
         line = self.nodes * self.grid_nx[c]
         out = np.zeros((len(at), 2))
         for k, (step, across) in enumerate(((m, line), (line, m))):
-            for beside, weight in ((np.zeros_like(across), 0.5), (across, 0.25), (-across, 0.25)):
+            for beside, weight in ((0, 0.5), (across, 0.25), (-across, 0.25)):
                 ahead, behind = a.take(node + beside + step), a.take(node + beside - step)
                 out[:, k] += weight * (ahead.astype(np.float64) - behind)
         out /= 2.0 * np.column_stack([self.dx[c], self.dy[c]])
