@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from backend.allocator import share_one_heap
 from backend.events import EventBus
 from backend.merge_jobs import WORKER_NICENESS, PatchInput, die_with_parent, patch_id
 from merge.live.gate import ScanRecord
@@ -64,6 +65,7 @@ def _live_child(inbox: Any, outbox: Any, parent: int | None = None) -> None:
         die_with_parent(parent)
     if hasattr(os, "nice"):
         os.nice(WORKER_NICENESS)
+    share_one_heap()  # before the merge's threads start
     from merge.core.noise import estimate_noise
     from merge.live import Gate, LiveMerge
 

@@ -27,7 +27,7 @@ from numpy.typing import NDArray
 from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
-from backend.allocator import stage_trimmer
+from backend.allocator import share_one_heap, stage_trimmer
 from backend.db.models import MergeJob, Run
 from backend.db.patch_store import read_patch, write_merge
 from backend.db.space import full_message, is_full
@@ -155,6 +155,7 @@ def _merge_child(
         die_with_parent(parent)
     if hasattr(os, "nice"):
         os.nice(WORKER_NICENESS)
+    share_one_heap()  # before the merge's threads start
     import merge
     from merge.io.result import result_document
 

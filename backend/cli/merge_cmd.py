@@ -53,8 +53,9 @@ def add_parser(sub: Any) -> None:
 
 def run(args: argparse.Namespace) -> int:
     import merge
-    from backend.allocator import stage_trimmer
+    from backend.allocator import share_one_heap, stage_trimmer
 
+    share_one_heap()  # before the merge's threads start
     start = time.perf_counter()
     try:
         config = merge.MergeConfig(
