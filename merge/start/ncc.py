@@ -17,7 +17,6 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import fft
 
-from merge.core.parallel import WORKERS
 from merge.start.peaks import CorrelationPeak, find_peak
 
 FloatArray = NDArray[np.float64]
@@ -167,9 +166,10 @@ class _Lattice:
         # Single precision halves the memory traffic of this, the start's costliest step:
         # inputs are standardised, so sums stay far from float32's limits, and the scores need
         # ~1e-4 at most (the refinement, in double precision, measures the sub-pixel shift).
-        out: NDArray[np.complex64] = fft.rfft2(
-            x.astype(np.float32), self.shape, axes=(-2, -1), workers=WORKERS
-        )
+        # One thread: the batches are small (16 pairs' maps), and pocketfft's own threads for
+        # them made the start slower, not faster (400 patches of 64 x 64 px on 2 cores: 1.85 s
+        # with two, 1.55 s with one; 3,600 patches: 18.5 -> 16.3 s).
+        out: NDArray[np.complex64] = fft.rfft2(x.astype(np.float32), self.shape, axes=(-2, -1))
         return out
 
     def spectra(self, x: FloatArray, *, first: bool, dense: bool = False) -> _Spectra:
@@ -212,7 +212,7 @@ class _Lattice:
     def _corr(self, x: NDArray[np.complex64], y: NDArray[np.complex64]) -> NDArray[np.float32]:
         # index (ha - 1, wa - 1) is the zero shift, shifts run from -(ha-1) to hb-1
         (ha, wa), (hb, wb) = self.a, self.b
-        full = fft.irfft2(x * y, self.shape, axes=(-2, -1), workers=WORKERS)
+        full = fft.irfft2(x * y, self.shape, axes=(-2, -1))
         out: NDArray[np.float32] = full[..., : ha + hb - 1, : wa + wb - 1]
         return out
 
