@@ -4,7 +4,12 @@ Every system the merge solves is symmetric (normal equations, their information 
 the structure of the mosaic's grid of patches. SuperLU's default column ordering (COLAMD) knows
 nothing of the symmetry; the minimum degree ordering of ``A' + A`` does, and fills far less: a
 grid of 100 x 100 patches (60,000 unknowns in 6 x 6 blocks) factorised in 2.4 s instead of 8.2,
-with half the nonzeros in its factors (26 M against 50 M).
+with half the nonzeros in its factors (26 M against 50 M). Being positive definite as well, they
+need no pivoting (their LU is their Cholesky factorisation, which is stable): SuperLU's partial
+pivoting, left on, swapped rows away from that ordering where weak pairs left small diagonals:
+the start's network of 10,000 patches (its pairs without information left out) took 1.9 s a
+solve with it, 0.14 s without; the refinement's systems of 3,600 patches 10 % less, solutions
+within 1e-9 of the pivoted ones.
 
 Such a factorisation takes seconds and cannot be interrupted. SuperLU releases the GIL, so a
 large one runs on a helper thread while the merge's own thread listens for a cancel
@@ -21,7 +26,7 @@ from typing import TypeVar
 import numpy as np
 from numpy.typing import NDArray
 from scipy.sparse import csc_matrix
-from scipy.sparse.linalg import SuperLU, splu, spsolve
+from scipy.sparse.linalg import SuperLU, splu
 
 from merge.core.progress import checkpoint
 
@@ -39,15 +44,20 @@ POLL = 0.05
 
 
 def solve_symmetric(A: csc_matrix, b: FloatArray) -> FloatArray:
-    """``A x = b`` for a sparse symmetric ``A``; ``b`` (m,) or (m, k)."""
-    x = _listening(lambda: spsolve(A, b, permc_spec=ORDERING), A.shape[0])
+    """``A x = b`` for a sparse symmetric positive definite ``A``; ``b`` (m,) or (m, k)."""
+    x = _listening(lambda: _factor(A).solve(np.asarray(b, dtype=np.float64)), A.shape[0])
     out: FloatArray = np.asarray(x, dtype=np.float64)
     return out
 
 
 def factor_symmetric(A: csc_matrix) -> SuperLU:
-    """The LU factors of a sparse symmetric ``A``, for many right-hand sides."""
-    return _listening(lambda: splu(A, permc_spec=ORDERING), A.shape[0])
+    """The LU factors of a sparse symmetric positive definite ``A``, for many right-hand
+    sides."""
+    return _listening(lambda: _factor(A), A.shape[0])
+
+
+def _factor(A: csc_matrix) -> SuperLU:
+    return splu(A, permc_spec=ORDERING, diag_pivot_thresh=0.0, options={"SymmetricMode": True})
 
 
 def _listening(work: Callable[[], T], size: int) -> T:

@@ -104,6 +104,11 @@ def _solve(
     W: FloatArray,
     prior: float,
 ) -> FloatArray:
+    # pairs without information add nothing but structure, and fill to the factorisation
+    # (10,000 patches: two thirds of the first pass's pairs; without them, and without
+    # pivoting (merge.core.sparse), a round took 0.14 s instead of 0.55)
+    kept = np.flatnonzero(np.abs(W).reshape(len(W), -1).any(axis=1))
+    pairs, m, W = pairs[kept], m[kept], W[kept]
     k, d = m.shape
     a, b = pairs[:, 0], pairs[:, 1]
     ii, jj = np.meshgrid(np.arange(d), np.arange(d), indexing="ij")
