@@ -304,7 +304,7 @@ def _run_level(
     # on the raw heights, once the steps still to come move no height by HEIGHT_TOL of the
     # noise the level is done
     slope = slope_rms(bank) if lv.raw else np.inf
-    effect = np.inf
+    effect = motion = np.inf
     for step in range(level.max_iter):
         if cancel is not None and cancel():
             raise MergeCancelled("merge cancelled")
@@ -318,6 +318,7 @@ def _run_level(
         rms, delta, stats = _step(fit, lv, cand, signal=signal)
         fit.system = stats if signal else None
         del stats
+        last_motion = motion if step > 1 else np.inf
         motion = float(
             (np.abs(delta[:, :3]).max(axis=1) + np.abs(delta[:, 3:]).max(axis=1)).max(initial=0)
         )
@@ -336,7 +337,10 @@ def _run_level(
         last_effect = effect if step > 1 else np.inf
         effect = height_effect(delta, slope)
         settled = remaining(effect, last_effect) < HEIGHT_TOL * fit.noise
-        if motion < level.tol or settled:
+        # the motion still to come, as the heights' (a level of 3,600 patches, smoothed: steps
+        # of 0.69, 0.087 and 0.023 px, where the second's tail was 0.012 px, within the 0.05
+        # of the level's tolerance; the largest motion of many patches grows with their number)
+        if remaining(motion, last_motion) < level.tol or settled:
             return True  # the report's system (if kept) is this step's
         if stalls >= STALLS:
             fit.system = None  # the last step may have moved patches along a flat overlap
