@@ -111,24 +111,29 @@ def diagonal_blocks(
     csr = csr_matrix(M)
     out = np.zeros((n, size, size))
     schur: list[FloatArray] = []
-    couplings: list[FloatArray] = []  # M between slab k and slab k + 1
+    # M between slab k and slab k + 1, sparse: a unit links to a few of the next slab's, so
+    # products with it cost a few of its rows each, not a dense product (100 x 100 patches:
+    # 4.0 -> 2.6 s)
+    couplings: list[csr_matrix] = []
     for k, rows in enumerate(unknowns):
         checkpoint()
         band = csr[rows]
         D = band[:, rows].toarray()
         if k:
-            L = couplings[k - 1].T
-            D -= L @ schur[k - 1] @ L.T
+            U = couplings[k - 1]  # (previous slab, this one)
+            SU = np.asarray(U.T @ schur[k - 1])  # U' g, dense
+            D -= np.asarray(U.T @ SU.T)  # U' g U (g symmetric)
         if k + 1 < len(unknowns):
-            couplings.append(band[:, unknowns[k + 1]].toarray())
+            couplings.append(csr_matrix(band[:, unknowns[k + 1]]))
         schur.append(_inverse(D))
     G = schur[-1]
     _put(out, parts[-1], G, size)
     for k in range(len(parts) - 2, -1, -1):
         checkpoint()
-        X = schur[k] @ couplings[k]
+        X = np.asarray((couplings[k].T @ schur[k]).T)  # g_k U_k (g_k symmetric)
         G = schur[k] + X @ G @ X.T
-        schur[k + 1] = couplings[k] = np.empty(0)  # the memory goes back slab by slab
+        schur[k + 1] = np.empty(0)  # the memory goes back slab by slab
+        couplings[k] = csr_matrix((0, 0))
         _put(out, parts[k], G, size)
     return out
 
