@@ -64,8 +64,8 @@ def solve_system(
     """
     n = len(system.g)
     rows, cols, vals = system.rows, system.cols, system.vals
-    # Levenberg damping of the directions a patch's own data barely constrain (XY on a flat
-    # overlap): they stay put instead of following noise
+    # Levenberg damping of the places (PLACE) a patch's own data barely constrain (XY on a flat
+    # overlap): they stay put instead of following noise; every direction gets the FLOOR
     top = np.clip(np.linalg.eigvalsh(system.diag)[:, -1:], 0.0, None)
     D = (FLOOR * top + 1e-12)[:, :, None] * np.eye(6)
     mu, V = np.linalg.eigh(system.diag[:, PLACE][:, :, PLACE])
