@@ -14,7 +14,7 @@ from merge.core.overlap import overlapping_pairs
 from merge.core.transforms import PatchTransform
 from merge.refine import icp
 from merge.refine.convergence import height_effect, remaining
-from merge.refine.icp import FAST_DRIFT_SHARE, _plane_sigma
+from merge.refine.icp import FAST_DRIFT_SHARE, SIDES, _plane_sigma
 from tests.conftest import SHARED_DATA, Synthetic
 
 GRID = SHARED_DATA / "grid.npy"
@@ -45,13 +45,26 @@ def test_a_real_1d_grating_registers_along_its_stripes() -> None:
     assert ez < 1e-9
 
 
-def test_the_drift_prior_is_physics_unless_the_tilts_spread_wider() -> None:
+def test_the_drift_prior_is_the_planes_spread_pooled_with_physics_unless_wider() -> None:
     rng = np.random.default_rng(0)
-    drift = rng.normal(0.0, [0.2, 3.0], (50, 2))  # a drift in time: tilts across the lines
-    np.testing.assert_allclose(_plane_sigma(drift, 5.0), [5.0 * FAST_DRIFT_SHARE, 5.0])
-    levelled = rng.normal(0.0, [40.0, 3.0], (50, 2))  # tilts along the lines too: not a drift
-    sigma = _plane_sigma(levelled, 5.0)
-    assert sigma[0] == pytest.approx(40.0, rel=0.25) and sigma[1] == 5.0
+    physics = np.array([5.0 * FAST_DRIFT_SHARE, 5.0])
+    spread = np.array([0.2, 3.0])  # a drift in time: tilts across the lines
+    # a mosaic's planes say how large the drift is; a few patches say little. The drift's
+    # prior enters once per side of the data, as they do: its sigma per side is the drift's
+    # times sqrt(SIDES)
+    per_side = np.sqrt(SIDES)
+    many = _plane_sigma(rng.normal(0.0, spread, (10_000, 2)), 5.0) * per_side
+    np.testing.assert_allclose(many, spread, rtol=0.02)
+    few = _plane_sigma(rng.normal(0.0, spread, (2, 2)), 5.0) * per_side
+    assert np.all(few < physics) and np.all(few > 0.85 * physics)
+    some = _plane_sigma(rng.normal(0.0, spread, (50, 2)), 5.0) * per_side
+    assert np.all(some > many) and np.all(some < few)
+    # the physical bound holds however wide the drift planes spread below the drift itself
+    wide = _plane_sigma(rng.normal(0.0, [2.0, 4.0], (10_000, 2)), 5.0) * per_side
+    assert wide[0] == pytest.approx(physics[0]) and wide[1] == pytest.approx(4.0, rel=0.02)
+    # tilts along the lines too, wider than a drift: not a drift, and the prior a mere limit
+    levelled = _plane_sigma(rng.normal(0.0, [40.0, 3.0], (50, 2)), 5.0)
+    assert levelled[0] == pytest.approx(40.0, rel=0.25) and levelled[1] < 5.0
 
 
 def test_a_step_moves_heights_directly_in_z_and_through_the_slopes_in_xy() -> None:
