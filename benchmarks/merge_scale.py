@@ -16,12 +16,17 @@ map error (the mosaic against the true surface, same gauge; every few mosaic pix
 large ones), and the floor (the map error of the true transforms through the same renderer,
 scored the same way; ``map/floor`` their ratio: 1 is a merge that found every transform
 exactly). The time of each size against that of 400 patches, beside the ratio of patches, says
-whether the time is linear (equal ratios). ``cancel s`` is how long a cancel could wait: the
-merge is handed a cancel that never fires, and the longest time between two of its looks is
-timed (start to the first look and the last look to the end included).
+whether the time is linear (equal ratios). ``--bound``: beside the merge, the Cramér-Rao bound
+of each size up to :data:`BOUND_MAX` patches (``crb.py``, the simulator's drift as the drift
+planes' prior): the XY and Z errors and map/floor an efficient merge would have. A large
+mosaic's map/floor is above 1 by physics too: the scan lines' offsets leave the patch rows'
+relative tilts weakly measured, and that mosaic-wide bend grows with the mosaic. ``cancel s``
+is how long a cancel could wait: the merge is handed a cancel that never fires, and the longest
+time between two of its looks is timed (start to the first look and the last look to the end
+included).
 
 Prints a table and writes JSON (``--json``, default ``benchmarks/results/merge_scale.json``).
-Run: ``python benchmarks/merge_scale.py [--sides 10,20,30,40] [--large] [--big]``
+Run: ``python benchmarks/merge_scale.py [--sides 10,20,30,40] [--large] [--big] [--bound]``
 (``--large``: also 2,500 and 10,000 patches of 64 x 64 px).
 """
 
@@ -45,6 +50,9 @@ ROOT = Path(__file__).resolve().parents[1]
 #: Patch side, metres, and overlap of every case (the issue's measurements).
 PATCH_SIDE = 1e-6
 OVERLAP = 0.25
+#: Patches up to which ``--bound`` computes the Cramér-Rao bound (its line offsets' system and
+#: dense covariance grow with the mosaic: 400 patches of 256 x 256 px take six minutes).
+BOUND_MAX = 400
 
 
 def _memory(field: str) -> int:
@@ -168,8 +176,23 @@ def map_error(
     return float(np.sqrt(total / max(count, 1)))
 
 
-def one_size(side: int, pixels: int, work: Path) -> dict[str, Any]:
-    """Synthesise, merge (in a fresh process) and score a ``side`` x ``side`` mosaic."""
+def bound_of(synth: Any, surface: Any, drift: Any, *, samples: int = 8) -> dict[str, float]:
+    """What an efficient merge could reach on this patch set (:mod:`crb`): the Cramér-Rao bound
+    with the simulator's own drift as the drift planes' prior (slow axis: the drift over a
+    patch; fast axis: a line's share of it), its expected XY and Z errors and the spread of its
+    map error over the floor (``samples`` draws of corrections from it)."""
+    import crb  # a script beside this one
+
+    s = synth[0]
+    radius = 0.5 * float(np.hypot(*(np.array(s.heights.shape[::-1]) * s.pixel_size)))
+    prior = (drift.z_drift_sigma * radius / s.heights.shape[0], drift.z_drift_sigma * radius)
+    r = crb.efficient_errors(synth, surface, drift, samples=samples, plane_prior=prior)
+    return {f"bound_{k}": v for k, v in r.items()}
+
+
+def one_size(side: int, pixels: int, work: Path, *, bound: bool = False) -> dict[str, Any]:
+    """Synthesise, merge (in a fresh process) and score a ``side`` x ``side`` mosaic; with
+    ``bound``, also its Cramér-Rao bound (:func:`bound_of`)."""
     from backend.synthetic import patch_set_from_synth, registration_error
     from hardware.sim.drift import DriftModel
     from hardware.sim.surfaces import FoldedSurface
@@ -221,7 +244,8 @@ def one_size(side: int, pixels: int, work: Path) -> dict[str, Any]:
         stride=stride,
     )
     input_pixels = n * pixels * pixels
-    return {
+    extra = bound_of(synth, surface, DriftModel.typical()) if bound else {}
+    return extra | {
         "patches": n,
         "pixels": pixels,
         "wall_s": ran["wall_s"],
@@ -248,6 +272,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--large", action="store_true", help="also 50 x 50 and 100 x 100")
     parser.add_argument("--big", action="store_true", help="also 50 x 50 patches of 256 x 256")
     parser.add_argument(
+        "--bound",
+        action="store_true",
+        help=f"also the Cramér-Rao bound of the sizes up to {BOUND_MAX} patches (minutes each)",
+    )
+    parser.add_argument(
         "--child", nargs=3, metavar=("MANIFEST", "OUT", "WARM"), help=argparse.SUPPRESS
     )
     parser.add_argument("--json", default=str(ROOT / "benchmarks" / "results" / "merge_scale.json"))
@@ -271,7 +300,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     with tempfile.TemporaryDirectory() as tmp:
         for side, pixels in sizes:
-            r = one_size(side, pixels, Path(tmp))
+            r = one_size(side, pixels, Path(tmp), bound=args.bound and side * side <= BOUND_MAX)
             rows.append(r)
             ref = next((x for x in rows if x["patches"] == 400 and x["pixels"] == 64), None)
             ratio = r["wall_s"] / ref["wall_s"] if ref else float("nan")
@@ -286,6 +315,13 @@ def main(argv: list[str] | None = None) -> int:
                 f"{ratio:>8.2f}{r['patch_ratio_400']:>8.2f}{r['cancel_wait_s']:>9.2f}",
                 flush=True,
             )
+            if "bound_reg_z_nm" in r:
+                print(
+                    f"{'':>13}bound: XY {r['bound_reg_xy_nm']:.2f} nm, Z {r['bound_reg_z_nm']:.2f} "
+                    f"nm, map/floor median {r['bound_map_over_floor_median']:.3f} (90th "
+                    f"percentile {r['bound_map_over_floor_p90']:.3f})",
+                    flush=True,
+                )
             for stage, seconds in r["timings"].items():
                 print(f"{'':>13}{stage}: {seconds:.1f} s", flush=True)
     Path(args.json).parent.mkdir(parents=True, exist_ok=True)
