@@ -184,8 +184,12 @@ def bound_of(synth: Any, surface: Any, drift: Any, *, samples: int = 8) -> dict[
     import crb  # a script beside this one
 
     s = synth[0]
-    radius = 0.5 * float(np.hypot(*(np.array(s.heights.shape[::-1]) * s.pixel_size)))
-    prior = (drift.z_drift_sigma * radius / s.heights.shape[0], drift.z_drift_sigma * radius)
+    ny, nx = s.heights.shape
+    side = np.array([nx, ny]) * s.pixel_size  # metres
+    radius = 0.5 * float(np.hypot(*side))
+    # a drift in time over the patch: across the lines all of it, along a line one line's share
+    rise = drift.z_drift_sigma * radius / side  # the planes' rise, centre to corner
+    prior = (float(rise[0]) / ny, float(rise[1]))
     r = crb.efficient_errors(synth, surface, drift, samples=samples, plane_prior=prior)
     return {f"bound_{k}": v for k, v in r.items()}
 
