@@ -196,10 +196,7 @@ def fisher_information(
         solve = splinalg.factorized(Q)
         Ct = C.T.tocsc()
         for k in range(0, 6 * n, 240):  # the Schur complement, a block of unknowns at a time
-            block = Ct[:, k : k + 240].toarray()
-            info[:, k : k + 240] -= C @ np.column_stack(
-                [solve(block[:, j]) for j in range(block.shape[1])]
-            )
+            info[:, k : k + 240] -= C @ solve(Ct[:, k : k + 240].toarray())
     return info, centres
 
 
