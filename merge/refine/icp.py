@@ -217,8 +217,10 @@ def refine(
     levels : sequence of Level, keyword-only
         Coarse-to-fine schedule.
     drift_prior : float, keyword-only
-        Expected size of the in-patch Z drift, metres from the patch centre to its corner (a
-        Gaussian prior on the drift plane; along the fast axis :data:`FAST_DRIFT_SHARE` of it).
+        Largest expected in-patch Z drift, metres from the patch centre to its corner (a
+        Gaussian prior on the drift plane; along the fast axis :data:`FAST_DRIFT_SHARE` of it;
+        from the second level on, the drift the first level's planes show, within that bound:
+        :func:`_plane_sigma`).
         Overlaps pin down the differences of neighbouring planes well but a mosaic-wide bend
         only weakly; the prior keeps that bend out.
     shift_prior : float, keyword-only
