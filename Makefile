@@ -61,7 +61,7 @@ test: lint types unit
 
 bench: install
 	$(BIN)/python benchmarks/merge_bench.py --sweep 10 --gratings 10
-	$(BIN)/python benchmarks/merge_scale.py
+	$(BIN)/python benchmarks/merge_scale.py --bound
 	$(BIN)/python benchmarks/merge_variations.py
 	$(BIN)/python benchmarks/crb.py --noise-draws 12
 	$(BIN)/python benchmarks/sim_bench.py
