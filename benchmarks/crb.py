@@ -126,8 +126,9 @@ def fisher_information(
     nl = int(line_start[-1]) if line_offsets else 0
     # unknowns x line offsets, and line offsets x line offsets: sparse (a line meets the lines
     # of the few patches it overlaps), so the bound reaches mosaics of a few hundred patches
-    cross: list[sparse.spmatrix] = []
-    lines: list[sparse.spmatrix] = []
+    # both gathered as (row, column, value) triplets and summed once at the end
+    cross: list[sparse.coo_matrix] = []
+    lines: list[sparse.coo_matrix] = []
     q_all = [true_points(s).reshape(-1, 3) for s in synth]
     centres = np.array([q[:, :2].mean(axis=0) for q in q_all])
     tr = true_transforms(synth)
@@ -184,20 +185,36 @@ def fisher_information(
             )
             JL = sparse.coo_matrix((L.T @ J).T / var)  # (12, nl)
             cross.append(sparse.coo_matrix((JL.data, (idx[JL.row], JL.col)), shape=(6 * n, nl)))
-            lines.append((L.T @ L) / var)
+            lines.append(sparse.coo_matrix((L.T @ L) / var))
     if plane_prior is not None:
-        for c, q in enumerate(q_all):
-            radius = 0.5 * float(np.hypot(*np.ptp(q[:, :2], axis=0)))
+        for c, radius in enumerate(_radii(q_all)):
             for k in (0, 1):
                 info[6 * c + 4 + k, 6 * c + 4 + k] += (radius / plane_prior[k]) ** 2
     if cross:
-        C = sparse.csr_matrix(sum(cross[1:], cross[0]))
-        Q = sparse.csc_matrix(sum(lines[1:], lines[0]) + sparse.eye(nl) / drift.line_noise**2)
+        C = _summed(cross).tocsr()
+        Q = (_summed(lines) + sparse.eye(nl) / drift.line_noise**2).tocsc()
         solve = splinalg.factorized(Q)
         Ct = C.T.tocsc()
         for k in range(0, 6 * n, 240):  # the Schur complement, a block of unknowns at a time
             info[:, k : k + 240] -= C @ solve(Ct[:, k : k + 240].toarray())
     return info, centres
+
+
+def _radii(points: Sequence[FloatArray]) -> FloatArray:
+    """Half the diagonal (m) of every patch's measured points ``(k, 3)``: its radius."""
+    return np.array([0.5 * float(np.hypot(*np.ptp(q[:, :2], axis=0))) for q in points])
+
+
+def _summed(parts: Sequence[sparse.coo_matrix]) -> sparse.coo_matrix:
+    """The sum of sparse matrices of one shape, built once from all their triplets (adding them
+    one by one rebuilds the growing sum every time)."""
+    return sparse.coo_matrix(
+        (
+            np.concatenate([p.data for p in parts]),
+            (np.concatenate([p.row for p in parts]), np.concatenate([p.col for p in parts])),
+        ),
+        shape=parts[0].shape,
+    )
 
 
 def perturbed(
@@ -281,9 +298,7 @@ def correction_scale(
     # in like units (spin and drift plane times the patch radius, metres) the gauge — the common
     # motions, which no data see — is the only null space; unscaled, the plane and spin modes
     # (information ~radius² smaller) would fall under the threshold and count as error-free
-    radius = np.array(
-        [0.5 * np.hypot(*np.ptp(true_points(s)[..., :2].reshape(-1, 2), axis=0)) for s in synth]
-    )
+    radius = _radii([true_points(s).reshape(-1, 3) for s in synth])
     D = np.ones((len(synth), 6))
     D[:, 3:] = radius[:, None]
     d = D.ravel()
