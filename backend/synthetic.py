@@ -39,6 +39,8 @@ def _placed(
 ) -> list[tuple[FloatArray, FloatArray]]:
     """Per patch: where the merge puts every measured point (every ``stride``-th along both
     axes), and where it truly is (m, 3)."""
+    if stride < 1:
+        raise ValueError(f"stride must be a positive integer, got {stride}")
     out = []
     for s, tr in zip(synth, transforms, strict=True):
         ny, nx = s.heights.shape
@@ -82,18 +84,19 @@ def registration_error(
     """RMS XY and Z error (metres) of where the merge puts every measured point, after the
     gauge that fits best (:func:`_gauge`), and that gauge ``(G, g)``.
     ``stride``: every so many points along both axes of a patch (large mosaics)."""
-    if stride < 1:
-        raise ValueError(f"stride must be a positive integer, got {stride}")
     P, Q, (G, g) = _gauge(_placed(synth, transforms, stride))
     e = P @ G.T + g - Q
     exy = float(np.sqrt(np.mean(np.sum(e[:, :2] ** 2, axis=1))))
     return exy, float(np.sqrt(np.mean(e[:, 2] ** 2))), (G, g)
 
 
-def patch_errors(synth: Sequence[SynthPatch], transforms: Sequence[PatchTransform]) -> FloatArray:
+def patch_errors(
+    synth: Sequence[SynthPatch], transforms: Sequence[PatchTransform], *, stride: int = 1
+) -> FloatArray:
     """Mean error (n, 3), metres, of where the merge puts each patch's points, after the global
-    gauge of :func:`registration_error`: what each patch's sigmas should cover."""
-    placed = _placed(synth, transforms)
+    gauge of :func:`registration_error`: what each patch's sigmas should cover.
+    ``stride``: every so many points along both axes of a patch (large mosaics)."""
+    placed = _placed(synth, transforms, stride)
     _, _, (G, g) = _gauge(placed)
     out: FloatArray = np.array([(p @ G.T + g - q).mean(axis=0) for p, q in placed])
     return out

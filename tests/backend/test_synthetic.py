@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from backend.synthetic import registration_error
+from backend.synthetic import patch_errors, registration_error
 from merge import PatchTransform
 from tests.conftest import Synthetic
 
@@ -66,3 +66,17 @@ def test_a_plane_common_to_all_patches_is_the_gauge_not_an_error(small_mosaic: S
     assert level[0] < 1e-12 and level[1] < 1e-12
     assert tilted[0] < 2e-12 and tilted[1] < 2e-12
     np.testing.assert_allclose(tilted[2][0][2, :2], (-1.5e-3, 2e-3), rtol=0.02)
+
+
+def test_patch_errors_sample_with_a_stride(small_mosaic: Synthetic) -> None:
+    moved = _shifted(small_mosaic, 4e-9)
+    full = patch_errors(small_mosaic.synth, moved)
+    thin = patch_errors(small_mosaic.synth, moved, stride=4)
+    # every other patch 4 nm off along x: about +-2 nm from the gauge (its rotation takes a
+    # little), whatever points are counted
+    np.testing.assert_allclose(np.abs(full[:, 0]), 2e-9, rtol=0.1)
+    np.testing.assert_allclose(thin[:, :2], full[:, :2], atol=0.1e-9)
+    # in Z, every 4th line of a patch is scanned a little earlier on average: its drift differs
+    np.testing.assert_allclose(thin[:, 2], full[:, 2], atol=0.25e-9)
+    with pytest.raises(ValueError, match="stride must be a positive integer"):
+        patch_errors(small_mosaic.synth, moved, stride=0)
