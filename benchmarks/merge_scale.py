@@ -24,7 +24,10 @@ relative tilts weakly measured, and that mosaic-wide bend grows with the mosaic.
 the part of the Z error the mosaic's rows of patches hold in common (RMS over the patches of
 their row's mean Z error): where it is most of ``Z``, the error is that bend (900 patches of
 256 x 256 px, one draw: Z 0.71 nm, of it 0.70 the rows' common offsets, 0.10 left within the
-rows; the rows' offsets the running sum of their common tilt about x). ``cancel s``
+rows; the rows' offsets the running sum of their common tilt about x). ``err/σ`` is how honest
+the report's uncertainties are at that size: the RMS over the patches of each one's error (its
+mean, after the gauge) over its reported sigma, per axis in XY and in Z (1 honest, above
+over-confident). ``cancel s``
 is how long a cancel could wait: the merge is handed a cancel that never fires, and the longest
 time between two of its looks is timed (start to the first look and the last look to the end
 included).
@@ -209,7 +212,12 @@ def row_error(z: Any, synth: Any) -> float:
 def one_size(side: int, pixels: int, work: Path, *, bound: bool = False) -> dict[str, Any]:
     """Synthesise, merge (in a fresh process) and score a ``side`` x ``side`` mosaic; with
     ``bound``, also its Cramér-Rao bound (:func:`bound_of`)."""
-    from backend.synthetic import patch_errors, patch_set_from_synth, registration_error
+    from backend.synthetic import (
+        patch_errors,
+        patch_set_from_synth,
+        registration_error,
+        sigma_calibration,
+    )
     from hardware.sim.drift import DriftModel
     from hardware.sim.surfaces import FoldedSurface
     from hardware.sim.synth import synthesize
@@ -245,7 +253,10 @@ def one_size(side: int, pixels: int, work: Path, *, bound: bool = False) -> dict
     stride = 1 if n * pixels**2 < 5_000_000 else 4
     transforms = [by_id[s.id] for s in synth]
     exy, ez, (G, g) = registration_error(synth, transforms, stride=stride)
-    ez_rows = row_error(patch_errors(synth, transforms, stride=stride)[:, 2], synth)
+    errors = patch_errors(synth, transforms, stride=stride)
+    ez_rows = row_error(errors[:, 2], synth)
+    sigmas = np.array([[p["xy_sigma"], p["z_sigma"]] for p in doc["patches"]], dtype=float)
+    honest = sigma_calibration(errors, *sigmas.T)
     heights = np.load(out / "mosaic.npy", mmap_mode="r")
     origin = (float(doc["origin"][0]), float(doc["origin"][1]))
     pixel = (float(doc["pixel_size"][0]), float(doc["pixel_size"][1]))
@@ -278,6 +289,7 @@ def one_size(side: int, pixels: int, work: Path, *, bound: bool = False) -> dict
         "reg_xy_nm": exy * 1e9,
         "reg_z_nm": ez * 1e9,
         "reg_z_rows_nm": ez_rows * 1e9,
+        "sigma_calibration": honest,
         "map_nm": merr * 1e9,
         "floor_nm": floor * 1e9,
         "scored_every": stride,
@@ -314,7 +326,7 @@ def main(argv: list[str] | None = None) -> int:
     print(
         f"{'patches':>8}{'px':>5}{'wall s':>9}{'iter':>6}{'peak GB':>9}{'B/px':>7}"
         f"{'B/px all':>9}{'fixed MB':>9}{'XY nm':>8}{'Z nm':>7}{'Z rows':>7}{'map nm':>8}"
-        f"{'floor':>7}{'map/floor':>10}"
+        f"{'floor':>7}{'map/floor':>10}{'err/σ XY':>9}{'Z':>5}"
         f"{'t/t400':>8}{'n/n400':>8}{'cancel s':>9}"
     )
     with tempfile.TemporaryDirectory() as tmp:
@@ -331,6 +343,7 @@ def main(argv: list[str] | None = None) -> int:
                 f"{r['bytes_per_pixel_all']:>9.0f}{r['fixed_mb']:>9.0f}{r['reg_xy_nm']:>8.2f}"
                 f"{r['reg_z_nm']:>7.2f}{r['reg_z_rows_nm']:>7.2f}{r['map_nm']:>8.2f}"
                 f"{r['floor_nm']:>7.2f}{r['map_nm'] / r['floor_nm']:>10.3f}"
+                f"{r['sigma_calibration']['xy']:>9.2f}{r['sigma_calibration']['z']:>5.2f}"
                 f"{ratio:>8.2f}{r['patch_ratio_400']:>8.2f}{r['cancel_wait_s']:>9.2f}",
                 flush=True,
             )
