@@ -7,6 +7,7 @@ the tests share it.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
@@ -78,28 +79,50 @@ def _gauge(
     return P, Q, (G, np.array([t[0], t[1], c - a * mid[0] - b * mid[1]]))
 
 
+@dataclass(frozen=True)
+class Scored:
+    """A merge's transforms against the truth, after the gauge that fits best (:func:`_gauge`):
+    the RMS XY and Z error (metres) of every measured point, that gauge ``(G, g)`` and the mean
+    error (n, 3) of each patch's points (what each patch's sigmas should cover)."""
+
+    xy: float
+    z: float
+    gauge: tuple[FloatArray, FloatArray]
+    patches: FloatArray
+
+
+def scored(
+    synth: Sequence[SynthPatch], transforms: Sequence[PatchTransform], *, stride: int = 1
+) -> Scored:
+    """:class:`Scored` of ``transforms``, the points placed and the gauge fitted once.
+    ``stride``: every so many points along both axes of a patch (large mosaics)."""
+    placed = _placed(synth, transforms, stride)
+    P, Q, (G, g) = _gauge(placed)
+    e = P @ G.T + g - Q
+    ends = np.cumsum([len(p) for p, _ in placed])[:-1]
+    return Scored(
+        xy=float(np.sqrt(np.mean(np.sum(e[:, :2] ** 2, axis=1)))),
+        z=float(np.sqrt(np.mean(e[:, 2] ** 2))),
+        gauge=(G, g),
+        patches=np.array([part.mean(axis=0) for part in np.split(e, ends)]),
+    )
+
+
 def registration_error(
     synth: Sequence[SynthPatch], transforms: Sequence[PatchTransform], *, stride: int = 1
 ) -> tuple[float, float, tuple[FloatArray, FloatArray]]:
     """RMS XY and Z error (metres) of where the merge puts every measured point, after the
-    gauge that fits best (:func:`_gauge`), and that gauge ``(G, g)``.
-    ``stride``: every so many points along both axes of a patch (large mosaics)."""
-    P, Q, (G, g) = _gauge(_placed(synth, transforms, stride))
-    e = P @ G.T + g - Q
-    exy = float(np.sqrt(np.mean(np.sum(e[:, :2] ** 2, axis=1))))
-    return exy, float(np.sqrt(np.mean(e[:, 2] ** 2))), (G, g)
+    gauge that fits best (:func:`_gauge`), and that gauge ``(G, g)`` (:func:`scored`)."""
+    s = scored(synth, transforms, stride=stride)
+    return s.xy, s.z, s.gauge
 
 
 def patch_errors(
     synth: Sequence[SynthPatch], transforms: Sequence[PatchTransform], *, stride: int = 1
 ) -> FloatArray:
     """Mean error (n, 3), metres, of where the merge puts each patch's points, after the global
-    gauge of :func:`registration_error`: what each patch's sigmas should cover.
-    ``stride``: every so many points along both axes of a patch (large mosaics)."""
-    placed = _placed(synth, transforms, stride)
-    _, _, (G, g) = _gauge(placed)
-    out: FloatArray = np.array([(p @ G.T + g - q).mean(axis=0) for p, q in placed])
-    return out
+    gauge of :func:`registration_error` (:func:`scored`)."""
+    return scored(synth, transforms, stride=stride).patches
 
 
 def sigma_calibration(

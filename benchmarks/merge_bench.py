@@ -50,12 +50,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from backend.synthetic import (
-    patch_errors,
-    patch_set_from_synth,
-    registration_error,
-    sigma_calibration,
-)
+from backend.synthetic import patch_set_from_synth, scored, sigma_calibration
 from hardware.sim.drift import DriftModel
 from hardware.sim.surfaces import Chessboard, FoldedSurface, ImageSurface, Surface
 from hardware.sim.synth import SynthPatch, scan_fraction, synthesize
@@ -342,7 +337,8 @@ def run_case(case: Case, work: Path) -> dict[str, Any]:
         wall, peak, _ = run_cli(args)
         res = read_result(out)
         tr = res.transforms
-        exy, ez, (G, g) = registration_error(synth, [tr[s.id] for s in synth])
+        score = scored(synth, [tr[s.id] for s in synth])
+        exy, ez, (G, g) = score.xy, score.z, score.gauge
         m = res.mosaic
         merr = map_error(m.heights, m.origin, m.pixel_size, surface, G, g)
         unconstrained = sum(not p["xy_constrained"] for p in res.document["patches"])
@@ -350,7 +346,7 @@ def run_case(case: Case, work: Path) -> dict[str, Any]:
         sigmas = np.array(
             [[_finite(reports[s.id]["xy_sigma"]), _finite(reports[s.id]["z_sigma"])] for s in synth]
         )
-        errors = patch_errors(synth, [tr[s.id] for s in synth])
+        errors = score.patches
         rows[method] = {
             "reg_xy_nm": exy * 1e9,
             "reg_z_nm": ez * 1e9,

@@ -212,12 +212,7 @@ def row_error(z: Any, synth: Any) -> float:
 def one_size(side: int, pixels: int, work: Path, *, bound: bool = False) -> dict[str, Any]:
     """Synthesise, merge (in a fresh process) and score a ``side`` x ``side`` mosaic; with
     ``bound``, also its Cramér-Rao bound (:func:`bound_of`)."""
-    from backend.synthetic import (
-        patch_errors,
-        patch_set_from_synth,
-        registration_error,
-        sigma_calibration,
-    )
+    from backend.synthetic import patch_set_from_synth, scored, sigma_calibration
     from hardware.sim.drift import DriftModel
     from hardware.sim.surfaces import FoldedSurface
     from hardware.sim.synth import synthesize
@@ -252,8 +247,8 @@ def one_size(side: int, pixels: int, work: Path, *, bound: bool = False) -> dict
     n = side * side
     stride = 1 if n * pixels**2 < 5_000_000 else 4
     transforms = [by_id[s.id] for s in synth]
-    exy, ez, (G, g) = registration_error(synth, transforms, stride=stride)
-    errors = patch_errors(synth, transforms, stride=stride)
+    score = scored(synth, transforms, stride=stride)
+    exy, ez, (G, g), errors = score.xy, score.z, score.gauge, score.patches
     ez_rows = row_error(errors[:, 2], synth)
     sigmas = np.array([[p["xy_sigma"], p["z_sigma"]] for p in doc["patches"]], dtype=float)
     honest = sigma_calibration(errors, *sigmas.T)

@@ -30,7 +30,7 @@ from typing import Any
 import numpy as np
 from merge_bench import CASES, ROOT, Case, floor_of, map_error
 
-from backend.synthetic import patch_errors, patch_set_from_synth, registration_error
+from backend.synthetic import patch_set_from_synth, scored
 from hardware.sim.drift import DriftModel
 from hardware.sim.surfaces import ImageSurface
 from merge import pipeline
@@ -93,10 +93,11 @@ def run_variation(k: int) -> dict[str, Any]:
     wall = time.perf_counter() - start
     by_id = {p.id: p for p in result.patches}
     transforms = [by_id[s.id].transform for s in synth]
-    exy, ez, (G, g) = registration_error(synth, transforms)
+    score = scored(synth, transforms)
+    exy, ez, (G, g) = score.xy, score.z, score.gauge
     m = result.mosaic
     ratio = map_error(m.heights, m.origin, m.pixel_size, surface, G, g) / floor_of(synth, surface)
-    off = np.hypot(*patch_errors(synth, transforms)[:, :2].T)
+    off = np.hypot(*score.patches[:, :2].T)
     held = np.array([by_id[s.id].xy_constrained for s in synth])
     sigma = np.array([by_id[s.id].xy_sigma for s in synth])
     return {
