@@ -108,8 +108,9 @@ class Placement:
 @dataclass(frozen=True)
 class Solution:
     """The transforms the solver settled on and how it went; ``bank``, the refinement's raw
-    surfaces, and ``system``, its last step's system if that step settled the fit (both reused
-    by the assessment), None for the other methods."""
+    surfaces, ``system``, its last step's system if that step settled the fit, and
+    ``plane_sigma``, the drift planes' prior it solved with (all reused by the assessment), None
+    for the other methods."""
 
     transforms: list[PatchTransform]
     iterations: int = 0
@@ -117,12 +118,19 @@ class Solution:
     history: tuple[float, ...] = ()
     bank: SurfaceBank | None = None
     system: NormalSystem | None = None
+    plane_sigma: FloatArray | None = None
 
     @classmethod
     def of_refinement(cls, fit: RefineResult) -> Solution:
         """What :func:`merge.refine.refine` settled on."""
         return cls(
-            fit.transforms, fit.iterations, fit.converged, tuple(fit.history), fit.bank, fit.system
+            fit.transforms,
+            fit.iterations,
+            fit.converged,
+            tuple(fit.history),
+            fit.bank,
+            fit.system,
+            fit.plane_sigma,
         )
 
 
@@ -247,7 +255,14 @@ def finish(
     transforms = solution.transforms
     with watch.step("report"), stage("report", 2, "the quality of every patch"):
         final_pairs = overlapping_pairs(moved_boxes(layout.boxes, transforms), margin=layout.cell)
-        fits = assess(patches, final_pairs, transforms, bank=solution.bank, system=solution.system)
+        fits = assess(
+            patches,
+            final_pairs,
+            transforms,
+            bank=solution.bank,
+            system=solution.system,
+            plane_sigma=solution.plane_sigma,
+        )
         reports, unheld = patch_reports(
             patches, transforms, fits, layout.linked, registered=cfg.method in ("default", "paper")
         )

@@ -149,7 +149,9 @@ class RefineResult:
     """``T_mosaic_patch`` per patch, iterations and the residual RMS of each; ``bank``, the patches'
     raw heights as surfaces (for :func:`merge.report.quality.assess`, which needs the same);
     ``system``, with ``report=True``, the last step's system with its signal share when that
-    step settled the fit (:func:`refine`), else None."""
+    step settled the fit (:func:`refine`), else None; ``plane_sigma`` (2,), the drift planes'
+    prior of the last level as its steps weighed it (x, y; pixel units, times each patch's
+    radius: :class:`merge.refine.solve.Priors`), which the report counts as they did."""
 
     transforms: list[PatchTransform]
     iterations: int
@@ -157,6 +159,7 @@ class RefineResult:
     history: list[float]
     bank: SurfaceBank
     system: NormalSystem | None = None
+    plane_sigma: FloatArray | None = None
 
 
 @dataclass
@@ -271,6 +274,7 @@ def refine(
         history=fit.history,
         bank=base,
         system=fit.system,
+        plane_sigma=plane_sigma.copy(),
     )
 
 

@@ -56,6 +56,7 @@ def assess(
     *,
     bank: SurfaceBank | None = None,
     system: NormalSystem | None = None,
+    plane_sigma: FloatArray | None = None,
 ) -> list[PatchFit]:
     """Per-patch quality of given transforms on the full-resolution heights (no update).
 
@@ -64,7 +65,10 @@ def assess(
     ``system``: the raw heights' system over ``pairs`` with its signal share, if already built
     where the transforms differ from these by a settled step (:attr:`RefineResult.system
     <merge.refine.icp.RefineResult>`: no height moved by a tenth of the noise); else it is built
-    at ``transforms``.
+    at ``transforms``. ``plane_sigma`` (2,): the drift planes' prior the refinement solved
+    with (:attr:`RefineResult.plane_sigma <merge.refine.icp.RefineResult>`), counted into the
+    uncertainties as its steps counted it (:func:`merge.report.uncertainty.translation_sigmas`);
+    default none, the data alone.
     """
     scale = float(np.median([min(p.pixel_size) for p in patches]))
     if bank is None:
@@ -90,6 +94,7 @@ def assess(
             rms=system.rms,
             z_design=system.line_design,
             positions=state.s[:, :2],
+            plane_sigma=plane_sigma,
         )
     pitch = np.column_stack([bank.dx, bank.dy])
     local = _local_fits(system, n, noise, pitch, bank.slope_noise)

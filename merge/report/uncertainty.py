@@ -15,6 +15,8 @@ patch's translation. Two corrections keep the residuals' information honest: the
 of the noise claim is taken out (:func:`merge.core.information.noise_share`: noise is not texture),
 and Z variances are scaled by how much the residuals of one scan line move together
 (:func:`merge.core.information.line_design`: per-line offsets do not average out like white noise).
+The drift planes' prior the refinement solved with is counted as its steps counted it: the
+uncertainty is the posterior's, not the data's alone (:func:`translation_sigmas`).
 """
 
 from __future__ import annotations
@@ -108,6 +110,7 @@ def translation_covariances(
     gauge: FloatArray,
     *,
     positions: FloatArray | None = None,
+    prior: FloatArray | None = None,
 ) -> tuple[FloatArray, FloatArray]:
     """Marginal covariances of every patch's translation, in units of the residual variance.
 
@@ -121,6 +124,9 @@ def translation_covariances(
         Where the patches lie (any unit): large systems are cut into slabs along the longer
         axis of the mosaic (:mod:`merge.core.selected_inverse`); default an order from the
         links alone.
+    prior : (6 n,) array, keyword-only
+        Information of Gaussian priors on single unknowns, added to ``A``'s diagonal (in
+        ``A``'s units); default none.
 
     Returns
     -------
@@ -152,7 +158,7 @@ def translation_covariances(
         # the ridge's bias grows with the distance from the patch held (400 patches: Z sigmas
         # up to 1.1 % off the dense solution's; with a thousandth of it, 0.03 %)
         slack = ridge if parts is None else 1e-3 * ridge
-        B = A + _diagonal(slack + pin.ravel())
+        B = A + _diagonal(slack + pin.ravel() + (0.0 if prior is None else prior))
         block = _translation_blocks(B, gauge, parts, stiff=PIN * top)
         var = np.column_stack(
             [np.repeat(np.linalg.eigvalsh(block[:, :2, :2])[:, 1:], 2, axis=1), block[:, 2, 2]]
@@ -262,6 +268,7 @@ def translation_sigmas(
     rms: float,
     z_design: float = 1.0,
     positions: FloatArray | None = None,
+    plane_sigma: FloatArray | None = None,
 ) -> tuple[FloatArray, FloatArray]:
     """Standard deviations of every patch's translation (XY: its larger axis; Z), ``inf`` where
     no data see it: :func:`translation_covariances` times the residual variance ``rms²``.
@@ -269,9 +276,21 @@ def translation_sigmas(
     Each noise sample enters the information twice (a's points on b's surface and b's points on
     a's), so it counts half; Z variances are further scaled by ``z_design``
     (:func:`merge.core.information.line_design`). ``positions`` (n, 2): where the patches lie,
-    for large systems (:func:`translation_covariances`).
+    for large systems (:func:`translation_covariances`). ``plane_sigma`` (2,): the drift planes'
+    prior the refinement solved with (x, y; the unknowns' units,
+    :class:`merge.refine.solve.Priors`), added as its steps added it (``rms² / σ²`` per unit
+    residual, the data counted twice and the prior per side of them): the uncertainty is then
+    that of the posterior the merge found. Without it a large mosaic's Z sigmas were those of
+    the data alone, whose patch rows' relative tilts only the scan lines' offsets hold: 2,500
+    patches of 64 x 64 px reported 4.5 nm for errors of 0.96 nm (0.18 x), with it 1.2 nm.
     """
-    xy_cov, z_var = translation_covariances(*information, gauge, positions=positions)
+    prior = None
+    if plane_sigma is not None:
+        prior = np.zeros((gauge.shape[0] // 6, 6))
+        prior[:, 4:] = rms**2 / np.asarray(plane_sigma, dtype=np.float64) ** 2
+    xy_cov, z_var = translation_covariances(
+        *information, gauge, positions=positions, prior=None if prior is None else prior.ravel()
+    )
     rms2 = 2.0 * rms**2
     seen_xy: NDArray[np.bool_] = np.asarray(np.isfinite(xy_cov).all(axis=(1, 2)))
     largest = np.linalg.eigvalsh(np.where(seen_xy[:, None, None], xy_cov, 0.0))[:, 1]

@@ -9,7 +9,7 @@ import pytest
 
 from hardware.sim.drift import DriftModel
 from hardware.sim.surfaces import FoldedSurface
-from merge import Patch, PatchSet, PatchTransform
+from merge import Patch, PatchSet, PatchTransform, run
 from merge.core.overlap import overlapping_pairs
 from merge.refine import DEFAULT_LEVELS, refine
 from merge.report.quality import PatchFit, assess
@@ -109,3 +109,48 @@ def test_the_refinements_settled_system_reports_as_a_build_at_its_result(
     assert refine(patches, pairs, start).system is None
     short = tuple(replace(lv, max_iter=1) for lv in DEFAULT_LEVELS)
     assert refine(patches, pairs, start, levels=short, report=True).system is None
+
+
+def test_the_report_counts_the_drift_prior_the_refinement_solved_with(
+    small_mosaic: Synthetic,
+) -> None:
+    """The drift planes' prior holds what overlaps measure weakly (the patches' relative tilts
+    across their scan lines, and with them Z): counted as the refinement's steps counted it, it
+    only adds information, so no sigma grows and Z's shrink; a merge reports with it."""
+    patches = list(small_mosaic.patch_set)
+    boxes = np.array([p.footprint for p in patches])
+    pairs = overlapping_pairs(boxes, margin=1e-7)
+    fit = refine(patches, pairs, [PatchTransform() for _ in patches], report=True)
+    assert fit.plane_sigma is not None and np.isfinite(fit.plane_sigma).all()
+    data = assess(patches, pairs, fit.transforms, bank=fit.bank, system=fit.system)
+    held = assess(
+        patches,
+        pairs,
+        fit.transforms,
+        bank=fit.bank,
+        system=fit.system,
+        plane_sigma=fit.plane_sigma,
+    )
+    z_data = np.array([f.z_sigma for f in data])
+    z_held = np.array([f.z_sigma for f in held])
+    assert (z_held <= z_data * (1 + 1e-9)).all()
+    assert np.median(z_held / z_data) < 0.95
+    for d, h in zip(data, held, strict=True):
+        assert h.xy_sigma <= d.xy_sigma * (1 + 1e-9)
+        assert h.residual_rms == d.residual_rms
+    # a loose prior is the data alone
+    loose = assess(
+        patches,
+        pairs,
+        fit.transforms,
+        bank=fit.bank,
+        system=fit.system,
+        plane_sigma=np.full(2, 1e12),
+    )
+    np.testing.assert_allclose([f.z_sigma for f in loose], z_data, rtol=1e-6)
+    # the pipeline hands the prior on: a merge's Z sigmas are those held by it
+    merged = run(small_mosaic.patch_set)
+    by_id = {r.id: r for r in merged.patches}
+    reported = np.array([by_id[p.id].z_sigma for p in patches])
+    alone = assess(patches, pairs, [by_id[p.id].transform for p in patches])
+    assert np.median(reported / np.array([f.z_sigma for f in alone])) < 0.95

@@ -1,5 +1,6 @@
 import numpy as np
 import pytest
+from scipy.sparse import coo_matrix
 
 from backend.synthetic import patch_errors
 from merge import run
@@ -100,6 +101,35 @@ def test_groups_that_overlap_no_other_each_get_their_own_gauge() -> None:
         np.testing.assert_allclose(xy[idx], alone_xy, rtol=1e-6, atol=1e-9)
         np.testing.assert_allclose(z[idx], alone_z, rtol=1e-6, atol=1e-9)
     assert np.isinf(np.diag(xy[5])).all() and np.isinf(z[5])
+
+
+@pytest.mark.usefixtures("solver")
+def test_a_prior_on_the_planes_holds_the_heights_they_tilt() -> None:
+    # each patch's height is tied to the next one's through its drift plane (a height
+    # difference read at a lever arm): the planes' prior is then what holds the heights, and
+    # the covariances are the bordered inverse's with it on the diagonal
+    n = 4
+    rows, cols, vals = _chain(n, np.array([3.0, 3.0, 3.0]))
+    A = coo_matrix((vals, (rows, cols)), shape=(6 * n, 6 * n)).toarray()
+    for c in range(n - 1):
+        v = np.zeros(6 * n)
+        v[6 * c + 2], v[6 * (c + 1) + 2], v[6 * c + 4] = 1.0, -1.0, -1.0
+        A += 5.0 * np.outer(v, v)
+    gauge = np.zeros((6 * n, 3))
+    for k in range(3):
+        gauge[k::6, k] = 1.0
+    prior = np.zeros((n, 6))
+    prior[:, 4:] = 2.0
+    r, c = np.nonzero(A)
+    held_xy, held_z = translation_covariances(r, c, A[r, c], gauge, prior=prior.ravel())
+    free_xy, free_z = translation_covariances(r, c, A[r, c], gauge)
+    K = np.block([[A + np.diag(prior.ravel()), gauge], [gauge.T, np.zeros((3, 3))]])
+    expected = np.diag(np.linalg.inv(K))[: 6 * n].reshape(n, 6)
+    np.testing.assert_allclose(held_z, expected[:, 2], rtol=1e-5)
+    np.testing.assert_allclose(held_xy[:, 0, 0], expected[:, 0], rtol=1e-5)
+    # information added: the heights are held better, the places (no plane in them) as before
+    assert (held_z < 0.9 * free_z).all()
+    np.testing.assert_allclose(held_xy, free_xy, rtol=1e-5)
 
 
 def test_gauge_modes_are_common_motions() -> None:
