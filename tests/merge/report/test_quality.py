@@ -122,15 +122,18 @@ def test_the_report_counts_the_drift_prior_the_refinement_solved_with(
     pairs = overlapping_pairs(boxes, margin=1e-7)
     fit = refine(patches, pairs, [PatchTransform() for _ in patches], report=True)
     assert fit.plane_sigma is not None and np.isfinite(fit.plane_sigma).all()
-    data = assess(patches, pairs, fit.transforms, bank=fit.bank, system=fit.system)
-    held = assess(
-        patches,
-        pairs,
-        fit.transforms,
-        bank=fit.bank,
-        system=fit.system,
-        plane_sigma=fit.plane_sigma,
-    )
+
+    def with_prior(plane_sigma: np.ndarray | None) -> list[PatchFit]:
+        return assess(
+            patches,
+            pairs,
+            fit.transforms,
+            bank=fit.bank,
+            system=fit.system,
+            plane_sigma=plane_sigma,
+        )
+
+    data, held = with_prior(None), with_prior(fit.plane_sigma)
     z_data = np.array([f.z_sigma for f in data])
     z_held = np.array([f.z_sigma for f in held])
     assert (z_held <= z_data * (1 + 1e-9)).all()
@@ -139,14 +142,7 @@ def test_the_report_counts_the_drift_prior_the_refinement_solved_with(
         assert h.xy_sigma <= d.xy_sigma * (1 + 1e-9)
         assert h.residual_rms == d.residual_rms
     # a loose prior is the data alone
-    loose = assess(
-        patches,
-        pairs,
-        fit.transforms,
-        bank=fit.bank,
-        system=fit.system,
-        plane_sigma=np.full(2, 1e12),
-    )
+    loose = with_prior(np.full(2, 1e12))
     np.testing.assert_allclose([f.z_sigma for f in loose], z_data, rtol=1e-6)
     # the pipeline hands the prior on: a merge's Z sigmas are those held by it
     merged = run(small_mosaic.patch_set)
