@@ -120,9 +120,9 @@ def test_a_prior_on_the_planes_holds_the_heights_they_tilt() -> None:
         gauge[k::6, k] = 1.0
     prior = np.zeros((n, 6))
     prior[:, 4:] = 2.0
-    r, c = np.nonzero(A)
-    held_xy, held_z = translation_covariances(r, c, A[r, c], gauge, prior=prior.ravel())
-    free_xy, free_z = translation_covariances(r, c, A[r, c], gauge)
+    at = np.nonzero(A)
+    held_xy, held_z = translation_covariances(*at, A[at], gauge, prior=prior.ravel())
+    free_xy, free_z = translation_covariances(*at, A[at], gauge)
     K = np.block([[A + np.diag(prior.ravel()), gauge], [gauge.T, np.zeros((3, 3))]])
     expected = np.diag(np.linalg.inv(K))[: 6 * n].reshape(n, 6)
     np.testing.assert_allclose(held_z, expected[:, 2], rtol=1e-5)
