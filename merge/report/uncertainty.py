@@ -286,11 +286,10 @@ def translation_sigmas(
     """
     prior = None
     if plane_sigma is not None:
-        prior = np.zeros((gauge.shape[0] // 6, 6))
-        prior[:, 4:] = rms**2 / np.asarray(plane_sigma, dtype=np.float64) ** 2
-    xy_cov, z_var = translation_covariances(
-        *information, gauge, positions=positions, prior=None if prior is None else prior.ravel()
-    )
+        per_patch = np.zeros((gauge.shape[0] // 6, 6))
+        per_patch[:, 4:] = rms**2 / np.asarray(plane_sigma, dtype=np.float64) ** 2
+        prior = per_patch.ravel()
+    xy_cov, z_var = translation_covariances(*information, gauge, positions=positions, prior=prior)
     rms2 = 2.0 * rms**2
     seen_xy: NDArray[np.bool_] = np.asarray(np.isfinite(xy_cov).all(axis=(1, 2)))
     largest = np.linalg.eigvalsh(np.where(seen_xy[:, None, None], xy_cov, 0.0))[:, 1]
