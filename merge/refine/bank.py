@@ -13,7 +13,7 @@ a pixel; with their slopes stored beside them they weighed 48.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -22,6 +22,9 @@ from merge.core.heightfield import Border, slope_noise, smooth_nan, upsample2
 from merge.core.patchset import Patch
 from merge.core.progress import checkpoint
 from merge.refine.runs import RowBlock, Runs
+
+if TYPE_CHECKING:
+    from merge.refine.source_slopes import SourceSlopes
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
@@ -103,6 +106,9 @@ class SurfaceBank:
         self.nodes = self.RAW_NODES if smooth <= 0 else 1
         #: variance of a looked-up slope of unit white noise, per axis, in 1 / pixel²
         self.slope_noise = slope_noise(self.nodes)
+        #: the patches' own smoothed slopes, where the raw level's overlaps chose them
+        #: (:mod:`merge.refine.slope_widths`): the Jacobians take them instead of the look-ups'
+        self.source_slopes: SourceSlopes | None = None
         self.node_nx = (self.nx - 1) * self.nodes + 1
         self.node_ny = (self.ny - 1) * self.nodes + 1
         #: every patch's nodes are stored with a pixel's worth of them beyond every border (the
@@ -162,13 +168,17 @@ class SurfaceBank:
                 self.height[offset[c] : offset[c] + f.size] = f.ravel()
 
     def lookup(
-        self, dst: Ints, p_local: FloatArray
+        self, dst: Ints, p_local: FloatArray, *, reach: int | None = None
     ) -> tuple[FloatArray, FloatArray, FloatArray, NDArray[np.bool_]]:
         """Height (local), slopes and validity of patch ``dst[i]`` under local point ``i``.
 
         Bilinear between the nodes; points outside the patch or next to a hole are not valid
-        (their values are meaningless).
+        (their values are meaningless). The slopes are differences ``reach`` nodes either side
+        (default a pixel's worth); one node is the sharpest the look-up's heights have.
         """
+        reach = self.nodes if reach is None else reach
+        if not 1 <= reach <= self.nodes:
+            raise ValueError(f"reach must be 1 to {self.nodes} nodes, got {reach}")
         nx, ny = self.nx[dst], self.ny[dst]
         u, v = self._pixel_coords(dst, p_local)
         inside = (u >= 0) & (u <= nx - 1) & (v >= 0) & (v <= ny - 1)
@@ -183,12 +193,13 @@ class SurfaceBank:
         h = self._bilinear(k, row, fu, fv)
         # slopes: the bilinear look-ups a pixel either side (by linearity, the bilinear
         # interpolation of the nodes' central differences)
-        gx = self._bilinear(k + self.nodes, row, fu, fv)
-        gx -= self._bilinear(k - self.nodes, row, fu, fv)
-        gx /= 2.0 * self.dx[dst]
-        gy = self._bilinear(k + self.nodes * row, row, fu, fv)
-        gy -= self._bilinear(k - self.nodes * row, row, fu, fv)
-        gy /= 2.0 * self.dy[dst]
+        span = 2.0 * reach / self.nodes  # pixels
+        gx = self._bilinear(k + reach, row, fu, fv)
+        gx -= self._bilinear(k - reach, row, fu, fv)
+        gx /= span * self.dx[dst]
+        gy = self._bilinear(k + reach * row, row, fu, fv)
+        gy -= self._bilinear(k - reach * row, row, fu, fv)
+        gy /= span * self.dy[dst]
         ok = inside & np.isfinite(h) & np.isfinite(gx) & np.isfinite(gy)
         return h, gx, gy, ok
 

@@ -58,6 +58,7 @@ from merge.refine.bank import SurfaceBank
 from merge.refine.convergence import height_effect, remaining, slope_rms
 from merge.refine.normal_system import NormalSystem, build_normal_system
 from merge.refine.runs import Runs
+from merge.refine.slope_widths import choose_source_slopes
 from merge.refine.solve import Priors, solve_system
 from merge.refine.state import MosaicState
 
@@ -319,6 +320,11 @@ def _run_level(
     ``report``)."""
     state, bank = fit.state, lv.bank
     cand = bank.candidates(lv.pairs, state.R, state.s, lv.margin)
+    if lv.raw:
+        # the Jacobians' slopes: the patches' own, smoothed, if the mosaic's overlaps at the
+        # placement the smoothed levels reached show them better than the look-ups
+        bank.source_slopes = None
+        bank.source_slopes = choose_source_slopes(bank, cand, state)
     moved = 0.0
     previous = np.inf
     stalls = 0

@@ -75,7 +75,9 @@ class NormalSystem:
     at the same triplets without the share that slopes of the noise contribute (see
     :func:`merge.core.information.noise_share`): the information the surfaces themselves carry;
     ``line_design`` (then too) how much the residuals of one scan line of a run move together
-    (:func:`merge.core.information.line_design`).
+    (:func:`merge.core.information.line_design`); ``slope_count`` (then too, n) the residuals
+    that involve a patch counted by their slopes' noise, a look-up's as one (fewer than
+    ``count`` where the sources' smoothed slopes stand in, :mod:`merge.refine.source_slopes`).
     """
 
     rows: IntArray
@@ -89,6 +91,7 @@ class NormalSystem:
     rscale: float = 0.0
     signal_vals: FloatArray | None = None
     line_design: float = 1.0
+    slope_count: FloatArray | None = None
 
     @classmethod
     def empty(cls, n: int) -> NormalSystem:
@@ -163,11 +166,12 @@ def build_normal_system(
         # they are 0.9-1.4 x, and cautious (0.3-0.6 x) on MoS2 and the folded surface
         design = line_design(info.line_sums)
     # the report's per-patch sums, over every row of the mosaic: not for steps
-    count, sq = np.zeros(n), np.zeros(n)
+    count, sq, slope_count = np.zeros(n), np.zeros(n), np.zeros(n)
     if signal:
         for ends in (runs.src, runs.dst):  # a row involves both patches of its pair
             count += np.bincount(ends, weights=info.patch_sums[:, 0], minlength=n)
             sq += np.bincount(ends, weights=info.patch_sums[:, 1], minlength=n)
+            slope_count += np.bincount(ends, weights=info.patch_sums[:, 2], minlength=n)
     a_seg, b_seg = runs.src, runs.dst
     a_rows, a_cols, vals, g, diag = _assemble(bank, state, a_seg, b_seg, info.Baa, info.ga)
     signal_vals = None
@@ -185,6 +189,7 @@ def build_normal_system(
         rscale=rscale,
         signal_vals=signal_vals,
         line_design=design,
+        slope_count=slope_count if signal else None,
     )
 
 
@@ -194,12 +199,14 @@ class ScoredRows:
     destination) and the destination's slopes ``grad`` (m, 2); the valid residuals' RMS ``rms``
     and robust scale ``rscale``. What a row holds between the passes, for every row of the
     mosaic at once: 8 bytes (float32 residuals, a ten-millionth of their size; float16 slopes,
-    which only tilt a Jacobian)."""
+    which only tilt a Jacobian), and one more where some patches' slopes are their own smoothed
+    ones: ``smoothed`` (m,) whether a row's are (their noise is not a look-up's)."""
 
     r: Floats
     grad: Floats
     rms: float
     rscale: float
+    smoothed: NDArray[np.bool_] | None = None
 
     def block(self, lo: int, hi: int) -> tuple[FloatArray, NDArray[np.bool_], FloatArray]:
         """Rows ``[lo, hi)``: residual (0 where not valid), validity and Cauchy weight."""
@@ -222,13 +229,16 @@ def _scored_rows(
     m = runs.size
     r = np.empty(m, dtype=RESIDUAL_DTYPE)
     grad = np.empty((m, 2), dtype=GRAD_DTYPE)
+    smoothed = None if bank.source_slopes is None else np.empty(m, dtype=bool)
     squares = np.zeros((len(blocks), 2))  # per block: valid rows, their sum of squares
 
     def block_residuals(j: int) -> None:
         lo, hi = runs.starts[blocks[j][0]], runs.starts[blocks[j][1]]
-        rr, ok, gg = residuals(bank, bank.rows(runs, *blocks[j]), state)
+        rr, ok, gg, own = residuals(bank, bank.rows(runs, *blocks[j]), state)
         r[lo:hi] = np.where(ok, rr, np.nan)
         grad[lo:hi] = gg
+        if smoothed is not None:
+            smoothed[lo:hi] = own
         squares[j] = ok.sum(), rr @ rr
 
     each(block_residuals, range(len(blocks)))
@@ -240,7 +250,7 @@ def _scored_rows(
     used = sample[np.isfinite(sample)]
     np.abs(used, out=used)
     rscale = max(1.4826 * float(np.median(used, overwrite_input=True)), noise)
-    return ScoredRows(r, grad, rms, rscale)
+    return ScoredRows(r, grad, rms, rscale, smoothed)
 
 
 def _offset_ratio(runs: Runs, rows: ScoredRows, blocks: list[tuple[int, int]]) -> float:
@@ -263,7 +273,8 @@ def _offset_ratio(runs: Runs, rows: ScoredRows, blocks: list[tuple[int, int]]) -
 class RunInformation:
     """Pass 2 of the build, per run (k runs): the source's information block ``Baa`` (k, 6, 6)
     and gradient ``ga`` (k, 6), the noise's ``share`` of each block (or None); per run the
-    valid rows and their squared distances along the surface normal ``patch_sums`` (k, 2), and
+    valid rows, their squared distances along the surface normal and their slopes' noise in
+    look-ups' worth ``patch_sums`` (k, 3), and
     the mosaic's :func:`merge.core.information.line_sums` (2,)."""
 
     Baa: FloatArray
@@ -289,7 +300,7 @@ def _run_information(
     k = len(runs)
     Baa, ga = np.empty((k, 6, 6)), np.empty((k, 6))
     share = None if noise2 is None else np.empty((k, 6, 6))
-    patch_sums = np.zeros((k, 2))
+    patch_sums = np.zeros((k, 3))
     lines = np.zeros((len(blocks), 2))
 
     def information(j: int) -> None:
@@ -304,13 +315,20 @@ def _run_information(
         J = jacobians(bank, block, state, grad, ok, arm, points)
         Baa[first:last], ga[first:last] = segment_sums(J, w, r, block.starts)
         if share is not None and noise2 is not None:
+            # a row's slope noise against a look-up's: less where the source's smoothed slopes
+            # stand in for it
+            ratio = np.ones(hi - lo)
+            if rows.smoothed is not None and bank.source_slopes is not None:
+                own = rows.smoothed[lo:hi]
+                ratio[own] = bank.source_slopes.noise_ratio
             share[first:last] = noise_share(
-                w, arm, block.starts, bank.radius[runs.src[first:last]], noise2[first:last]
+                w * ratio, arm, block.starts, bank.radius[runs.src[first:last]], noise2[first:last]
             )
             lines[j] = line_sums(w * r, block.groups)
             d2 = r**2 / (1.0 + np.einsum("ij,ij->i", grad, grad))
             patch_sums[first:last, 0] = np.add.reduceat(ok, block.starts[:-1], dtype=np.float64)
             patch_sums[first:last, 1] = np.add.reduceat(d2, block.starts[:-1])
+            patch_sums[first:last, 2] = np.add.reduceat(ok * ratio, block.starts[:-1])
         marginalise_offsets(
             J, w, r, block.starts, block.groups, rho, Baa[first:last], ga[first:last]
         )

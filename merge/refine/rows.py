@@ -16,6 +16,7 @@ from numpy.typing import NDArray
 
 from merge.refine.bank import SurfaceBank
 from merge.refine.runs import RowBlock
+from merge.refine.source_slopes import slopes_in_destination
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
@@ -38,7 +39,7 @@ class PatchState:
     slope: FloatArray
 
 
-def _run_maps(state: PatchState, a: Ints, b: Ints) -> tuple[FloatArray, FloatArray]:
+def run_maps(state: PatchState, a: Ints, b: Ints) -> tuple[FloatArray, FloatArray]:
     """Per run: the affine map ``p_b = M p_a + c`` from the source's frame to the destination's.
 
     ``q = R_a p + s_a + e_z (slope_a · p_xy)`` in the mosaic, then ``p_b = R_b' (q - s_b)``:
@@ -53,8 +54,9 @@ def _run_maps(state: PatchState, a: Ints, b: Ints) -> tuple[FloatArray, FloatArr
 
 def residuals(
     bank: SurfaceBank, rows: RowBlock, state: PatchState
-) -> tuple[FloatArray, NDArray[np.bool_], FloatArray]:
-    """Per row: residual, validity, and the destination's normal slopes (m, 2).
+) -> tuple[FloatArray, NDArray[np.bool_], FloatArray, NDArray[np.bool_]]:
+    """Per row: residual, validity, the destination's normal slopes (m, 2), and whether they
+    are the source's smoothed ones (:attr:`SurfaceBank.source_slopes`).
 
     Rows come in runs of one directed pair each (``rows.starts``), so every run moves its
     points with one small matrix product. The residual is the height of the source point above
@@ -77,7 +79,7 @@ def residuals(
     """
     starts = rows.starts
     a, b = rows.src[starts[:-1]], rows.dst[starts[:-1]]
-    M, c = _run_maps(state, a, b)
+    M, c = run_maps(state, a, b)
     p_src = bank.point_xyz(rows)
     solid = np.isfinite(p_src[:, 2])
     p_src[~solid, 2] = 0.0
@@ -97,25 +99,11 @@ def residuals(
         own = slopes_in_destination(bank.point_slopes(rows, near), M[run])
         known = np.isfinite(own).all(axis=1)
         grad[near[known]] = own[known]
+    smoothed = np.zeros(len(r), dtype=bool)
+    if bank.source_slopes is not None:  # where the overlaps chose them (merge.refine.slope_widths)
+        smoothed = bank.source_slopes.take(rows, ok, grad, M)
     grad[~ok] = 0.0
-    return r, ok, grad
-
-
-def slopes_in_destination(g: FloatArray, M: FloatArray) -> FloatArray:
-    """(m, 2) slopes ``g`` (m, 2) of source surfaces in their own frames, as slopes in the
-    destination's frames (drift plane included) through the maps ``M`` (m, 3, 3) of
-    :func:`_run_maps`: a surface step ``(dx, dy, g · (dx, dy))`` maps to ``M`` times it, so the
-    slope there is ``dz' (d(x', y') / d(x, y))⁻¹``."""
-    gx, gy = g[:, 0], g[:, 1]
-    j11 = M[:, 0, 0] + M[:, 0, 2] * gx
-    j12 = M[:, 0, 1] + M[:, 0, 2] * gy
-    j21 = M[:, 1, 0] + M[:, 1, 2] * gx
-    j22 = M[:, 1, 1] + M[:, 1, 2] * gy
-    zx = M[:, 2, 0] + M[:, 2, 2] * gx
-    zy = M[:, 2, 1] + M[:, 2, 2] * gy
-    det = j11 * j22 - j12 * j21
-    out: FloatArray = np.column_stack([zx * j22 - zy * j21, zy * j11 - zx * j12]) / det[:, None]
-    return out
+    return r, ok, grad, smoothed
 
 
 def lever_arms(points: FloatArray, rows: RowBlock, state: PatchState) -> FloatArray:

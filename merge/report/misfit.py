@@ -94,7 +94,7 @@ def pair_misfits(
     state = MosaicState.from_transforms(transforms, bank, scale)
     margin = 1.5 * float(max(bank.dx.max(), bank.dy.max()))
     rows = bank.rows(bank.candidates(mine, state.R, state.s, margin))
-    r, valid, _ = residuals(bank, rows, state)
+    r, valid, _, _ = residuals(bank, rows, state)
     own = (rows.src == c) & valid  # c's points over the others' surfaces
     lines = patches[c].heights.shape[0]
     points = np.nan_to_num(bank.point_xyz(rows))

@@ -127,10 +127,12 @@ def _local_fits(
         try:
             # information of its XY translation with its own other unknowns free, without the
             # share that slopes of noise contribute: noise is not texture (per residual
-            # slope_noise σ² / pitch², 2/9 for bilinear look-ups between central differences)
+            # slope_noise σ² / pitch², 2/9 for bilinear look-ups between central differences;
+            # a fraction of it where the sources' smoothed slopes stand in, slope_count)
             xy_info = info[:2, :2] - info[:2, 2:] @ np.linalg.solve(info[2:, 2:], info[2:, :2])
             pitch2 = np.array([pitch[c, 0] ** -2, pitch[c, 1] ** -2])
-            xy_info = signal_information(xy_info, k * noise**2 * slope_noise * pitch2)
+            slopes = k if stats.slope_count is None else stats.slope_count[c]
+            xy_info = signal_information(xy_info, slopes * noise**2 * slope_noise * pitch2)
             vals = np.linalg.eigvalsh(xy_info)
             # at the level of the regularisation above, a direction is not seen at all
             seen = vals.min() > LOCAL_FLOOR * max(float(vals.max()), 1e-300)

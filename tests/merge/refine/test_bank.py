@@ -176,7 +176,7 @@ def test_a_point_in_a_hole_gives_a_row_that_is_not_valid() -> None:
     R = np.repeat(np.eye(3)[None], 2, axis=0)
     state = PatchState(R, bank.centre.copy(), np.zeros((2, 2)))
     rows = bank.rows(bank.candidates(np.array([[0, 1]]), R, state.s, 0.0), 0, 1)
-    _, ok, _ = residuals(bank, rows, state)
+    _, ok, _, _ = residuals(bank, rows, state)
     # the spline through the pixels is not defined within a pixel of the hole
     near = (np.abs(rows.row - 5) <= 1) & (np.abs(rows.col - 25) <= 1)
     assert near.sum() == 9 and not ok[near].any() and ok[~near].all()
@@ -202,3 +202,16 @@ def test_narrow_nodes_and_rows_merge_as_float64_do(
         reach = float(np.hypot(*np.multiply(p.shape[::-1], p.pixel_size)))
         np.testing.assert_allclose(a.R * reach, b.R * reach, rtol=0, atol=1e-12)
     np.testing.assert_allclose(narrow.mosaic.heights, wide.mosaic.heights, rtol=0, atol=1e-12)
+
+
+def test_sharper_slopes_are_a_node_either_side_and_exact_on_a_plane() -> None:
+    bank = SurfaceBank([_plane_patch("a", (0.0, 0.0))], 10e-9, 0.0, 1)
+    pts = np.column_stack([np.linspace(-5.0, 5.0, 7), np.linspace(-3.0, 3.0, 7), np.zeros(7)])
+    dst = np.zeros(len(pts), dtype=np.intp)
+    _, gx, gy, ok = bank.lookup(dst, pts, reach=1)
+    assert ok.all()
+    np.testing.assert_allclose(gx, 0.3, atol=3e-6)
+    np.testing.assert_allclose(gy, -0.2, atol=3e-6)
+    for reach in (0, bank.nodes + 1):
+        with pytest.raises(ValueError, match="reach"):
+            bank.lookup(dst, pts, reach=reach)

@@ -7,7 +7,7 @@ import pytest
 
 from backend.synthetic import patch_set_from_synth, registration_error
 from hardware.sim.drift import DriftModel
-from hardware.sim.surfaces import ImageSurface
+from hardware.sim.surfaces import Chessboard, ImageSurface
 from hardware.sim.synth import synthesize
 from merge import pipeline, run
 from merge.core.overlap import overlapping_pairs
@@ -112,3 +112,34 @@ def test_the_first_level_moves_only_the_free_patches(small_mosaic: Synthetic) ->
     moved = [float(np.abs(tr.t - s.t).max()) for tr, s in zip(fit.transforms, start, strict=True)]
     assert moved[2] > 5e-9
     assert max(m for m, f in zip(moved, free, strict=True) if not f) < 1e-12
+
+
+@pytest.mark.parametrize(
+    ("step", "pixels", "smoothed"),
+    [
+        # a grating's flat squares in 5 nm pixels: the look-ups' slopes are mostly noise
+        (0.6e-6, (200, 200), True),
+        # a flat face's roughness at the pixel's scale in 20 nm pixels: it is all signal
+        (0.0, (50, 50), False),
+    ],
+)
+def test_the_raw_level_smooths_the_slopes_only_where_the_pixels_are_finer_than_the_texture(
+    step: float, pixels: tuple[int, int], smoothed: bool
+) -> None:
+    synth = synthesize(
+        Chessboard(period=3e-6, step=step, edge_width=50e-9, seed=4),
+        rows=2,
+        cols=2,
+        patch_size=(1e-6, 1e-6),
+        pixels=pixels,
+        overlap=(0.25, 0.25),
+        drift=DriftModel.typical(),
+        seed=3,
+    )
+    patches = patch_set_from_synth(synth).patches
+    pairs = overlapping_pairs(np.array([p.footprint for p in patches]), margin=1e-7)
+    fit = icp.refine(patches, pairs, [PatchTransform() for _ in patches])
+    slopes = fit.bank.source_slopes
+    assert (slopes is not None) is smoothed
+    if slopes is not None:
+        assert slopes.width > 0 and len(slopes.grids) == len(patches)

@@ -4,9 +4,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy import ndimage
 
 from merge.refine.normal_system import build_normal_system
+from merge.refine.slope_widths import choose_source_slopes
 from tests.merge.refine.test_rows import four_patches
+from tests.merge.refine.test_slope_widths import overlapping_pair
 
 
 @pytest.mark.parametrize("block_rows", [1, 97, 1000])
@@ -41,3 +44,32 @@ def test_the_per_patch_sums_come_with_the_signal_only() -> None:
     report = build_normal_system(bank, cand, state, 0.1, signal=True)
     assert not steps.count.any() and report.count.sum() > 0
     np.testing.assert_allclose(steps.g, report.g, rtol=1e-12, atol=1e-12)
+
+
+def test_smoothed_slopes_claim_less_of_the_information_for_noise() -> None:
+    # where the sources' smoothed slopes stand in for the look-ups, their noise is a fraction
+    # of a look-up's, and the report counts each row's slopes by theirs
+    rng = np.random.default_rng(1)
+    surface = ndimage.gaussian_filter(rng.normal(size=(120, 200)), 8.0) * 40.0
+    bank, state = overlapping_pair(surface, 0.3, 2)
+    cand = bank.candidates(np.array([[0, 1]]), state.R, state.s, 1.5)
+    looked_up = build_normal_system(bank, cand, state, 0.3, signal=True)
+    assert looked_up.slope_count is not None
+    np.testing.assert_allclose(looked_up.slope_count, looked_up.count)
+    bank.source_slopes = choose_source_slopes(bank, cand, state)
+    own = build_normal_system(bank, cand, state, 0.3, signal=True)
+    assert own.slope_count is not None and looked_up.signal_vals is not None
+    np.testing.assert_array_equal(own.count, looked_up.count)
+    assert (own.slope_count < 0.8 * own.count).all()
+    assert own.signal_vals is not None
+    # the patches' XY information without the noise's share is nearer what the surface
+    # itself holds (the same pair without noise) than the look-ups' is
+    exact, at = overlapping_pair(surface, 0.0, 2)
+    truth = build_normal_system(exact, cand, at, 0.3)
+    place = (own.rows == own.cols) & (own.rows % 6 < 2)
+    for system in (own, looked_up):
+        assert np.array_equal(system.rows, truth.rows)
+        assert np.array_equal(system.cols, truth.cols)
+    err_own = np.abs(own.signal_vals[place] / truth.vals[place] - 1.0)
+    err_looked_up = np.abs(looked_up.signal_vals[place] / truth.vals[place] - 1.0)
+    assert (err_own < 0.5 * err_looked_up).all()
