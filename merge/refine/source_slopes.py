@@ -59,10 +59,10 @@ class SourceSlopes:
     width (:func:`merge.refine.slope_widths.choose_source_slopes`).
 
     ``grids`` maps every patch to its slopes (ny, nx, 2: dz/dx, dz/dy per pixel, NaN where the
-    kernel meets a hole or the border); ``spread2`` the typical
-    mean square difference of the smoothed slopes to the destinations' look-ups (2 axes
-    summed); ``noise_ratio`` the variance of a smoothed slope of white noise over a looked-up
-    one's; ``width`` the kernel's standard deviation in pixels.
+    kernel meets a hole or the border); ``spread2`` the typical mean square difference of the
+    smoothed slopes to the destinations' look-ups (2 axes summed, the median patch's);
+    ``noise_ratio`` the variance of a smoothed slope of white noise over a looked-up one's;
+    ``width`` the kernel's standard deviation in pixels.
     """
 
     grids: dict[int, NDArray[np.float16]]
