@@ -52,6 +52,25 @@ def run_maps(state: PatchState, a: Ints, b: Ints) -> tuple[FloatArray, FloatArra
     return M, c
 
 
+def feet(
+    bank: SurfaceBank, rows: RowBlock, state: PatchState
+) -> tuple[FloatArray, FloatArray, NDArray[np.bool_]]:
+    """Every row's point in its destination's frame: the runs' maps ``M`` (k, 3, 3) of
+    :func:`run_maps`, the points (m, 3; one small matrix product per run) and whether the
+    source holds a height there (m,; a hole's point is put at zero height)."""
+    starts = rows.starts
+    M, c = run_maps(state, rows.src[starts[:-1]], rows.dst[starts[:-1]])
+    p_src = bank.point_xyz(rows)
+    solid = np.isfinite(p_src[:, 2])
+    p_src[~solid, 2] = 0.0
+    p_dst = np.empty_like(p_src)
+    for k in range(len(M)):
+        lo, hi = starts[k], starts[k + 1]
+        np.matmul(p_src[lo:hi], M[k].T, out=p_dst[lo:hi])
+        p_dst[lo:hi] += c[k]
+    return M, p_dst, solid
+
+
 def residuals(
     bank: SurfaceBank, rows: RowBlock, state: PatchState
 ) -> tuple[FloatArray, NDArray[np.bool_], FloatArray, NDArray[np.bool_]]:
@@ -78,16 +97,7 @@ def residuals(
     there changed no result and cost 400 patches an iteration.
     """
     starts = rows.starts
-    a, b = rows.src[starts[:-1]], rows.dst[starts[:-1]]
-    M, c = run_maps(state, a, b)
-    p_src = bank.point_xyz(rows)
-    solid = np.isfinite(p_src[:, 2])
-    p_src[~solid, 2] = 0.0
-    p_dst = np.empty_like(p_src)
-    for k in range(len(a)):
-        lo, hi = starts[k], starts[k + 1]
-        np.matmul(p_src[lo:hi], M[k].T, out=p_dst[lo:hi])
-        p_dst[lo:hi] += c[k]
+    M, p_dst, solid = feet(bank, rows, state)
     h, gx, gy, ok = bank.lookup(rows.dst, p_dst)
     ok &= solid
     slope = state.slope[rows.dst]

@@ -28,7 +28,7 @@ from numpy.typing import NDArray
 
 from merge.core.parallel import each
 from merge.refine.bank import SurfaceBank
-from merge.refine.rows import PatchState, run_maps
+from merge.refine.rows import PatchState, feet
 from merge.refine.runs import Runs
 from merge.refine.source_slopes import (
     FLAT,
@@ -137,17 +137,13 @@ def _compare_one(
     its plain slopes and each width's give (len(widths) + 1,), and each width's mean square
     difference to the Jacobian's look-ups (len(widths),); None if too few rows compare."""
     rows = bank.rows(own)
-    M, shift = run_maps(state, own.src, own.dst)
+    M, foot, solid = feet(bank, rows, state)
     run = np.repeat(np.arange(len(own)), np.diff(own.starts))
-    points = bank.point_xyz(rows)
-    solid = np.isfinite(points[:, 2])
-    points[~solid, 2] = 0.0
-    feet = np.einsum("mij,mj->mi", M[run], points) + shift[run]
     # the reference: the destination's slopes a node either side, the derivative the
     # residual's look-up has; the Jacobian's, a pixel either side, is smoother, and on
     # roughness at the pixel scale lacks what smoothing takes too
-    sharp = _slopes_at(bank, state, rows.dst, feet, solid, 1)
-    looked_up = _slopes_at(bank, state, rows.dst, feet, solid, bank.nodes)
+    sharp = _slopes_at(bank, state, rows.dst, foot, solid, 1)
+    looked_up = _slopes_at(bank, state, rows.dst, foot, solid, bank.nodes)
     heights, pitch = _pixels(bank, c), _pitch(bank, c)
     seen = [
         slopes_in_destination(gaussian_slopes(heights, w, pitch)[rows.row, rows.col], M[run])
