@@ -272,7 +272,7 @@ class SurfaceBank:
         other's surface, which averages the interpolation of either surface (Jacobians act on
         both patches of a pair). Returns one run per directed pair whose rectangle holds a point:
         the source's points within the destination's outline (its bounding box in the source's
-        frame).
+        frame), the runs of each source one after another.
         """
         pairs = np.asarray(pairs, dtype=np.intp).reshape(-1, 2)
         src, dst = pairs.ravel(), pairs[:, ::-1].ravel()
@@ -298,6 +298,9 @@ class SurfaceBank:
         kept = count > 0
         if not kept.any():
             return Runs.empty()
+        # the runs of one source together: its scan lines' offsets are shared by all of them
+        kept = np.flatnonzero(kept)
+        kept = kept[np.argsort(src[kept], kind="stable")]
         return Runs(
             src[kept],
             dst[kept],

@@ -26,6 +26,7 @@ sums, for the size of their offsets; the information of every run.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -35,7 +36,13 @@ from numpy.typing import NDArray
 from merge.core.information import line_design, line_sums, noise_share, psd_part
 from merge.core.parallel import each
 from merge.refine.bank import SurfaceBank
-from merge.refine.lines import group_sums, marginalise_offsets, ratio_of_sums
+from merge.refine.lines import (
+    OffsetRatios,
+    SharedLines,
+    group_sums,
+    marginalise_offsets,
+    shared_ratios,
+)
 from merge.refine.rows import PatchState, jacobians, lever_arms, residuals, segment_sums
 from merge.refine.runs import Runs
 
@@ -154,7 +161,7 @@ def build_normal_system(
     if signal:
         pitch2 = 0.5 * (bank.dx[runs.dst] ** -2 + bank.dy[runs.dst] ** -2)
         noise2 = bank.slope_noise * noise**2 * pitch2
-    rho = _offset_ratio(runs, rows, blocks) if lines else float("inf")
+    rho = _offset_ratios(runs, rows, blocks) if lines else OffsetRatios(np.inf, np.inf)
     info = _run_information(bank, runs, state, rows, blocks, rho, noise2)
     del rows  # every row's residual and slopes: not needed past here
     signal_blocks, design = None, 1.0
@@ -173,10 +180,12 @@ def build_normal_system(
             sq += np.bincount(ends, weights=info.patch_sums[:, 1], minlength=n)
             slope_count += np.bincount(ends, weights=info.patch_sums[:, 2], minlength=n)
     a_seg, b_seg = runs.src, runs.dst
-    a_rows, a_cols, vals, g, diag = _assemble(bank, state, a_seg, b_seg, info.Baa, info.ga)
+    a_rows, a_cols, vals, g, diag = _assemble(
+        bank, state, a_seg, b_seg, info.Baa, info.ga, info.shared
+    )
     signal_vals = None
     if signal_blocks is not None:
-        signal_vals = _assemble(bank, state, a_seg, b_seg, signal_blocks, info.ga)[2]
+        signal_vals = _assemble(bank, state, a_seg, b_seg, signal_blocks, info.ga, info.shared)[2]
     return NormalSystem(
         rows=a_rows,
         cols=a_cols,
@@ -253,8 +262,8 @@ def _scored_rows(
     return ScoredRows(r, grad, rms, rscale, smoothed)
 
 
-def _offset_ratio(runs: Runs, rows: ScoredRows, blocks: list[tuple[int, int]]) -> float:
-    """:func:`merge.refine.lines.offset_ratio` over every line of every run, block by block."""
+def _offset_ratios(runs: Runs, rows: ScoredRows, blocks: list[tuple[int, int]]) -> OffsetRatios:
+    """:func:`merge.refine.lines.shared_ratios` over every line of every run, block by block."""
     lines = runs.box[:, 1] - runs.box[:, 0]
     first_group = np.concatenate([[0], np.cumsum(lines)])
     sums = np.empty((4, int(first_group[-1])))
@@ -266,7 +275,8 @@ def _offset_ratio(runs: Runs, rows: ScoredRows, blocks: list[tuple[int, int]]) -
         sums[:, g_lo:g_hi] = group_sums(r, w, ok, runs.groups(*block))
 
     each(block_sums, blocks)
-    return ratio_of_sums(sums)
+    spans = np.repeat(runs.box[:, 2:], lines, axis=0)
+    return shared_ratios(sums, runs.lines(), spans)
 
 
 @dataclass(frozen=True)
@@ -275,13 +285,15 @@ class RunInformation:
     and gradient ``ga`` (k, 6), the noise's ``share`` of each block (or None); per run the
     valid rows, their squared distances along the surface normal and their slopes' noise in
     look-ups' worth ``patch_sums`` (k, 3), and
-    the mosaic's :func:`merge.core.information.line_sums` (2,)."""
+    the mosaic's :func:`merge.core.information.line_sums` (2,); what the scan lines' shared
+    offsets take out between runs of one source (``shared``)."""
 
     Baa: FloatArray
     ga: FloatArray
     share: FloatArray | None
     patch_sums: FloatArray
     line_sums: FloatArray
+    shared: SharedLines
 
 
 def _run_information(
@@ -290,11 +302,12 @@ def _run_information(
     state: PatchState,
     rows: ScoredRows,
     blocks: list[tuple[int, int]],
-    rho: float,
+    rho: OffsetRatios,
     noise2: FloatArray | None = None,
 ) -> RunInformation:
     """Pass 2: per run, the source's information block and gradient, the offsets of its lines
-    marginalised (``rho`` from :func:`merge.refine.lines.offset_ratio`); with ``noise2`` (k,)
+    marginalised (``rho`` from :func:`merge.refine.lines.shared_ratios`; a block holds every
+    run of its sources, :meth:`Runs.blocks`, so every line's groups); with ``noise2`` (k,)
     (the variance of a looked-up slope of the noise per run) also the share of each block that
     noise claims (:func:`merge.core.information.noise_share`) and the report's sums."""
     k = len(runs)
@@ -302,6 +315,7 @@ def _run_information(
     share = None if noise2 is None else np.empty((k, 6, 6))
     patch_sums = np.zeros((k, 3))
     lines = np.zeros((len(blocks), 2))
+    shared = [SharedLines.none()] * len(blocks)
 
     def information(j: int) -> None:
         first, last = blocks[j]
@@ -329,13 +343,22 @@ def _run_information(
             patch_sums[first:last, 0] = np.add.reduceat(ok, block.starts[:-1], dtype=np.float64)
             patch_sums[first:last, 1] = np.add.reduceat(d2, block.starts[:-1])
             patch_sums[first:last, 2] = np.add.reduceat(ok * ratio, block.starts[:-1])
-        marginalise_offsets(
-            J, w, r, block.starts, block.groups, rho, Baa[first:last], ga[first:last]
+        between = marginalise_offsets(
+            J,
+            w,
+            r,
+            block.starts,
+            block.groups,
+            rho,
+            Baa[first:last],
+            ga[first:last],
+            runs.lines(first, last),
         )
+        shared[j] = between.moved(first)
 
     each(information, range(len(blocks)))
     line_total = lines.sum(axis=0)
-    return RunInformation(Baa, ga, share, patch_sums, line_total)
+    return RunInformation(Baa, ga, share, patch_sums, line_total, SharedLines.joined(shared))
 
 
 def _assemble(
@@ -345,13 +368,18 @@ def _assemble(
     b_seg: IntArray,
     Baa: FloatArray,
     ga: FloatArray,
+    shared: SharedLines,
 ) -> tuple[IntArray, IntArray, FloatArray, FloatArray, FloatArray]:
-    """Triplets of ``A``, ``g`` and the diagonal blocks from every run's source block.
+    """Triplets of ``A``, ``g`` and the diagonal blocks from every run's source block and the
+    blocks ``shared`` between runs of one source.
 
     Within one directed pair the destination's Jacobian is a fixed linear map of the source's,
     ``Jb = -T Ja`` (rotations about z): its spin arm is the source's plus ``Δ = s_a - s_b``,
     and its plane arm ``(x', y') = M (x_a, y_a) + c`` with ``M = [R_b' R_a]_xy`` and
-    ``c = [R_b' Δ]_xy``.
+    ``c = [R_b' Δ]_xy``. A run's rows see the relative unknowns ``y = x_a - T' x_b``, so a
+    block ``C`` between runs ``k`` and ``l`` of source ``a`` is ``-C`` on ``y_k' y_l``: on
+    ``(a, a)``, ``(a, b_l)``, ``(b_k, a)`` and ``(b_k, b_l)`` through ``T_k`` and ``T_l``
+    (two destinations of one source coupled where one of its lines crosses both).
     """
     n = len(bank.centre)
     R, s = state.R, state.s
@@ -375,13 +403,30 @@ def _assemble(
     np.add.at(g, b_seg, np.einsum("kij,kj->ki", T, ga))
     np.add.at(diag, a_seg, Baa)
     np.add.at(diag, b_seg, Bbb)
+    # blocks (row patch, column patch) off the diagonal: every run's, and the three of each pair
+    # of runs sharing lines (``y_one' M y_other``, ``M = -C``)
+    one, other = shared.first, shared.second
+    M = -shared.C
+    np.add.at(diag, a_seg[one], M + np.swapaxes(M, 1, 2))
+    parts: list[tuple[IntArray, IntArray, Callable[[], FloatArray]]] = [
+        (a_seg, b_seg, lambda: Bab),
+        (a_seg[one], b_seg[other], lambda: -(M @ Tt[other])),
+        (b_seg[one], a_seg[one], lambda: -(T[one] @ M)),
+        (b_seg[one], b_seg[other], lambda: T[one] @ M @ Tt[other]),
+    ]
     # one block per patch (its diagonal) and one per pair of patches above the diagonal, with its
-    # transpose below: the four blocks of every run summed where they meet (both directions of
-    # a pair fall on the same two places), a third of the triplets of four per run
-    lo, hi = np.minimum(a_seg, b_seg), np.maximum(a_seg, b_seg)
-    pair, at = np.unique(lo * n + hi, return_inverse=True)
+    # transpose below: the blocks summed where they meet (both directions of a pair fall on the
+    # same two places), a third of the triplets of four per run; a part's blocks made when they
+    # are summed (a large mosaic's pairs of runs hold tens of megabytes of them)
+    keys = [np.minimum(r, c) * n + np.maximum(r, c) for r, c, _ in parts]
+    pair, at = np.unique(np.concatenate(keys), return_inverse=True)
     off = np.zeros((len(pair), 6, 6))
-    np.add.at(off, at, np.where((a_seg < b_seg)[:, None, None], Bab, np.swapaxes(Bab, 1, 2)))
+    start = 0
+    for (r, c, made), key in zip(parts, keys, strict=True):
+        where, start = at[start : start + len(key)], start + len(key)
+        blocks, below = made(), r > c
+        np.add.at(off, where[~below], blocks[~below])
+        np.add.at(off, where[below], np.swapaxes(blocks[below], 1, 2))
     first, second = pair // n, pair % n
     a_rows, a_cols, vals = _block_triplets(
         (np.arange(n), np.arange(n), diag),

@@ -23,7 +23,8 @@ class Runs:
     """One run per directed pair: ``src`` and ``dst`` (k,) patches, ``box`` (k, 4) the source's
     point-grid rows ``[i0, i1)`` and columns ``[j0, j1)`` it covers, ``starts`` (k + 1,) the first
     row of every run (rows run line by line, so each line of a run is one group of rows,
-    :mod:`merge.refine.lines`)."""
+    :mod:`merge.refine.lines`). The runs of one source follow each other (a scan line's rows in
+    all of them share its offset, and :meth:`blocks` keeps them together)."""
 
     src: IntArray
     dst: IntArray
@@ -44,13 +45,19 @@ class Runs:
         return int(self.starts[-1])
 
     def blocks(self, rows: int) -> list[tuple[int, int]]:
-        """Ranges ``[first, last)`` of runs holding about ``rows`` rows each (at least one run)."""
+        """Ranges ``[first, last)`` of runs holding about ``rows`` rows each: at least one
+        source's runs, and never part of one (a block holds every overlap of its sources' scan
+        lines, :mod:`merge.refine.lines`)."""
         out = []
         k = len(self)
+        # where the source changes: a block ends at one of these
+        ends = np.flatnonzero(np.diff(self.src) != 0) + 1
+        ends = np.append(ends, k)
         first = 0
         while first < k:
             last = int(np.searchsorted(self.starts, self.starts[first] + rows, side="right")) - 1
-            last = min(max(last, first + 1), k)
+            last = max(last, first + 1)
+            last = int(ends[np.searchsorted(ends, last)])
             out.append((first, last))
             first = last
         return out
@@ -59,12 +66,28 @@ class Runs:
         """First row of every line of runs ``[first, last)``, counted from the first of their
         rows (g,), sorted."""
         last = len(self) if last is None else last
-        box = self.box[first:last]
-        lines, width = box[:, 1] - box[:, 0], box[:, 3] - box[:, 2]
-        run = np.repeat(np.arange(last - first), lines)
-        t = np.arange(int(lines.sum())) - np.repeat(np.cumsum(lines) - lines, lines)
+        run, t = self._lines_of(first, last)
+        width = self.box[first:last, 3] - self.box[first:last, 2]
         out: IntArray = self.starts[first:last][run] - self.starts[first] + t * width[run]
         return out
+
+    def lines(self, first: int = 0, last: int | None = None) -> IntArray:
+        """Which scan line every line of runs ``[first, last)`` is (g,), in the order of
+        :meth:`groups`: one number per source patch and point-grid row, the same in every run
+        of that source and in every range of runs."""
+        last = len(self) if last is None else last
+        run, t = self._lines_of(first, last)
+        height = int(self.box[:, 1].max()) if len(self) else 0
+        out: IntArray = self.src[first:last][run] * height + self.box[first:last, 0][run] + t
+        return out
+
+    def _lines_of(self, first: int, last: int) -> tuple[IntArray, IntArray]:
+        """Every line of runs ``[first, last)``: its run (counted from ``first``) and its place
+        in that run's rectangle (g,) each."""
+        lines = self.box[first:last, 1] - self.box[first:last, 0]
+        run = np.repeat(np.arange(last - first), lines)
+        t = np.arange(int(lines.sum())) - np.repeat(np.cumsum(lines) - lines, lines)
+        return run, t
 
 
 @dataclass(frozen=True)

@@ -13,7 +13,14 @@ from hardware.sim.surfaces import Chessboard
 from merge import PatchTransform
 from merge.refine import normal_system as ns
 from merge.refine.icp import DEFAULT_LEVELS, refine
-from merge.refine.lines import group_sums, marginalise_offsets, offset_ratio, ratio_of_sums
+from merge.refine.lines import (
+    OffsetRatios,
+    group_sums,
+    marginalise_offsets,
+    offset_ratio,
+    ratio_of_sums,
+    shared_ratios,
+)
 from tests.conftest import make_synthetic
 
 FloatArray = NDArray[np.float64]
@@ -120,6 +127,63 @@ def test_line_offsets_do_not_drag_a_pair_apart(monkeypatch: pytest.MonkeyPatch) 
     # its residuals count as independent; marginalised, only the within-line variation measures
     # (here 0.07 nm against 0.22 nm)
     with_lines = _pair_error()
-    monkeypatch.setattr(ns, "ratio_of_sums", lambda *args: float("inf"))
+    monkeypatch.setattr(ns, "shared_ratios", lambda *args: OffsetRatios(np.inf, np.inf))
     without = _pair_error()
     assert with_lines < 0.5 * without
+
+
+def test_shared_line_offsets_are_generalised_least_squares_across_runs() -> None:
+    # two nested offsets: one per group (its run's own) and one per line shared by its runs;
+    # the runs' blocks and the blocks between runs are those of the whole GLS in the runs'
+    # relative unknowns (6 per run)
+    rng = np.random.default_rng(5)
+    runs = np.array([0, 12, 30, 41])
+    first = np.array([0, 4, 8, 12, 18, 24, 30, 35])  # every run starts a group
+    lines = np.array([7, 8, 9, 7, 8, 9, 8, 9])  # lines 8 and 9 in all three runs, 7 in two
+    m, k = runs[-1], len(runs) - 1
+    J, r, w = rng.normal(size=(m, 6)), rng.normal(size=m), rng.uniform(0.2, 1.0, m)
+    rho = OffsetRatios(run=3.0, line=2.0)
+    B = np.stack([(J[a:b] * w[a:b, None]).T @ J[a:b] for a, b in pairwise(runs)])
+    g = np.stack([(w[a:b] * r[a:b]) @ J[a:b] for a, b in pairwise(runs)])
+    between = marginalise_offsets(J, w, r, runs, first, rho, B, g, lines)
+    # dense: covariance W^-1 + Z Z' / ρ_run + L L' / ρ_line over the rows, unknowns y (6 k)
+    group = np.repeat(np.arange(len(first)), np.diff([*first.tolist(), m]))
+    Z = np.eye(len(first))[group]
+    L = (lines[group][:, None] == np.unique(lines)[None, :]).astype(float)
+    inv = np.linalg.inv(np.diag(1.0 / w) + Z @ Z.T / rho.run + L @ L.T / rho.line)
+    run = np.repeat(np.arange(k), np.diff(runs))
+    Y = np.zeros((m, 6 * k))
+    for row in range(m):
+        Y[row, 6 * run[row] : 6 * run[row] + 6] = J[row]
+    A, grad = Y.T @ inv @ Y, Y.T @ inv @ r
+    for q in range(k):
+        np.testing.assert_allclose(B[q], A[6 * q : 6 * q + 6, 6 * q : 6 * q + 6], atol=1e-12)
+        np.testing.assert_allclose(g[q], grad[6 * q : 6 * q + 6], atol=1e-12)
+    pairs = zip(between.first.tolist(), between.second.tolist(), strict=True)
+    assert sorted(pairs) == [(0, 1), (0, 2), (1, 2)]
+    for a, b, C in zip(between.first, between.second, between.C, strict=True):
+        np.testing.assert_allclose(-C, A[6 * a : 6 * a + 6, 6 * b : 6 * b + 6], atol=1e-12)
+
+
+def test_shared_ratios_split_a_groups_offset_into_its_lines_and_its_runs() -> None:
+    # every line met by three runs side by side (columns apart): a shared offset of 0.4 and a
+    # run's own of 0.3 on white noise of 1
+    rng = np.random.default_rng(6)
+    lines, runs, size = 3000, 3, 12
+    shared = rng.normal(0.0, 0.4, (lines, 1, 1))
+    own = rng.normal(0.0, 0.3, (lines, runs, 1))
+    r = (rng.normal(0.0, 1.0, (lines, runs, size)) + shared + own).ravel()
+    first = np.arange(lines * runs) * size
+    ones = np.ones_like(r)
+    sums = group_sums(r, ones, ones, first)
+    which = np.repeat(np.arange(lines), runs)
+    left = np.tile(np.arange(runs) * 20, lines)
+    spans = np.column_stack([left, left + size])
+    ratios = shared_ratios(sums, which, spans)
+    assert 1.0 / ratios.line == pytest.approx(0.16, rel=0.2)
+    assert 1.0 / ratios.run == pytest.approx(0.09, rel=0.3)
+    # where the runs of a line share their points, their differences say nothing of offsets
+    one_place = np.column_stack([np.zeros_like(left), np.full_like(left, size)])
+    overlapping = shared_ratios(sums, which, one_place)
+    assert np.isinf(overlapping.line)
+    assert 1.0 / overlapping.run == pytest.approx(0.25, rel=0.2)
