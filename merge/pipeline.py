@@ -110,7 +110,8 @@ class Solution:
     """The transforms the solver settled on and how it went; ``bank``, the refinement's raw
     surfaces, ``system``, its last step's system if that step settled the fit, and
     ``plane_sigma``, the drift planes' prior it solved with (all reused by the assessment), None
-    for the other methods."""
+    for the other methods; ``unsettled``, the patches the refinement stopped before it had
+    settled them (:class:`merge.refine.RefineResult`), or None."""
 
     transforms: list[PatchTransform]
     iterations: int = 0
@@ -119,6 +120,7 @@ class Solution:
     bank: SurfaceBank | None = None
     system: NormalSystem | None = None
     plane_sigma: FloatArray | None = None
+    unsettled: NDArray[np.bool_] | None = None
 
     @classmethod
     def of_refinement(cls, fit: RefineResult) -> Solution:
@@ -131,6 +133,7 @@ class Solution:
             fit.bank,
             fit.system,
             fit.plane_sigma,
+            fit.unsettled,
         )
 
 
@@ -264,7 +267,12 @@ def finish(
             plane_sigma=solution.plane_sigma,
         )
         reports, unheld = patch_reports(
-            patches, transforms, fits, layout.linked, registered=cfg.method in ("default", "paper")
+            patches,
+            transforms,
+            fits,
+            layout.linked,
+            registered=cfg.method in ("default", "paper"),
+            unsettled=solution.unsettled,
         )
     with watch.step("render"), stage("render", len(patches), "drawing the mosaic"):
         mosaic = render_mosaic(patches, transforms, pixel_size=cfg.pixel_size, feather=cfg.feather)

@@ -152,7 +152,10 @@ class RefineResult:
     ``system``, with ``report=True``, the last step's system with its signal share when that
     step settled the fit (:func:`refine`), else None; ``plane_sigma`` (2,), the drift planes'
     prior of the last level as its steps weighed it (x, y; pixel units, times each patch's
-    radius: :class:`merge.refine.solve.Priors`), which the report counts as they did."""
+    radius: :class:`merge.refine.solve.Priors`), which the report counts as they did;
+    ``unsettled`` (n,), where the last level ran out of iterations, the patches its last step
+    still moved in the plane by more than its tolerance (their XY is where the fit stopped, not
+    an optimum), else None."""
 
     transforms: list[PatchTransform]
     iterations: int
@@ -161,6 +164,7 @@ class RefineResult:
     bank: SurfaceBank
     system: NormalSystem | None = None
     plane_sigma: FloatArray | None = None
+    unsettled: NDArray[np.bool_] | None = None
 
 
 @dataclass
@@ -168,7 +172,8 @@ class Fit:
     """What the refinement carries from level to level: the placement of every patch
     (``state``, pixel units of ``scale`` metres), where the start put it (``start_s``), the
     raw surfaces (``base``), the height noise (pixel units), and the iterations so far with the
-    residual RMS (metres) of each."""
+    residual RMS (metres) of each; how far the last step moved every patch in the plane
+    (``last_step`` (n,), pixels: XY and spin times the radius)."""
 
     state: MosaicState
     start_s: FloatArray
@@ -178,6 +183,7 @@ class Fit:
     iteration: int = 0
     history: list[float] = field(default_factory=list)
     system: NormalSystem | None = None
+    last_step: FloatArray | None = None
 
 
 @dataclass(frozen=True)
@@ -257,6 +263,7 @@ def refine(
     fit = Fit(state, state.s.copy(), base, scale, patch_noise((p.noise for p in patches), scale))
     plane_sigma = np.full(2, drift_prior / scale)  # the first level: as loose along both axes
     converged = False
+    unsettled = None
     for li, level in enumerate(levels):
         checkpoint(0, f"refining, level {li + 1} of {len(levels)}")
         lv = _level_setup(patches, fit, pairs, li, level, first_free, held)
@@ -268,6 +275,8 @@ def refine(
         level_converged = _run_level(fit, lv, level, progress=progress, cancel=cancel, keep=keep)
         if last:
             converged = level_converged
+            if not converged and fit.last_step is not None:
+                unsettled = fit.last_step > level.tol
     return RefineResult(
         transforms=state.to_transforms(base, scale),
         iterations=fit.iteration,
@@ -276,6 +285,7 @@ def refine(
         bank=base,
         system=fit.system,
         plane_sigma=plane_sigma.copy(),
+        unsettled=unsettled,
     )
 
 
@@ -350,6 +360,7 @@ def _run_level(
             (np.abs(delta[:, :3]).max(axis=1) + np.abs(delta[:, 3:]).max(axis=1)).max(initial=0)
         )
         moved += motion
+        fit.last_step = np.hypot(delta[:, 0], delta[:, 1]) + np.abs(delta[:, 3])
         fit.iteration += 1
         fit.history.append(rms * fit.scale)
         if progress is not None:

@@ -84,8 +84,10 @@ def patch_reports(
     linked: NDArray[np.bool_],
     *,
     registered: bool,
+    unsettled: NDArray[np.bool_] | None = None,
 ) -> tuple[list[PatchReport], list[str]]:
-    """One report per patch, and a warning for each whose overlaps constrain Z but not XY.
+    """One report per patch, and a warning for each whose overlaps constrain Z but not XY or
+    which the refinement stopped before it had settled.
 
     Parameters
     ----------
@@ -99,13 +101,20 @@ def patch_reports(
     registered : bool, keyword-only
         Whether the method registered XY (the default and paper methods): only then is an
         XY its overlaps cannot hold worth a warning.
+    unsettled : (n,) bool array, keyword-only
+        Patches the refinement still moved when it ran out of iterations
+        (:class:`merge.refine.RefineResult`): their XY is where it stopped, not a measurement,
+        however sharp the fit looks there (a 1-D grating's patches, placed by the start a
+        stripe's width along the stripes from the truth, crept along them for 30 steps and
+        stopped 150 nm off, each claiming 1 nm). Default none.
     """
     reports, warnings = [], []
     for c, p in enumerate(patches):
         checkpoint()
         f = fits[c]
         held = f.xy_sigma_local < XY_CONSTRAINED_FRACTION * min(p.pixel_size)
-        xy_ok = f.correspondences > 0 and held
+        stopped = unsettled is not None and bool(unsettled[c])
+        xy_ok = f.correspondences > 0 and held and not stopped
         xx, yy = p.pixel_coordinates()
         sample = np.column_stack([xx.ravel(), yy.ravel(), p.heights.ravel()])[::7]
         R_rigid, t_rigid = transforms[c].rigid_approximation(sample[np.isfinite(sample[:, 2])])
@@ -123,7 +132,13 @@ def patch_reports(
                 z_sigma=f.z_sigma,
             )
         )
-        if linked[c] and not xy_ok and registered:
+        if linked[c] and stopped and registered:
+            warnings.append(
+                f"patch {p.id!r}: the refinement ran out of iterations while it still moved "
+                "this patch; its XY is where the fit stopped, not a measurement (its overlaps "
+                "may hold XY along one direction only, as a grating's stripes do)"
+            )
+        elif linked[c] and not xy_ok and registered:
             warnings.append(
                 f"patch {p.id!r}: its overlaps constrain Z but not XY (too flat or a 1-D "
                 "structure); its XY there is a guess, not a measurement"

@@ -9,7 +9,7 @@ from backend.synthetic import patch_set_from_synth, registration_error
 from hardware.sim.drift import DriftModel
 from hardware.sim.surfaces import Chessboard, ImageSurface
 from hardware.sim.synth import synthesize
-from merge import pipeline, run
+from merge import MergeConfig, pipeline, run
 from merge.core.overlap import overlapping_pairs
 from merge.core.transforms import PatchTransform
 from merge.refine import icp
@@ -100,6 +100,25 @@ def test_the_raw_level_stops_once_steps_move_no_height_by_a_tenth_of_the_noise(
     # what the extra iterations buy is far below the noise (1 nm) in either direction
     assert abs(e_default[0] - e_polished[0]) < 0.05e-9
     assert abs(e_default[1] - e_polished[1]) < 0.05e-9
+
+
+def test_patches_still_moving_when_the_iterations_run_out_are_named(
+    small_mosaic: Synthetic,
+) -> None:
+    patches = small_mosaic.patch_set.patches
+    pairs = overlapping_pairs(np.array([p.footprint for p in patches]), margin=1e-7)
+    start = [PatchTransform() for _ in patches]  # nominal: every patch off by its stage error
+    one_step = icp.Level(0.0, 1, 1, 1e-3)
+    stopped = icp.refine(patches, pairs, start, levels=(one_step,))
+    assert not stopped.converged
+    assert stopped.unsettled is not None and stopped.unsettled.any()
+    settled = icp.refine(patches, pairs, start)
+    assert settled.converged and settled.unsettled is None
+    # the report takes them for what they are
+    capped = pipeline.run(small_mosaic.patch_set, MergeConfig(max_iter=1))
+    assert not capped.converged
+    flagged = [r.id for r in capped.patches if not r.xy_constrained]
+    assert flagged and all(any(f"{i!r}" in w for w in capped.warnings) for i in flagged)
 
 
 def test_the_first_level_moves_only_the_free_patches(small_mosaic: Synthetic) -> None:

@@ -48,3 +48,26 @@ def test_a_patch_whose_own_overlaps_do_not_hold_xy_is_flagged_and_warned_of() ->
     assert len(warnings) == 1 and "'loose'" in warnings[0]
     _, quiet = patch_reports(patches, transforms, fits, linked, registered=False)
     assert quiet == []  # z-levelling never claimed XY
+
+
+def test_a_patch_the_refinement_left_moving_is_not_called_held() -> None:
+    # however sharp its fit looks, a patch still moving when the refinement ran out of
+    # iterations sits where the fit stopped
+    patches = [_patch("settled", 0.0), _patch("moving", 6e-8)]
+    sharp = PatchFit(
+        correspondences=40, residual_rms=1e-9, xy_sigma=1e-10, z_sigma=1e-10, xy_sigma_local=1e-10
+    )
+    transforms = [PatchTransform(), PatchTransform()]
+    linked = np.array([True, True])
+    reports, warnings = patch_reports(
+        patches,
+        transforms,
+        [sharp, sharp],
+        linked,
+        registered=True,
+        unsettled=np.array([0, 1], bool),
+    )
+    assert [r.xy_constrained for r in reports] == [True, False]
+    assert (
+        len(warnings) == 1 and "'moving'" in warnings[0] and "ran out of iterations" in warnings[0]
+    )
