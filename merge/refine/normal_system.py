@@ -382,18 +382,7 @@ def _assemble(
     (two destinations of one source coupled where one of its lines crosses both).
     """
     n = len(bank.centre)
-    R, s = state.R, state.s
-    rho_a, rho_b = bank.radius[a_seg], bank.radius[b_seg]
-    delta = s[a_seg] - s[b_seg]
-    RbRa = np.einsum("kji,kjl->kil", R[b_seg], R[a_seg])
-    c = np.einsum("kji,kj->ki", R[b_seg], delta)
-    T = np.zeros((len(a_seg), 6, 6))
-    T[:, [0, 1, 2], [0, 1, 2]] = 1.0
-    T[:, 3, 0], T[:, 3, 1], T[:, 3, 3] = -delta[:, 1] / rho_b, delta[:, 0] / rho_b, rho_a / rho_b
-    for row, k in ((4, 0), (5, 1)):
-        T[:, row, 2] = c[:, k] / rho_b
-        T[:, row, 4] = RbRa[:, k, 0] * rho_a / rho_b
-        T[:, row, 5] = RbRa[:, k, 1] * rho_a / rho_b
+    T = relative_maps(bank, state, a_seg, b_seg)
     Tt = np.swapaxes(T, 1, 2)
     Bbb = T @ Baa @ Tt
     Bab = -(Baa @ Tt)
@@ -440,6 +429,27 @@ def _assemble(
         g,
         diag,
     )
+
+
+def relative_maps(
+    bank: SurfaceBank, state: PatchState, a_seg: IntArray, b_seg: IntArray
+) -> FloatArray:
+    """``T`` (k, 6, 6) of every run from source ``a_seg`` to destination ``b_seg`` (k,): a row's
+    Jacobian on the destination's unknowns is ``-T`` times its Jacobian on the source's, so the
+    run sees only ``y = x_a - T' x_b`` (:func:`_assemble`)."""
+    R, s = state.R, state.s
+    rho_a, rho_b = bank.radius[a_seg], bank.radius[b_seg]
+    delta = s[a_seg] - s[b_seg]
+    RbRa = np.einsum("kji,kjl->kil", R[b_seg], R[a_seg])
+    c = np.einsum("kji,kj->ki", R[b_seg], delta)
+    T = np.zeros((len(a_seg), 6, 6))
+    T[:, [0, 1, 2], [0, 1, 2]] = 1.0
+    T[:, 3, 0], T[:, 3, 1], T[:, 3, 3] = -delta[:, 1] / rho_b, delta[:, 0] / rho_b, rho_a / rho_b
+    for row, k in ((4, 0), (5, 1)):
+        T[:, row, 2] = c[:, k] / rho_b
+        T[:, row, 4] = RbRa[:, k, 0] * rho_a / rho_b
+        T[:, row, 5] = RbRa[:, k, 1] * rho_a / rho_b
+    return T
 
 
 def _block_triplets(
