@@ -212,7 +212,7 @@ class SharedLines:
     """What the offsets of scan lines shared between runs take out between those runs: per
     pair of runs of one source (``first`` < ``second``, c,) the block ``C`` (c, 6, 6) to take
     from ``B_first,second`` in the runs' relative unknowns (``y_k = x_src - T_k' x_dst``,
-    :func:`merge.refine.normal_system._assemble`), and its transpose from the other."""
+    :func:`merge.refine.assembly.assemble`), and its transpose from the other."""
 
     first: IntArray
     second: IntArray
