@@ -244,7 +244,7 @@ def marginalise_offsets(
     r: FloatArray,
     runs: IntArray,
     first: IntArray,
-    rho: OffsetRatios | float,
+    rho: OffsetRatios,
     B: FloatArray,
     g: FloatArray,
     lines: IntArray | None = None,
@@ -254,15 +254,12 @@ def marginalise_offsets(
     ``J`` (m, 6), ``w`` and ``r`` (m,) are the rows of ``k`` runs (``runs`` (k + 1,) their
     bounds), ``first`` the first row of every group in them
     (:meth:`merge.refine.runs.Runs.groups`: every run starts one), ``rho`` from
-    :func:`shared_ratios` (a float: every group's offset its own, :func:`offset_ratio`; infinite:
-    nothing to do), ``lines`` (g,) which scan line every group is (:meth:`Runs.lines`; every
-    group of one line among these runs). Two nested random effects: a group's own offset
-    (``rho.run``) marginalised group by group, then the line's shared one (``rho.line``) over
-    all its groups: within a run it changes ``B`` and ``g``, between two runs of one source it
-    gives the blocks returned (none without ``lines``).
+    :func:`shared_ratios` (both infinite: nothing to do), ``lines`` (g,) which scan line every
+    group is (:meth:`Runs.lines`; every group of one line among these runs). Two nested random
+    effects: a group's own offset (``rho.run``) marginalised group by group, then the line's
+    shared one (``rho.line``) over all its groups: within a run it changes ``B`` and ``g``,
+    between two runs of one source it gives the blocks returned (none without ``lines``).
     """
-    if not isinstance(rho, OffsetRatios):
-        rho = OffsetRatios(rho, float("inf"))
     if not rho.any or len(first) == 0:
         return SharedLines.none()
     sj: FloatArray = np.add.reduceat(J * w[:, None], first, axis=0, dtype=np.float64)

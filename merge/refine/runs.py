@@ -44,6 +44,15 @@ class Runs:
         """Rows in all runs."""
         return int(self.starts[-1])
 
+    def part(self, first: int, last: int) -> Runs:
+        """Runs ``[first, last)`` on their own (their rows counted from their first)."""
+        return Runs(
+            self.src[first:last],
+            self.dst[first:last],
+            self.box[first:last],
+            self.starts[first : last + 1] - self.starts[first],
+        )
+
     def blocks(self, rows: int) -> list[tuple[int, int]]:
         """Ranges ``[first, last)`` of runs holding about ``rows`` rows each: at least one
         source's runs, and never part of one (a block holds every overlap of its sources' scan

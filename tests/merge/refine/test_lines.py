@@ -83,7 +83,7 @@ def test_marginalised_sums_are_generalised_least_squares() -> None:
     rho = 4.0
     B = np.stack([(J[a:b] * w[a:b, None]).T @ J[a:b] for a, b in pairwise(runs)])
     g = np.stack([(w[a:b] * r[a:b]) @ J[a:b] for a, b in pairwise(runs)])
-    marginalise_offsets(J, w, r, runs, first, rho, B, g)
+    marginalise_offsets(J, w, r, runs, first, OffsetRatios(rho, np.inf), B, g)
     # the inverse covariance of a group, in units of the white variance: W - W 1 1' W / (ρ + Σ w)
     bounds = [*first.tolist(), m]
     inv = np.zeros((m, m))
@@ -98,7 +98,8 @@ def test_marginalised_sums_are_generalised_least_squares() -> None:
 def test_an_infinite_ratio_leaves_the_sums_alone() -> None:
     B, g = np.ones((1, 6, 6)), np.ones((1, 6))
     J = np.ones((3, 6))
-    marginalise_offsets(J, np.ones(3), np.ones(3), np.array([0, 3]), np.array([0]), np.inf, B, g)
+    none = OffsetRatios(np.inf, np.inf)
+    marginalise_offsets(J, np.ones(3), np.ones(3), np.array([0, 3]), np.array([0]), none, B, g)
     assert (B == 1).all() and (g == 1).all()
 
 
