@@ -7,7 +7,8 @@ fault. Between stages it is memory held for nothing: 400 patches still held 69 b
 pixel after the coarse start had freed every array it made. A fixed threshold of 1 MB gave
 those back (peak 270 -> 219 bytes per pixel) but made every block a fresh mapping: 40 % slower,
 the threads queueing on page faults. So the heaps are trimmed (``malloc_trim``) once a stage
-ends instead: :func:`stage_trimmer` wraps a merge's ``status`` callback to do it.
+ends instead: :func:`stage_trimmer` wraps a merge's ``status`` callback to do it (and the
+merge itself trims when a pass of its blocks ends, :mod:`merge.core.memory`).
 
 glibc also gives every thread that allocates a heap of its own (up to eight per core), which
 keeps what that thread freed for that thread. The merge's worker threads each make and free a
@@ -25,6 +26,8 @@ import functools
 from collections.abc import Callable
 from typing import TYPE_CHECKING
 
+from merge.core.memory import release_freed
+
 if TYPE_CHECKING:
     from merge import Status
 
@@ -40,31 +43,6 @@ def _libc() -> ctypes.CDLL | None:
         return ctypes.CDLL(None)
     except OSError:
         return None
-
-
-@functools.cache
-def _malloc_trim() -> Callable[[], None] | None:
-    """glibc's ``malloc_trim(0)`` from the process's own symbols (looked up once, when first
-    needed: no library search at import), or None where the C library has none."""
-    trim = getattr(_libc(), "malloc_trim", None)
-    if trim is None:
-        return None
-    trim.argtypes = [ctypes.c_size_t]
-    trim.restype = ctypes.c_int
-
-    def release() -> None:
-        trim(0)
-
-    return release
-
-
-def release_freed_memory() -> bool:
-    """Give the memory freed inside the heaps back to the system; whether it could."""
-    trim = _malloc_trim()
-    if trim is None:
-        return False
-    trim()
-    return True
 
 
 def share_one_heap() -> bool:
@@ -87,7 +65,7 @@ def stage_trimmer(report: Callable[[Status], None] | None) -> Callable[[Status],
     def status(s: Status) -> None:
         if s.stage != last[0]:
             if last[0]:
-                release_freed_memory()
+                release_freed()
             last[0] = s.stage
         if report is not None:
             report(s)

@@ -24,6 +24,7 @@ from typing import TypeVar
 
 from threadpoolctl import OpenBLASController, threadpool_limits
 
+from merge.core.memory import release_freed
 from merge.core.progress import checkpoint
 
 T = TypeVar("T")
@@ -72,8 +73,11 @@ def each(work: Callable[[T], None], items: Sequence[T]) -> None:
             work(item)
             checkpoint()
         return
-    for _ in _shared_pool().map(work, items):
-        checkpoint()  # a cancel stops here; the blocks not begun are dropped
+    try:
+        for _ in _shared_pool().map(work, items):
+            checkpoint()  # a cancel stops here; the blocks not begun are dropped
+    finally:
+        release_freed()  # what the workers freed sat in their own arenas (merge.core.memory)
 
 
 _blas_lock = threading.Lock()
