@@ -13,6 +13,7 @@ from collections.abc import Callable
 import numpy as np
 from numpy.typing import NDArray
 
+from merge.core.progress import checkpoint
 from merge.refine.bank import SurfaceBank
 from merge.refine.lines import SharedLines
 from merge.refine.rows import PatchState
@@ -69,6 +70,7 @@ def assemble(
     # are summed (a large mosaic's pairs of runs hold tens of megabytes of them)
     keys = [np.minimum(r, c) * n + np.maximum(r, c) for r, c, _ in parts]
     pair, at = np.unique(np.concatenate(keys), return_inverse=True)
+    checkpoint()  # each of these steps takes a few tenths of a second on 10,000 patches
     off = np.zeros((len(pair), 6, 6))
     start = 0
     for (r, c, made), key in zip(parts, keys, strict=True):
@@ -76,6 +78,7 @@ def assemble(
         blocks, below = made(), r > c
         np.add.at(off, where[~below], blocks[~below])
         np.add.at(off, where[below], np.swapaxes(blocks[below], 1, 2))
+        checkpoint()
     first, second = pair // n, pair % n
     a_rows, a_cols, vals = _block_triplets(
         (np.arange(n), np.arange(n), diag),

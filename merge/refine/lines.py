@@ -47,6 +47,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from merge.core.progress import checkpoint
+
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
 #: Float arrays of any width (float32 where the mosaic's memory counts).
@@ -142,7 +144,9 @@ def shared_ratios(sums: FloatArray, lines: IntArray, spans: IntArray) -> OffsetR
     tau2 = _chi2_variance(mean**2, var, within)
     if tau2 <= 0:
         return OffsetRatios(float("inf"), float("inf"))
+    checkpoint()  # the pairs of a large mosaic's groups take a few tenths of a second
     i, j = _apart(lines[use], spans[use])
+    checkpoint()
     if len(i) < 2:
         return OffsetRatios(within / tau2, float("inf"))
     d2, v = 0.5 * (mean[i] - mean[j]) ** 2, 0.5 * (var[i] + var[j])
@@ -172,6 +176,7 @@ def _line_pairs(lines: IntArray) -> tuple[IntArray, IntArray]:
             break
         pairs_i.append(i[same])
         pairs_j.append(j[same])
+        checkpoint()
     return np.concatenate(pairs_i), np.concatenate(pairs_j)
 
 

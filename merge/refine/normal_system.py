@@ -34,6 +34,7 @@ from numpy.typing import NDArray
 
 from merge.core.information import line_design, line_sums, noise_share, psd_part
 from merge.core.parallel import each
+from merge.core.progress import checkpoint
 from merge.refine.assembly import assemble
 from merge.refine.bank import SurfaceBank
 from merge.refine.lines import (
@@ -162,6 +163,7 @@ def build_normal_system(
         pitch2 = 0.5 * (bank.dx[runs.dst] ** -2 + bank.dy[runs.dst] ** -2)
         noise2 = bank.slope_noise * noise**2 * pitch2
     rho = _offset_ratios(runs, rows, blocks) if lines else OffsetRatios(np.inf, np.inf)
+    checkpoint()  # a cancel waits on no more than one pass of the build (10,000 patches: ~1 s)
     info = _run_information(bank, runs, state, rows, blocks, rho, noise2)
     del rows  # every row's residual and slopes: not needed past here
     signal_blocks, design = None, 1.0
@@ -172,6 +174,7 @@ def build_normal_system(
         # small on TGX1, its flat face and the grating (a bowl no line model holds); this way
         # they are 0.9-1.4 x, and cautious (0.3-0.6 x) on MoS2 and the folded surface
         design = line_design(info.line_sums)
+        checkpoint()
     # the report's per-patch sums, over every row of the mosaic: not for steps
     count, sq, slope_count = np.zeros(n), np.zeros(n), np.zeros(n)
     if signal:
@@ -185,6 +188,7 @@ def build_normal_system(
     )
     signal_vals = None
     if signal_blocks is not None:
+        checkpoint()
         signal_vals = assemble(bank, state, a_seg, b_seg, signal_blocks, info.ga, info.shared)[2]
     return NormalSystem(
         rows=a_rows,

@@ -16,6 +16,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.sparse import coo_matrix
 
+from merge.core.progress import checkpoint
 from merge.core.sparse import solve_symmetric
 from merge.refine.normal_system import NormalSystem
 
@@ -86,6 +87,7 @@ def solve_system(
     if held is not None:
         lam[held] += 1e9 * (float(top.max(initial=0.0)) + 1.0)
     D[:, np.arange(6), np.arange(6)] += lam
+    checkpoint()  # a large mosaic's system takes a second to gather (10,000 patches)
     ii, jj = np.meshgrid(np.arange(6), np.arange(6), indexing="ij")
     base = 6 * np.arange(n)[:, None, None]
     M = coo_matrix(
@@ -97,6 +99,9 @@ def solve_system(
             ),
         ),
         shape=(6 * n, 6 * n),
-    ).tocsc()
-    out: FloatArray = solve_symmetric(M, g.ravel()).reshape(n, 6)
+    )
+    checkpoint()
+    A = M.tocsc()
+    checkpoint()
+    out: FloatArray = solve_symmetric(A, g.ravel()).reshape(n, 6)
     return out

@@ -87,7 +87,9 @@ def assess(
     if system.signal_vals is not None and len(system.rows):
         weight = bank.point_count.astype(np.float64)
         groups = tied_groups(system.rows, system.cols, n)
+        checkpoint()  # each of these takes tenths of a second on 10,000 patches
         gauge = gauge_modes(state.s, bank.radius, weight, groups)
+        checkpoint()
         xy, z = translation_sigmas(
             (system.rows, system.cols, system.signal_vals),
             gauge,
