@@ -77,7 +77,7 @@ def each(work: Callable[[T], None], items: Sequence[T]) -> None:
         for _ in _shared_pool().map(work, items):
             checkpoint()  # a cancel stops here; the blocks not begun are dropped
     finally:
-        release_freed()  # what the workers freed sat in their own arenas (merge.core.memory)
+        release_freed()  # what the pass's blocks freed stays resident else (merge.core.memory)
 
 
 _blas_lock = threading.Lock()
