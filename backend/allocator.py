@@ -41,7 +41,7 @@ def _libc() -> ctypes.CDLL | None:
     """The process's own C library symbols (looked up once, when first needed), or None."""
     try:
         return ctypes.CDLL(None)
-    except OSError:
+    except (OSError, TypeError):  # Windows has no process-wide symbols to open
         return None
 
 

@@ -26,7 +26,7 @@ def _malloc_trim() -> Callable[[], object] | None:
     needed), or None where the C library has none (musl, macOS, Windows)."""
     try:
         libc = ctypes.CDLL(None)
-    except OSError:
+    except (OSError, TypeError):  # Windows has no process-wide symbols to open
         return None
     trim = getattr(libc, "malloc_trim", None)
     if trim is None:
