@@ -22,11 +22,10 @@ the threads taking one heap's lock a few times per block.
 from __future__ import annotations
 
 import ctypes
-import functools
 from collections.abc import Callable
 from typing import TYPE_CHECKING
 
-from merge.core.memory import release_freed
+from merge.core.memory import c_library, release_freed
 
 if TYPE_CHECKING:
     from merge import Status
@@ -36,20 +35,11 @@ if TYPE_CHECKING:
 _M_ARENA_MAX = -8
 
 
-@functools.cache
-def _libc() -> ctypes.CDLL | None:
-    """The process's own C library symbols (looked up once, when first needed), or None."""
-    try:
-        return ctypes.CDLL(None)
-    except (OSError, TypeError):  # Windows has no process-wide symbols to open
-        return None
-
-
 def share_one_heap() -> bool:
     """Let every thread of this process allocate from one heap (glibc's ``M_ARENA_MAX`` of 1);
     whether it could. Call it before the merge's threads start: a thread that has already
     allocated keeps its heap."""
-    mallopt = getattr(_libc(), "mallopt", None)
+    mallopt = getattr(c_library(), "mallopt", None)
     if mallopt is None:
         return False
     mallopt.argtypes = [ctypes.c_int, ctypes.c_int]

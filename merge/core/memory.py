@@ -17,18 +17,24 @@ import ctypes
 import functools
 from collections.abc import Callable
 
-__all__ = ["release_freed"]
+__all__ = ["c_library", "release_freed"]
+
+
+@functools.cache
+def c_library() -> ctypes.CDLL | None:
+    """The process's own C library symbols (opened once, when first needed), or None where
+    ctypes cannot open them (Windows)."""
+    try:
+        return ctypes.CDLL(None)
+    except (OSError, TypeError):
+        return None
 
 
 @functools.cache
 def _malloc_trim() -> Callable[[], object] | None:
-    """glibc's ``malloc_trim(0)`` from the process's own symbols (looked up once, when first
-    needed), or None where the C library has none (musl, macOS, Windows)."""
-    try:
-        libc = ctypes.CDLL(None)
-    except (OSError, TypeError):  # Windows has no process-wide symbols to open
-        return None
-    trim = getattr(libc, "malloc_trim", None)
+    """glibc's ``malloc_trim(0)``, or None where the C library has none (musl, macOS,
+    Windows)."""
+    trim = getattr(c_library(), "malloc_trim", None)
     if trim is None:
         return None
     trim.argtypes = [ctypes.c_size_t]
