@@ -43,7 +43,7 @@ from merge.refine import (
 )
 from merge.refine.normal_system import NormalSystem
 from merge.render import render_mosaic
-from merge.report import MergeResult, assess, patch_reports
+from merge.report import MergeResult, assess, holds_xy, patch_reports, unconfirmed
 from merge.start import coarse_cell, coarse_start
 
 FloatArray = NDArray[np.float64]
@@ -111,7 +111,9 @@ class Solution:
     surfaces, ``system``, its last step's system if that step settled the fit, and
     ``plane_sigma``, the drift planes' prior it solved with (all reused by the assessment), None
     for the other methods; ``unsettled``, the patches the refinement stopped before it had
-    settled them (:class:`merge.refine.RefineResult`), or None."""
+    settled them (:class:`merge.refine.RefineResult`), or None; ``refined_only``, the patches
+    the refinement placed that the start did not measure along both axes (their texture must
+    confirm the place: :mod:`merge.report.confirmation`), or None."""
 
     transforms: list[PatchTransform]
     iterations: int = 0
@@ -121,10 +123,13 @@ class Solution:
     system: NormalSystem | None = None
     plane_sigma: FloatArray | None = None
     unsettled: NDArray[np.bool_] | None = None
+    refined_only: NDArray[np.bool_] | None = None
 
     @classmethod
-    def of_refinement(cls, fit: RefineResult) -> Solution:
-        """What :func:`merge.refine.refine` settled on."""
+    def of_refinement(
+        cls, fit: RefineResult, *, refined_only: NDArray[np.bool_] | None = None
+    ) -> Solution:
+        """What :func:`merge.refine.refine` settled on; ``refined_only`` as the class says."""
         return cls(
             fit.transforms,
             fit.iterations,
@@ -134,6 +139,7 @@ class Solution:
             fit.system,
             fit.plane_sigma,
             fit.unsettled,
+            refined_only,
         )
 
 
@@ -266,6 +272,14 @@ def finish(
             system=solution.system,
             plane_sigma=solution.plane_sigma,
         )
+        doubted = {}
+        if solution.refined_only is not None:
+            which = [
+                c
+                for c in np.flatnonzero(solution.refined_only & layout.linked).tolist()
+                if holds_xy(fits[c], patches[c])
+            ]
+            doubted = unconfirmed(patches, transforms, final_pairs, which, bank=solution.bank)
         reports, unheld = patch_reports(
             patches,
             transforms,
@@ -273,6 +287,7 @@ def finish(
             layout.linked,
             registered=cfg.method in ("default", "paper"),
             unsettled=solution.unsettled,
+            unconfirmed=doubted,
         )
     with watch.step("render"), stage("render", len(patches), "drawing the mosaic"):
         mosaic = render_mosaic(patches, transforms, pixel_size=cfg.pixel_size, feather=cfg.feather)
@@ -371,7 +386,9 @@ def _solve(
         first_free=None if placed.complete else ~placed.measured_both,
         report=True,
     )
-    return Solution.of_refinement(fit)
+    return Solution.of_refinement(
+        fit, refined_only=None if placed.complete else ~placed.measured_both
+    )
 
 
 def _paper(

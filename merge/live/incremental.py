@@ -234,7 +234,9 @@ class LiveMerge:
             fit = self._refine_all(DEFAULT_LEVELS[1:], report=True)
         solution = Solution(list(self.transforms))
         if fit is not None:
-            solution = Solution.of_refinement(fit)
+            # the patches no start measured both ways: their texture must confirm the place
+            loose = ~np.array(self.complete, dtype=bool)
+            solution = Solution.of_refinement(fit, refined_only=loose if loose.any() else None)
         layout = layout_of(PatchSet(self.patches), self.config)
         return finish(self.patches, layout, solution, self.config, watch)
 

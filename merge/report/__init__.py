@@ -3,13 +3,16 @@
 In: the patches, their final ``T_mosaic_patch`` and the refinement's surfaces. Out: one
 :class:`PatchFit` per patch (:mod:`~merge.report.quality`: correspondences, residual RMS, XY
 and Z sigmas marginal over the mosaic, :mod:`~merge.report.uncertainty`), turned into
-:class:`PatchReport` and gathered in :class:`MergeResult` (:mod:`~merge.report.summary`).
+:class:`PatchReport` and gathered in :class:`MergeResult` (:mod:`~merge.report.summary`);
+a patch the refinement alone placed keeps its XY only where its texture confirms the place
+(:mod:`~merge.report.confirmation`).
 :mod:`~merge.report.evaluate` scores a mosaic against a known truth (benchmarks and tests).
 """
 
+from merge.report.confirmation import unconfirmed
 from merge.report.evaluate import Grid, Score, score_mosaic
 from merge.report.quality import PatchFit, assess
-from merge.report.summary import MergeResult, PatchReport, patch_reports
+from merge.report.summary import MergeResult, PatchReport, holds_xy, patch_reports
 
 __all__ = [
     "Grid",
@@ -18,6 +21,8 @@ __all__ = [
     "PatchReport",
     "Score",
     "assess",
+    "holds_xy",
     "patch_reports",
     "score_mosaic",
+    "unconfirmed",
 ]

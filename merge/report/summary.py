@@ -7,6 +7,7 @@ but not its XY; :class:`MergeResult` gathers them with the mosaic and how the so
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
@@ -77,6 +78,15 @@ class MergeResult:
         return [p.transform for p in self.patches]
 
 
+def holds_xy(fit: PatchFit, patch: Patch) -> bool:
+    """Whether ``patch``'s own overlaps pin its XY down, as ``fit`` measured them (its XY
+    standard deviation with every other patch held within :data:`XY_CONSTRAINED_FRACTION` of its
+    pixel pitch)."""
+    return fit.correspondences > 0 and fit.xy_sigma_local < XY_CONSTRAINED_FRACTION * min(
+        patch.pixel_size
+    )
+
+
 def patch_reports(
     patches: Sequence[Patch],
     transforms: Sequence[PatchTransform],
@@ -85,9 +95,11 @@ def patch_reports(
     *,
     registered: bool,
     unsettled: NDArray[np.bool_] | None = None,
+    unconfirmed: dict[int, float] | None = None,
 ) -> tuple[list[PatchReport], list[str]]:
-    """One report per patch, and a warning for each whose overlaps constrain Z but not XY or
-    which the refinement stopped before it had settled.
+    """One report per patch, and a warning for each whose overlaps constrain Z but not XY,
+    which the refinement stopped before it had settled, or whose texture does not confirm
+    where the refinement alone put it.
 
     Parameters
     ----------
@@ -107,14 +119,20 @@ def patch_reports(
         however sharp the fit looks there (a 1-D grating's patches, placed by the start a
         stripe's width along the stripes from the truth, crept along them for 30 steps and
         stopped 150 nm off, each claiming 1 nm). Default none.
+    unconfirmed : dict, keyword-only
+        Patches (index: the rise of their misfit when moved, in standard errors) that the
+        refinement alone placed and whose texture does not confirm it
+        (:func:`merge.report.confirmation.unconfirmed`): their XY is a dip of the noise as
+        likely as a registration. Default none.
     """
+    unconfirmed = unconfirmed or {}
     reports, warnings = [], []
     for c, p in enumerate(patches):
         checkpoint()
         f = fits[c]
-        held = f.xy_sigma_local < XY_CONSTRAINED_FRACTION * min(p.pixel_size)
         stopped = unsettled is not None and bool(unsettled[c])
-        xy_ok = f.correspondences > 0 and held and not stopped
+        doubted = c in unconfirmed
+        xy_ok = holds_xy(f, p) and not stopped and not doubted
         xx, yy = p.pixel_coordinates()
         sample = np.column_stack([xx.ravel(), yy.ravel(), p.heights.ravel()])[::7]
         R_rigid, t_rigid = transforms[c].rigid_approximation(sample[np.isfinite(sample[:, 2])])
@@ -137,6 +155,18 @@ def patch_reports(
                 f"patch {p.id!r}: the refinement ran out of iterations while it still moved "
                 "this patch; its XY is where the fit stopped, not a measurement (its overlaps "
                 "may hold XY along one direction only, as a grating's stripes do)"
+            )
+        elif linked[c] and doubted and registered:
+            rise = unconfirmed[c]
+            why = (
+                f"moved off it by a few pixels, its misfit rises by only {rise:.1f} standard errors"
+                if math.isfinite(rise)
+                else "no move off it keeps enough of its points over its neighbours to tell"
+            )
+            warnings.append(
+                f"patch {p.id!r}: the refinement alone placed it (the start could not measure "
+                f"it) and its texture does not confirm the place: {why}; its XY is a guess, "
+                "not a measurement (a texture weaker than the noise?)"
             )
         elif linked[c] and not xy_ok and registered:
             warnings.append(

@@ -71,3 +71,23 @@ def test_a_patch_the_refinement_left_moving_is_not_called_held() -> None:
     assert (
         len(warnings) == 1 and "'moving'" in warnings[0] and "ran out of iterations" in warnings[0]
     )
+
+
+def test_a_patch_its_texture_does_not_confirm_is_not_called_held() -> None:
+    # placed by the refinement alone on texture weaker than the noise: a dip of the noise
+    patches = [_patch("confirmed", 0.0), _patch("doubted", 6e-8), _patch("apart", 1.2e-7)]
+    sharp = PatchFit(
+        correspondences=40, residual_rms=1e-9, xy_sigma=1e-10, z_sigma=1e-10, xy_sigma_local=1e-10
+    )
+    reports, warnings = patch_reports(
+        patches,
+        [PatchTransform()] * 3,
+        [sharp] * 3,
+        np.array([True, True, True]),
+        registered=True,
+        unconfirmed={1: 0.4, 2: float("nan")},
+    )
+    assert [r.xy_constrained for r in reports] == [True, False, False]
+    assert len(warnings) == 2
+    assert "'doubted'" in warnings[0] and "rises by only 0.4 standard errors" in warnings[0]
+    assert "'apart'" in warnings[1] and "no move off it" in warnings[1]
