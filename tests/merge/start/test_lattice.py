@@ -67,18 +67,31 @@ def test_channels_are_heights_and_slopes_that_flatten_a_ramp() -> None:
     np.testing.assert_allclose(ch[2][inner], 0.25, atol=1e-3)
 
 
+def _seen_at(a: np.ndarray, shift: tuple[int, int]) -> np.ndarray:
+    """An image ``b`` of ``a``'s surface with ``b[y + dy, x + dx] = a[y, x]`` (NaN elsewhere)."""
+    (dy, dx), (h, w) = shift, a.shape
+    b = np.full(a.shape, np.nan)
+    b[max(dy, 0) : h + min(dy, 0), max(dx, 0) : w + min(dx, 0)] = a[
+        max(-dy, 0) : h - max(dy, 0), max(-dx, 0) : w - max(dx, 0)
+    ]
+    return b
+
+
 def test_a_straight_edge_informs_across_it_only_and_texture_in_both_directions() -> None:
     rng = np.random.default_rng(0)
     cols = np.arange(40.0)
     edge = np.tile(50e-9 * np.tanh((cols - 20.0) / 2.0), (30, 1))  # an edge along y
     noisy = edge + rng.normal(0.0, 1e-9, edge.shape)
-    info = overlap_information(noisy, noisy, (0, 5), 1e-9, precision=0.1, aperture=0.01)
+    seen = _seen_at(edge, (0, 5)) + rng.normal(0.0, 1e-9, edge.shape)
+    info = overlap_information(noisy, seen, (0, 5), 1e-9, precision=0.1, aperture=0.01)
     vals, vecs = np.linalg.eigh(info)
     assert vals[1] == pytest.approx(100.0)  # capped at a tenth of a cell, across the edge
     assert abs(vecs[0, 1]) > 0.999
     assert abs(vals[0]) < 1e-9  # the aperture problem: nothing along it
     rough = rng.normal(0.0, 5e-9, (30, 40))
-    both = overlap_information(rough, rough, (2, -3), 1e-9, precision=0.1, aperture=0.01)
+    both = overlap_information(
+        rough, _seen_at(rough, (2, -3)), (2, -3), 1e-9, precision=0.1, aperture=0.01
+    )
     assert np.linalg.eigvalsh(both).min() > 0
     # no overlap, or a one-line one, measures nothing
     assert not overlap_information(rough, rough, (30, 0), 1e-9, precision=0.1, aperture=0.01).any()
@@ -92,12 +105,20 @@ def test_roughness_beside_a_step_measures_along_it_and_noise_does_not() -> None:
     rough = step + gaussian_filter(rng.normal(0.0, 4e-9, step.shape), 1.0)  # ~1.5 nm
     kw = {"precision": 0.1, "aperture": 0.01}
     noisy = rough + rng.normal(0.0, 0.5e-9, step.shape)
+    seen = _seen_at(rough, (0, 5)) + rng.normal(0.0, 0.5e-9, step.shape)
     # the step holds far more than a hundred times the roughness's information...
-    vals = np.linalg.eigvalsh(overlap_information(noisy, noisy, (0, 5), 0.5e-9, **kw))
+    vals = np.linalg.eigvalsh(overlap_information(noisy, seen, (0, 5), 0.5e-9, **kw))
     assert abs(vals[0]) < 1e-9
     # ...yet the roughness measures the shift along it, well within a cell
-    vals = np.linalg.eigvalsh(overlap_information(noisy, noisy, (0, 5), 0.5e-9, texture=1.0, **kw))
+    vals = np.linalg.eigvalsh(overlap_information(noisy, seen, (0, 5), 0.5e-9, texture=1.0, **kw))
     assert vals[0] >= 1.0 and vals[1] == pytest.approx(100.0)
+    # at a shift along the step where the roughness does not agree, it measures nothing there
+    # (overlaps a few cells wide: the correlation's ridge along a step rises with the overlap,
+    # and from each image's own roughness its peak claimed the shift along the step, 240 nm
+    # off); across the step the shift is still measured
+    off = _seen_at(rough, (6, 5)) + rng.normal(0.0, 0.5e-9, step.shape)
+    info = overlap_information(noisy, off, (0, 5), 0.5e-9, texture=1.0, **kw)
+    assert info[1, 1] < 0.05 * vals[0] and info[0, 0] == pytest.approx(100.0)
     # a bare step under noise a fifth larger than estimated has no texture along it
     bare = step + rng.normal(0.0, 1.2e-9, step.shape)
     vals = np.linalg.eigvalsh(overlap_information(bare, bare, (0, 5), 1e-9, texture=1.0, **kw))
