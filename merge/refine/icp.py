@@ -95,6 +95,8 @@ HEIGHT_TOL = 0.1
 #: 0, 3, 5, 25, 30: map/floor 1.10, 1.50, 1.13, 1.18, 1.38 with one -> 1.04, 1.09, 1.14, 1.09,
 #: 1.10 with two; TGX1 as before, one iteration more).
 STALLS = 2
+#: Longest cycle of steps that counts as a stall (:func:`_cycled`).
+CYCLE = 3
 #: Expected in-patch Z drift (metres, centre to corner) of the drift-plane prior.
 DRIFT_PRIOR = 5e-9
 #: Share of the drift prior along the fast axis (x). A Z drift in time tilts a patch along its
@@ -337,6 +339,7 @@ def _run_level(
         bank.source_slopes = choose_source_slopes(bank, cand, state)
     moved = 0.0
     previous = np.inf
+    recent: list[tuple[float, FloatArray]] = []  # the last steps' cost and motion
     stalls = 0
     # on the raw heights, once the steps still to come move no height by HEIGHT_TOL of the
     # noise the level is done
@@ -368,7 +371,11 @@ def _run_level(
         checkpoint(1)
         # converged when no patch moves, or when the cost no longer falls (the motion left is
         # then in directions the data do not constrain, e.g. XY over a flat overlap)
-        stalls = stalls + 1 if abs(previous - rms) <= STALL * rms else 0
+        # or when the steps came back to where they were two or three steps before, the cost
+        # too: a cycle (overlaps a few pixels wide, border columns gained and lost in turn),
+        # not the creep along a grating's stripes, whose steps go on the same way
+        recent = (recent + [(rms, delta)])[-(CYCLE + 1) :]
+        stalls = stalls + 1 if abs(previous - rms) <= STALL * rms or _cycled(recent) else 0
         previous = rms
         # the level's first step moves from the last level's optimum to this one's (smoothing
         # and stride change it): no ratio of convergence to extrapolate from
@@ -384,6 +391,20 @@ def _run_level(
             fit.system = None  # the last step may have moved patches along a flat overlap
             return True
     fit.system = None
+    return False
+
+
+def _cycled(recent: list[tuple[float, FloatArray]]) -> bool:
+    """Whether the last steps of ``recent`` (cost, motion (n, 6)) closed a cycle: for a cycle
+    of two or three (up to :data:`CYCLE`), the cost back within :data:`STALL` of where it was
+    and the motions of the steps since summing to a tenth of their lengths at most."""
+    rms = recent[-1][0]
+    for k in range(2, min(CYCLE, len(recent) - 1) + 1):
+        steps = [d.ravel() for _, d in recent[-k:]]
+        length = sum(float(np.linalg.norm(d)) for d in steps)
+        back = abs(recent[-k - 1][0] - rms) <= STALL * rms
+        if back and length > 0 and float(np.linalg.norm(np.sum(steps, axis=0))) <= 0.1 * length:
+            return True
     return False
 
 

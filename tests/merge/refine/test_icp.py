@@ -7,7 +7,7 @@ import pytest
 
 from backend.synthetic import patch_set_from_synth, registration_error
 from hardware.sim.drift import DriftModel
-from hardware.sim.surfaces import Chessboard, ImageSurface
+from hardware.sim.surfaces import Chessboard, FoldedSurface, ImageSurface
 from hardware.sim.synth import synthesize
 from merge import MergeConfig, pipeline, run
 from merge.core.overlap import overlapping_pairs
@@ -162,3 +162,39 @@ def test_the_raw_level_smooths_the_slopes_only_where_the_pixels_are_finer_than_t
     assert (slopes is not None) is smoothed
     if slopes is not None:
         assert slopes.width > 0 and len(slopes.grids) == len(patches)
+
+
+def test_steps_that_cycle_count_as_a_stall_and_a_creep_does_not() -> None:
+    step = np.zeros((3, 6))
+    step[1, 0] = 0.01
+    two = [(3.1213e-9, step), (3.1221e-9, -step), (3.1213e-9, step)]
+    assert icp._cycled(two)
+    turn = np.zeros((3, 6))
+    turn[2, 1] = 0.01
+    three = [(3.0969e-9, step), (3.0971e-9, turn), (3.0979e-9, -step - turn), (3.0969e-9, step)]
+    assert icp._cycled(three)
+    # a patch creeping along a grating's stripes moves on the same way, the cost barely falling
+    creep = [(1.3783e-9, step), (1.3782e-9, step), (1.3781e-9, step), (1.3780e-9, step)]
+    assert not icp._cycled(creep)
+    assert not icp._cycled(two[:2])  # too short to tell
+
+
+def test_a_mosaic_of_narrow_overlaps_settles_instead_of_cycling() -> None:
+    # 15 % overlaps of 30 x 60 px patches: strips 4 px wide gain and lose a border column in
+    # turn, and the raw level went back and forth between two placements until its iterations
+    # ran out (34), every patch then reported as not settled
+    synth = synthesize(
+        FoldedSurface(seed=101001),
+        rows=5,
+        cols=10,
+        patch_size=(0.6e-6, 1.2e-6),
+        pixels=(30, 60),
+        overlap=(0.15, 0.15),
+        drift=DriftModel.typical(),
+        seed=101001,
+    )
+    result = run(patch_set_from_synth(synth))
+    assert result.converged
+    assert not [w for w in result.warnings if "ran out of iterations" in w]
+    exy, _, _ = registration_error(synth, [p.transform for p in result.patches])
+    assert exy < 1e-9
