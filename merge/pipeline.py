@@ -43,7 +43,7 @@ from merge.refine import (
 )
 from merge.refine.normal_system import NormalSystem
 from merge.render import render_mosaic
-from merge.report import MergeResult, assess, holds_xy, patch_reports, unconfirmed
+from merge.report import MergeResult, assess, holds_xy, patch_reports, unconfirmed, untied
 from merge.start import coarse_cell, coarse_start
 
 FloatArray = NDArray[np.float64]
@@ -93,11 +93,14 @@ class Layout:
 
 @dataclass(frozen=True)
 class Placement:
-    """Where the start put every patch: ``T_mosaic_patch``, and which patches it measured in XY
-    along both axes (``measured_both``; patches that overlap nothing count as measured)."""
+    """Where the start put every patch: ``T_mosaic_patch``, which patches it measured in XY
+    along both axes (``measured_both``; patches that overlap nothing count as measured), and
+    what it measured of each of the layout's pairs (``pair_information`` (k, 2, 2), 1 / m²;
+    None where it measured no XY)."""
 
     transforms: list[PatchTransform]
     measured_both: NDArray[np.bool_]
+    pair_information: FloatArray | None = None
 
     @property
     def complete(self) -> bool:
@@ -113,7 +116,10 @@ class Solution:
     for the other methods; ``unsettled``, the patches the refinement stopped before it had
     settled them (:class:`merge.refine.RefineResult`), or None; ``refined_only``, the patches
     the refinement placed that the start did not measure along both axes (their texture must
-    confirm the place: :mod:`merge.report.confirmation`), or None."""
+    confirm the place: :mod:`merge.report.confirmation`), or None; ``start_information``, what
+    the start measured of each of the layout's pairs (:attr:`Placement.pair_information`: a
+    chain of measured overlaps must tie a patch to the mosaic, :mod:`merge.report.ties`), or
+    None."""
 
     transforms: list[PatchTransform]
     iterations: int = 0
@@ -124,12 +130,18 @@ class Solution:
     plane_sigma: FloatArray | None = None
     unsettled: NDArray[np.bool_] | None = None
     refined_only: NDArray[np.bool_] | None = None
+    start_information: FloatArray | None = None
 
     @classmethod
     def of_refinement(
-        cls, fit: RefineResult, *, refined_only: NDArray[np.bool_] | None = None
+        cls,
+        fit: RefineResult,
+        *,
+        refined_only: NDArray[np.bool_] | None = None,
+        start_information: FloatArray | None = None,
     ) -> Solution:
-        """What :func:`merge.refine.refine` settled on; ``refined_only`` as the class says."""
+        """What :func:`merge.refine.refine` settled on; ``refined_only`` and
+        ``start_information`` as the class says."""
         return cls(
             fit.transforms,
             fit.iterations,
@@ -140,6 +152,7 @@ class Solution:
             fit.plane_sigma,
             fit.unsettled,
             refined_only,
+            start_information,
         )
 
 
@@ -280,6 +293,11 @@ def finish(
                 if holds_xy(fits[c], patches[c])
             ]
             doubted = unconfirmed(patches, transforms, final_pairs, which, bank=solution.bank)
+        loose = {}
+        if solution.start_information is not None:
+            loose = untied(
+                patches, transforms, layout.pairs, solution.start_information, bank=solution.bank
+            )
         reports, unheld = patch_reports(
             patches,
             transforms,
@@ -288,6 +306,7 @@ def finish(
             registered=cfg.method in ("default", "paper"),
             unsettled=solution.unsettled,
             unconfirmed=doubted,
+            untied=loose,
         )
     with watch.step("render"), stage("render", len(patches), "drawing the mosaic"):
         mosaic = render_mosaic(patches, transforms, pixel_size=cfg.pixel_size, feather=cfg.feather)
@@ -348,7 +367,7 @@ def _start(patch_set: PatchSet, layout: Layout, cfg: MergeConfig) -> Placement:
         PatchTransform(t=tc, slope=-tilt, centre=np.array(p.center))
         for tc, tilt, p in zip(start.translation, start.tilt, patches, strict=True)
     ]
-    return Placement(transforms, start.xy_complete | ~layout.linked)
+    return Placement(transforms, start.xy_complete | ~layout.linked, start.pair_information)
 
 
 def _solve(
@@ -387,7 +406,9 @@ def _solve(
         report=True,
     )
     return Solution.of_refinement(
-        fit, refined_only=None if placed.complete else ~placed.measured_both
+        fit,
+        refined_only=None if placed.complete else ~placed.measured_both,
+        start_information=placed.pair_information,
     )
 
 

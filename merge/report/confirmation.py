@@ -44,9 +44,18 @@ STEPS = (2, 4, 8)
 CONFIRMS = 3.0
 #: Fewest points of the patch over its neighbours for a move to count.
 MIN_POINTS = 50
+#: The directions a patch is moved in (x, y).
+COMPASS = ((1, 0), (-1, 0), (0, 1), (0, -1))
 
 
-def moved_misfit_rise(bank: SurfaceBank, state: MosaicState, pairs: IntArray, c: int) -> float:
+def moved_misfit_rise(
+    bank: SurfaceBank,
+    state: MosaicState,
+    pairs: IntArray,
+    c: int,
+    *,
+    directions: Sequence[tuple[int, int]] = COMPASS,
+) -> float:
     """How many standard errors patch ``c``'s misfit over its neighbours rises when it is moved.
 
     Parameters
@@ -59,11 +68,13 @@ def moved_misfit_rise(bank: SurfaceBank, state: MosaicState, pairs: IntArray, c:
         Pairs that overlap there; those with ``c`` count.
     c : int
         The patch.
+    directions : sequence of (x, y), keyword-only
+        The directions it is moved in (default ±x and ±y).
 
     Returns
     -------
     float
-        Over :data:`STEPS`, the largest of the least rise over the four directions ±x, ±y: the
+        Over :data:`STEPS`, the largest of the least rise over the ``directions``: the
         sum, over ``c``'s points on its neighbours' surfaces that stay on them, of the moved
         squared residual less the fitted one (each overlap's Z offset fitted again), over its
         standard error. NaN where no move keeps :data:`MIN_POINTS` points.
@@ -80,7 +91,7 @@ def moved_misfit_rise(bank: SurfaceBank, state: MosaicState, pairs: IntArray, c:
     best = float("nan")
     for step in STEPS:
         rises = []
-        for direction in ((1, 0), (-1, 0), (0, 1), (0, -1)):
+        for direction in directions:
             checkpoint()
             moved = MosaicState(state.R, state.s.copy(), state.slope)
             moved.s[c, :2] += step * pitch * np.array(direction)
@@ -89,7 +100,7 @@ def moved_misfit_rise(bank: SurfaceBank, state: MosaicState, pairs: IntArray, c:
             if ok.sum() < MIN_POINTS:
                 continue
             rises.append(_rise(r0[ok], r1[ok], rows.dst[ok]))
-        if len(rises) == 4 and not min(rises) <= best:  # NaN-safe max
+        if len(rises) == len(directions) and not min(rises) <= best:  # NaN-safe max
             best = min(rises)
     return best
 

@@ -96,6 +96,7 @@ def patch_reports(
     registered: bool,
     unsettled: NDArray[np.bool_] | None = None,
     unconfirmed: dict[int, float] | None = None,
+    untied: dict[int, str] | None = None,
 ) -> tuple[list[PatchReport], list[str]]:
     """One report per patch, and a warning for each whose overlaps constrain Z but not XY,
     which the refinement stopped before it had settled, or whose texture does not confirm
@@ -124,15 +125,19 @@ def patch_reports(
         refinement alone placed and whose texture does not confirm it
         (:func:`merge.report.confirmation.unconfirmed`): their XY is a dip of the noise as
         likely as a registration. Default none.
+    untied : dict, keyword-only
+        Patches (index: the axes, ``"x"``, ``"y"`` or ``"xy"``) that no chain of overlaps
+        which measured them ties to the mosaic's largest block along those axes
+        (:func:`merge.report.ties.untied`). Default none.
     """
-    unconfirmed = unconfirmed or {}
+    unconfirmed, untied = unconfirmed or {}, untied or {}
     reports, warnings = [], []
     for c, p in enumerate(patches):
         checkpoint()
         f = fits[c]
         stopped = unsettled is not None and bool(unsettled[c])
         doubted = c in unconfirmed
-        xy_ok = holds_xy(f, p) and not stopped and not doubted
+        xy_ok = holds_xy(f, p) and not stopped and not doubted and c not in untied
         xx, yy = p.pixel_coordinates()
         sample = np.column_stack([xx.ravel(), yy.ravel(), p.heights.ravel()])[::7]
         R_rigid, t_rigid = transforms[c].rigid_approximation(sample[np.isfinite(sample[:, 2])])
@@ -167,6 +172,13 @@ def patch_reports(
                 f"patch {p.id!r}: the refinement alone placed it (the start could not measure "
                 f"it) and its texture does not confirm the place: {why}; its XY is a guess, "
                 "not a measurement (a texture weaker than the noise?)"
+            )
+        elif linked[c] and c in untied and registered:
+            axes = " and ".join(untied[c])
+            warnings.append(
+                f"patch {p.id!r}: no chain of overlaps that measured it ties its {axes} to the "
+                "largest block of the mosaic (overlaps too narrow or too flat along it); where "
+                "its block lies against the rest is the stage's placement, not a measurement"
             )
         elif linked[c] and not xy_ok and registered:
             warnings.append(

@@ -101,6 +101,8 @@ class CoarseStart:
     tilt : (n, 2) dz/dx, dz/dy of the plane each patch lost when it was levelled on its own
         before export (zero for raw scans, :mod:`merge.start.tilts`); Z in ``translation`` is
         then at the patch's centre.
+    pair_information : (k, 2, 2) what each pair's correlation measured of its XY, 1 / m²
+        (zero: nothing), as the network weighed it.
     """
 
     translation: FloatArray
@@ -108,6 +110,7 @@ class CoarseStart:
     xy_complete: NDArray[np.bool_]
     tilt: FloatArray
     xy_measurable: NDArray[np.bool_]
+    pair_information: FloatArray
 
 
 @dataclass
@@ -188,8 +191,9 @@ def coarse_start(
     corr = Correlations.empty(len(pairs))
     translation = np.zeros((n, 3))
     complete = np.zeros(n, dtype=bool)
+    weighed = np.zeros((len(pairs), 2, 2))
     if estimate_xy and len(pairs):
-        translation[:, :2], complete = _xy_offsets(lat, corr, max_shift)
+        translation[:, :2], complete, weighed = _xy_offsets(lat, corr, max_shift)
     translation[:, 2] = _z_offsets(lat, translation)
     measured = np.zeros(n, dtype=bool)
     measured[pairs[np.trace(corr.xy_w, axis1=1, axis2=2) > 0].ravel()] = True
@@ -202,15 +206,17 @@ def coarse_start(
         xy_complete=complete,
         tilt=lat.tilt,
         xy_measurable=measurable,
+        pair_information=weighed,
     )
 
 
 def _xy_offsets(
     lat: Lattice, corr: Correlations, max_shift: float
-) -> tuple[FloatArray, NDArray[np.bool_]]:
-    """Every patch's XY (n, 2), metres, and whether its pairs measured both axes: a first pass
-    over all pairs, the network solved, the patches in doubt placed against all their
-    neighbours, their pairs and the doubtful ones measured again, the network solved again."""
+) -> tuple[FloatArray, NDArray[np.bool_], FloatArray]:
+    """Every patch's XY (n, 2), metres, whether its pairs measured both axes, and every pair's
+    information as the network weighed it (k, 2, 2): a first pass over all pairs, the network
+    solved, the patches in doubt placed against all their neighbours, their pairs and the
+    doubtful ones measured again, the network solved again."""
     n, pairs = len(lat.grids), lat.pairs
     radius = max_shift / lat.cell
     # every patch's stage error is a priori within about half the searched range
@@ -232,7 +238,8 @@ def _xy_offsets(
             centre = (e[0] + pred[1] / lat.cell, e[1] + pred[0] / lat.cell)
             _measure(lat, corr, j, centre, 2.0, radius=radius)
         sol = solve_pair_differences(n, pairs, corr.xy_m, corr.xy_w, prior=xy_prior)
-    return drop_unconstrained(sol.x, pairs, corr.xy_w * sol.robust[:, None, None])
+    weighed = corr.xy_w * sol.robust[:, None, None]
+    return (*drop_unconstrained(sol.x, pairs, weighed), weighed)
 
 
 def _first_pass(lat: Lattice, corr: Correlations, radius: float) -> None:

@@ -1,0 +1,119 @@
+"""Which patches a chain of overlaps that measured them ties to the mosaic, axis by axis.
+
+A patch's XY standard deviation counts every overlap's information at the placement where the
+fit ended. Along an axis no overlap of a block of patches measured, that information is the
+faces' roughness at whatever shift the block stands: in overlaps a few pixels wide (15 % of
+30 x 60 px chessboard patches, stage errors of 50 nm) a column's pairs held no vertical edge,
+the start measured none of them along x, and the refinement kept three columns 120 nm off the
+other seven, every patch claiming 2 nm.
+
+So, along x and along y apart, the pairs the start measured well along that axis tie their
+patches together (:data:`STRONG`); any other pair ties them when its misfit rises as one of
+its patches is moved along the axis
+(:func:`merge.report.confirmation.moved_misfit_rise`, only the pairs between two blocks are
+tried). Patches outside the largest block of their overlap group (groups that overlap nowhere
+are merged each on its own) are not held along that axis: where they lie against the rest is
+the stage's placement or a dip of the noise, not a measurement.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy import sparse
+from scipy.sparse.csgraph import connected_components
+
+from merge.core.patchset import Patch
+from merge.core.progress import checkpoint
+from merge.core.transforms import PatchTransform
+from merge.refine.bank import SurfaceBank
+from merge.refine.state import MosaicState
+from merge.report.confirmation import CONFIRMS, moved_misfit_rise
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.intp]
+
+#: A pair the start measured along an axis to this share of the best any pair was measured
+#: (the start's precision cap) ties its patches along it. Less is not enough: a corner's
+#: overlap measured along a tilted direction, 92 nm off in x, claimed a fifth of the cap.
+STRONG = 0.5
+#: The axes, as (name, unit vector).
+AXES = (("x", np.array([1.0, 0.0])), ("y", np.array([0.0, 1.0])))
+
+
+def untied(
+    patches: Sequence[Patch],
+    transforms: Sequence[PatchTransform],
+    pairs: IntArray,
+    information: FloatArray,
+    *,
+    bank: SurfaceBank | None = None,
+) -> dict[int, str]:
+    """The patches no chain of measured overlaps ties to the mosaic's largest block, with the
+    axes (``"x"``, ``"y"`` or ``"xy"``) along which it does not.
+
+    Parameters
+    ----------
+    patches : sequence of Patch
+    transforms : sequence of PatchTransform
+        ``T_mosaic_patch`` per patch, where the fit ended.
+    pairs : (k, 2) int array
+        The pairs the start correlated.
+    information : (k, 2, 2) float array
+        What the start measured of each (1 / m²; zero: nothing).
+    bank : SurfaceBank, keyword-only
+        The patches' raw heights as surfaces, if already built.
+    """
+    pairs = np.asarray(pairs, dtype=np.intp).reshape(-1, 2)
+    n = len(patches)
+    out: dict[int, str] = {}
+    if n < 2 or not len(pairs):
+        return out
+    group = _blocks(n, pairs)
+    largest = np.linalg.eigvalsh(information)[:, 1]
+    placed: list[tuple[SurfaceBank, MosaicState]] = []  # built once, when a pair is tried
+    for name, u in AXES:
+        along = np.einsum("i,kij,j->k", u, information, u)
+        tied = (along > 0) & (along >= STRONG * largest.max())
+        label = _blocks(n, pairs[tied])
+        if not _outside_largest(label, group).any():
+            continue
+        if not placed:
+            scale = float(np.median([min(p.pixel_size) for p in patches]))
+            bank = bank if bank is not None else SurfaceBank(patches, scale, 0.0, 1)
+            placed.append((bank, MosaicState.from_transforms(transforms, bank, scale)))
+        surfaces, state = placed[0]
+        step = ((int(u[0]), int(u[1])), (-int(u[0]), -int(u[1])))
+        # a pair between two blocks that confirms the axis joins them; tried until none does
+        for k in np.flatnonzero(~tied).tolist():
+            a, b = int(pairs[k, 0]), int(pairs[k, 1])
+            if label[a] == label[b]:
+                continue
+            checkpoint()
+            rise = moved_misfit_rise(surfaces, state, pairs[k : k + 1], b, directions=step)
+            if rise >= CONFIRMS:
+                tied[k] = True
+                label = _blocks(n, pairs[tied])
+        for c in np.flatnonzero(_outside_largest(label, group)).tolist():
+            out[c] = out.get(c, "") + name
+    return out
+
+
+def _outside_largest(label: IntArray, group: IntArray) -> NDArray[np.bool_]:
+    """(n,) whether each patch lies outside the largest block (``label``) of its overlap
+    group (``group``): groups that overlap nowhere are merged each on its own."""
+    out = np.zeros(len(label), dtype=bool)
+    for g in np.unique(group).tolist():
+        members = group == g
+        main = np.bincount(label[members]).argmax()
+        out |= members & (label != main)
+    return out
+
+
+def _blocks(n: int, edges: IntArray) -> IntArray:
+    """(n,) the connected block of every patch over ``edges`` (m, 2)."""
+    graph = sparse.coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(n, n))
+    _, label = connected_components(graph, directed=False)
+    return np.asarray(label, dtype=np.intp)

@@ -1,0 +1,74 @@
+"""Which patches a chain of overlaps that measured them ties to the mosaic, axis by axis."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from backend.synthetic import patch_set_from_synth
+from hardware.sim.drift import DriftModel
+from hardware.sim.surfaces import Chessboard
+from hardware.sim.synth import synthesize
+from merge import PatchTransform, run
+from merge.report.ties import untied
+from tests.conftest import make_synthetic
+
+#: A grating's flat face (1.5 nm of roughness at a pixel's scale) without any drift.
+STILL = DriftModel(
+    stage_sigma=0.0,
+    rotation_sigma_deg=0.0,
+    z_step_mean=0.0,
+    z_step_sigma=0.0,
+    z_drift_sigma=0.0,
+    noise=0.5e-9,
+    line_noise=0.0,
+)
+#: The start's information of a pair measured both ways, and of one measured along y only.
+BOTH = np.eye(2) * 2.5e15
+ONLY_Y = np.diag([0.0, 2.5e15])
+
+
+def _row_of_three() -> list:
+    syn = make_synthetic(Chessboard(step=0.0, seed=5), rows=1, cols=3, drift=STILL, pixels=(30, 30))
+    return list(syn.patch_set)
+
+
+def test_a_block_the_start_measured_along_y_only_is_tied_along_x_where_its_texture_agrees() -> None:
+    patches = _row_of_three()
+    pairs = np.array([[0, 1], [1, 2]])
+    info = np.stack([BOTH, ONLY_Y])
+    # at the truth the roughness of the second overlap confirms x: one block
+    truth = [PatchTransform() for _ in patches]
+    assert untied(patches, truth, pairs, info) == {}
+    # six pixels off along x its roughness no longer agrees: the last patch is not tied in x
+    off = [PatchTransform(), PatchTransform(), PatchTransform(t=np.array([1.6e-7, 0.0, 0.0]))]
+    assert untied(patches, off, pairs, info) == {2: "x"}
+    # measured both ways, the start's own measurement ties it whatever the texture says
+    assert untied(patches, off, pairs, np.stack([BOTH, BOTH])) == {}
+
+
+def test_nothing_measured_and_no_overlap_left_ties_nothing() -> None:
+    patches = _row_of_three()
+    apart = [PatchTransform(t=np.array([3e-6 * k, 0.0, 0.0])) for k in range(3)]
+    loose = untied(patches, apart, np.array([[0, 1], [1, 2]]), np.zeros((2, 2, 2)))
+    # three blocks of one: the largest is the first, the others are loose both ways
+    assert loose == {1: "xy", 2: "xy"}
+
+
+def test_narrow_overlaps_no_longer_claim_a_block_they_do_not_tie() -> None:
+    # 15 % overlaps of 30 x 60 px chessboard patches at the paper's grid: the start measured
+    # no pair between columns 6 and 7 along x; the refinement kept the three right columns
+    # 120 nm off the seven left ones, and every patch claimed 2 nm
+    synth = synthesize(
+        Chessboard(seed=102001),
+        rows=5,
+        cols=10,
+        patch_size=(0.6e-6, 1.2e-6),
+        pixels=(30, 60),
+        overlap=(0.15, 0.15),
+        drift=DriftModel.typical(),
+        seed=102001,
+    )
+    result = run(patch_set_from_synth(synth))
+    loose = {p.id for p in result.patches if not p.xy_constrained}
+    assert {s.id for s in synth if s.col >= 7} <= loose
+    assert any("no chain of overlaps" in w for w in result.warnings)
