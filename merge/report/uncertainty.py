@@ -296,11 +296,14 @@ def translation_sigmas(
     rms2 = 2.0 * rms**2
     seen_xy: NDArray[np.bool_] = np.asarray(np.isfinite(xy_cov).all(axis=(1, 2)))
     largest = np.linalg.eigvalsh(np.where(seen_xy[:, None, None], xy_cov, 0.0))[:, 1]
-    xy: FloatArray = np.where(seen_xy, np.sqrt(rms2 * largest), np.inf)
+    # a covariance with no positive variance is the rounding of a direction nothing measured
+    # (narrow overlaps of a chessboard's faces): not known, rather than NaN
+    seen_xy &= largest >= 0
+    xy: FloatArray = np.where(seen_xy, np.sqrt(rms2 * np.maximum(largest, 0.0)), np.inf)
     seen_z = np.isfinite(z_var)
-    z: FloatArray = np.where(
-        seen_z, np.sqrt(rms2 * z_design * np.where(seen_z, z_var, 0.0)), np.inf
-    )
+    z_var = rms2 * z_design * np.where(seen_z, z_var, 0.0)
+    seen_z &= z_var >= 0  # the same for Z
+    z: FloatArray = np.where(seen_z, np.sqrt(np.maximum(z_var, 0.0)), np.inf)
     return xy, z
 
 

@@ -150,3 +150,15 @@ def test_reported_sigmas_cover_the_errors(small_mosaic: Synthetic) -> None:
         assert np.hypot(e[0], e[1]) < 4.0 * report.xy_sigma
         assert abs(e[2]) < 4.0 * report.z_sigma
         assert report.xy_sigma < 2e-9 and report.z_sigma < 2e-9
+
+
+def test_a_covariance_rounded_below_zero_is_unknown(monkeypatch: pytest.MonkeyPatch) -> None:
+    # the selected inverse of a direction nothing measured can round to a negative variance
+    # (narrow overlaps of a chessboard's faces): its sigma is not known, never NaN
+    xy_cov = np.array([np.eye(2), -1e-30 * np.eye(2)])
+    z_var = np.array([1.0, -1e-30])
+    monkeypatch.setattr(uncertainty, "translation_covariances", lambda *a, **k: (xy_cov, z_var))
+    empty = (np.zeros(0, np.intp), np.zeros(0, np.intp), np.zeros(0))
+    xy, z = uncertainty.translation_sigmas(empty, np.zeros((12, 0)), rms=1.0)
+    assert xy[0] == pytest.approx(np.sqrt(2.0)) and z[0] == pytest.approx(np.sqrt(2.0))
+    assert xy[1] == np.inf and z[1] == np.inf
