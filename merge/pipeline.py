@@ -1,7 +1,8 @@
 """``merge.run``: the stages in order, a patch set in, a merged mosaic with per-patch transforms
 and quality out.
 
-One merge is five steps over small records, each timed on its own (``MergeResult.timings``):
+One merge is five steps over small records (:mod:`merge.records`), each timed on its own
+(``MergeResult.timings``):
 
 1. :func:`layout_of` -> :class:`Layout`: which patches can overlap (the stage's error margin), the
    cell, and warnings for patches and groups nothing ties to the rest;
@@ -19,9 +20,8 @@ corrected patches merged again.
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Iterable, Iterator, Sequence
-from contextlib import contextmanager
-from dataclasses import dataclass, replace
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -32,16 +32,14 @@ from merge.core.parallel import one_blas_thread
 from merge.core.patchset import Patch, PatchSet
 from merge.core.progress import Report, stage, tracking
 from merge.core.transforms import PatchTransform
+from merge.records import Layout, Placement, Solution, Stopwatch
 from merge.refine import (
     DEFAULT_LEVELS,
     Level,
-    RefineResult,
-    SurfaceBank,
     estimate_distortion,
     refine,
     undistort,
 )
-from merge.refine.normal_system import NormalSystem
 from merge.render import render_mosaic
 from merge.report import MergeResult, assess, holds_xy, patch_reports, unconfirmed, untied
 from merge.start import coarse_cell, coarse_start
@@ -70,106 +68,6 @@ def default_cell(patch_set: Iterable[Patch]) -> float:
 def default_max_shift(patch_set: Iterable[Patch]) -> float:
     """Half the smaller side of the smallest patch."""
     return 0.5 * min(min(p.extent) for p in patch_set)
-
-
-@dataclass(frozen=True)
-class Layout:
-    """What the merge knows before any stage: the patches' nominal footprints and overlaps.
-
-    boxes : (n, 4) nominal footprints ``(xmin, ymin, xmax, ymax)``, metres.
-    pairs : (k, 2) patch pairs that can overlap within the stage's error ``max_shift``.
-    linked : (n,) whether each patch is in any pair.
-    cell, max_shift : the refinement's raster spacing and the searched stage error, metres.
-    warnings : patches that overlap nothing, groups that overlap no other group.
-    """
-
-    boxes: FloatArray
-    pairs: IntArray
-    linked: NDArray[np.bool_]
-    cell: float
-    max_shift: float
-    warnings: list[str]
-
-
-@dataclass(frozen=True)
-class Placement:
-    """Where the start put every patch: ``T_mosaic_patch``, which patches it measured in XY
-    along both axes (``measured_both``; patches that overlap nothing count as measured), and
-    what it measured of each of the layout's pairs (``pair_information`` (k, 2, 2), 1 / m²;
-    None where it measured no XY)."""
-
-    transforms: list[PatchTransform]
-    measured_both: NDArray[np.bool_]
-    pair_information: FloatArray | None = None
-
-    @property
-    def complete(self) -> bool:
-        """Whether the start measured every patch's XY along both axes."""
-        return bool(self.measured_both.all())
-
-
-@dataclass(frozen=True)
-class Solution:
-    """The transforms the solver settled on and how it went; ``bank``, the refinement's raw
-    surfaces, ``system``, its last step's system if that step settled the fit, and
-    ``plane_sigma``, the drift planes' prior it solved with (all reused by the assessment), None
-    for the other methods; ``unsettled``, the patches the refinement stopped before it had
-    settled them (:class:`merge.refine.RefineResult`), or None; ``refined_only``, the patches
-    the refinement placed that the start did not measure along both axes (their texture must
-    confirm the place: :mod:`merge.report.confirmation`), or None; ``start_information``, what
-    the start measured of each of the layout's pairs (:attr:`Placement.pair_information`: a
-    chain of measured overlaps must tie a patch to the mosaic, :mod:`merge.report.ties`), or
-    None."""
-
-    transforms: list[PatchTransform]
-    iterations: int = 0
-    converged: bool = True
-    history: tuple[float, ...] = ()
-    bank: SurfaceBank | None = None
-    system: NormalSystem | None = None
-    plane_sigma: FloatArray | None = None
-    unsettled: NDArray[np.bool_] | None = None
-    refined_only: NDArray[np.bool_] | None = None
-    start_information: FloatArray | None = None
-
-    @classmethod
-    def of_refinement(
-        cls,
-        fit: RefineResult,
-        *,
-        refined_only: NDArray[np.bool_] | None = None,
-        start_information: FloatArray | None = None,
-    ) -> Solution:
-        """What :func:`merge.refine.refine` settled on; ``refined_only`` and
-        ``start_information`` as the class says."""
-        return cls(
-            fit.transforms,
-            fit.iterations,
-            fit.converged,
-            tuple(fit.history),
-            fit.bank,
-            fit.system,
-            fit.plane_sigma,
-            fit.unsettled,
-            refined_only,
-            start_information,
-        )
-
-
-class Stopwatch:
-    """Wall time per named step, summed over repeats (``timings``, seconds)."""
-
-    def __init__(self) -> None:
-        self.timings: dict[str, float] = {}
-
-    @contextmanager
-    def step(self, name: str) -> Iterator[None]:
-        """Time the body of the ``with`` block as step ``name``."""
-        clock = time.perf_counter()
-        try:
-            yield
-        finally:
-            self.timings[name] = self.timings.get(name, 0.0) + time.perf_counter() - clock
 
 
 def run(

@@ -42,13 +42,12 @@ from merge.live.canvas import LiveCanvas
 from merge.live.neighbourhood import frame_offset, within
 from merge.pipeline import (
     SHIFT_PRIOR_FRACTION,
-    Solution,
-    Stopwatch,
     default_cell,
     default_max_shift,
     finish,
     layout_of,
 )
+from merge.records import Solution, Stopwatch
 from merge.refine import DEFAULT_LEVELS, Level, RefineResult, refine
 from merge.render import Mosaic
 from merge.report import MergeResult, PatchFit, assess

@@ -210,16 +210,6 @@ def test_every_step_of_a_merge_is_timed_under_its_name(small_mosaic: Synthetic) 
     assert all(v >= 0 for v in result.timings.values())
 
 
-def test_a_stopwatch_sums_the_repeats_of_a_step(monkeypatch: pytest.MonkeyPatch) -> None:
-    ticks = iter([1.0, 1.5, 10.0, 10.25, 20.0, 24.0])
-    monkeypatch.setattr(pipeline.time, "perf_counter", lambda: next(ticks))
-    watch = pipeline.Stopwatch()
-    for name in ("solve", "solve", "render"):
-        with watch.step(name):
-            pass
-    assert watch.timings == {"solve": 0.75, "render": 4.0}
-
-
 def test_the_start_step_keeps_nominal_places_where_nothing_is_estimated(
     small_mosaic: Synthetic,
 ) -> None:
