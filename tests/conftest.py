@@ -75,3 +75,31 @@ def make_synthetic(
 def small_mosaic(folded: FoldedSurface) -> Synthetic:
     """2 x 3 patches of 40 x 40 pixels on the folded surface with typical drift."""
     return make_synthetic(folded)
+
+
+def still(noise: float) -> DriftModel:
+    """No drift at all but white ``noise`` (metres): the nominal placement is the truth."""
+    return DriftModel(
+        stage_sigma=0.0,
+        rotation_sigma_deg=0.0,
+        z_step_mean=0.0,
+        z_step_sigma=0.0,
+        z_drift_sigma=0.0,
+        noise=noise,
+        line_noise=0.0,
+    )
+
+
+def narrow_paper_grid(surface: Surface, seed: int) -> list[SynthPatch]:
+    """The paper's grid (5 x 10 patches of 0.6 x 1.2 um in 30 x 60 px) with overlaps of only
+    15 % both ways, under the typical drift: strips a few pixels wide, two stage errors."""
+    return synthesize(
+        surface,
+        rows=5,
+        cols=10,
+        patch_size=(0.6e-6, 1.2e-6),
+        pixels=(30, 60),
+        overlap=(0.15, 0.15),
+        drift=DriftModel.typical(),
+        seed=seed,
+    )

@@ -15,7 +15,7 @@ from merge.core.transforms import PatchTransform
 from merge.refine import icp
 from merge.refine.convergence import height_effect, remaining
 from merge.refine.icp import FAST_DRIFT_SHARE, SIDES, _plane_sigma
-from tests.conftest import SHARED_DATA, Synthetic
+from tests.conftest import SHARED_DATA, Synthetic, narrow_paper_grid
 
 GRID = SHARED_DATA / "grid.npy"
 
@@ -183,16 +183,7 @@ def test_a_mosaic_of_narrow_overlaps_settles_instead_of_cycling() -> None:
     # 15 % overlaps of 30 x 60 px patches: strips 4 px wide gain and lose a border column in
     # turn, and the raw level went back and forth between two placements until its iterations
     # ran out (34), every patch then reported as not settled
-    synth = synthesize(
-        FoldedSurface(seed=101001),
-        rows=5,
-        cols=10,
-        patch_size=(0.6e-6, 1.2e-6),
-        pixels=(30, 60),
-        overlap=(0.15, 0.15),
-        drift=DriftModel.typical(),
-        seed=101001,
-    )
+    synth = narrow_paper_grid(FoldedSurface(seed=101001), 101001)
     result = run(patch_set_from_synth(synth))
     assert result.converged
     assert not [w for w in result.warnings if "ran out of iterations" in w]

@@ -12,18 +12,10 @@ from merge.core.overlap import overlapping_pairs
 from merge.refine.bank import SurfaceBank
 from merge.refine.state import MosaicState
 from merge.report.confirmation import CONFIRMS, moved_misfit_rise, unconfirmed
-from tests.conftest import make_synthetic
+from tests.conftest import make_synthetic, still
 
 #: A grating's flat face (1.5 nm of roughness at a pixel's scale) without any drift.
-STILL = DriftModel(
-    stage_sigma=0.0,
-    rotation_sigma_deg=0.0,
-    z_step_mean=0.0,
-    z_step_sigma=0.0,
-    z_drift_sigma=0.0,
-    noise=0.5e-9,
-    line_noise=0.0,
-)
+STILL = still(0.5e-9)
 
 
 def _rise(transforms: list[PatchTransform], c: int) -> float:

@@ -7,25 +7,16 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from hardware.sim.drift import DriftModel
 from hardware.sim.surfaces import FoldedSurface
 from merge import Patch, PatchSet, PatchTransform, run
 from merge.core.overlap import overlapping_pairs
 from merge.refine import DEFAULT_LEVELS, refine
 from merge.report.quality import PatchFit, assess
-from tests.conftest import Synthetic, make_synthetic
+from tests.conftest import Synthetic, make_synthetic, still
 
 NOISE = 1e-9
 #: No drift at all: the nominal placement is the truth.
-STILL = DriftModel(
-    stage_sigma=0.0,
-    rotation_sigma_deg=0.0,
-    z_step_mean=0.0,
-    z_step_sigma=0.0,
-    z_drift_sigma=0.0,
-    noise=NOISE,
-    line_noise=0.0,
-)
+STILL = still(NOISE)
 
 
 @pytest.fixture(scope="module")

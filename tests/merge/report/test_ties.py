@@ -5,23 +5,13 @@ from __future__ import annotations
 import numpy as np
 
 from backend.synthetic import patch_set_from_synth
-from hardware.sim.drift import DriftModel
 from hardware.sim.surfaces import Chessboard
-from hardware.sim.synth import synthesize
 from merge import PatchTransform, run
 from merge.report.ties import untied
-from tests.conftest import make_synthetic
+from tests.conftest import make_synthetic, narrow_paper_grid, still
 
 #: A grating's flat face (1.5 nm of roughness at a pixel's scale) without any drift.
-STILL = DriftModel(
-    stage_sigma=0.0,
-    rotation_sigma_deg=0.0,
-    z_step_mean=0.0,
-    z_step_sigma=0.0,
-    z_drift_sigma=0.0,
-    noise=0.5e-9,
-    line_noise=0.0,
-)
+STILL = still(0.5e-9)
 #: The start's information of a pair measured both ways, and of one measured along y only.
 BOTH = np.eye(2) * 2.5e15
 ONLY_Y = np.diag([0.0, 2.5e15])
@@ -58,16 +48,7 @@ def test_narrow_overlaps_no_longer_claim_a_block_they_do_not_tie() -> None:
     # 15 % overlaps of 30 x 60 px chessboard patches at the paper's grid: the start measured
     # no pair between columns 6 and 7 along x; the refinement kept the three right columns
     # 120 nm off the seven left ones, and every patch claimed 2 nm
-    synth = synthesize(
-        Chessboard(seed=102001),
-        rows=5,
-        cols=10,
-        patch_size=(0.6e-6, 1.2e-6),
-        pixels=(30, 60),
-        overlap=(0.15, 0.15),
-        drift=DriftModel.typical(),
-        seed=102001,
-    )
+    synth = narrow_paper_grid(Chessboard(seed=102001), 102001)
     result = run(patch_set_from_synth(synth))
     loose = {p.id for p in result.patches if not p.xy_constrained}
     assert {s.id for s in synth if s.col >= 7} <= loose
