@@ -77,8 +77,7 @@ def untied(
     for name, u in AXES:
         along = np.einsum("i,kij,j->k", u, information, u)
         tied = (along > 0) & (along >= STRONG * largest.max())
-        label = _blocks(n, pairs[tied])
-        if not _outside_largest(label, group).any():
+        if not _outside_largest(_blocks(n, pairs[tied]), group).any():
             continue
         if not placed:
             scale = float(np.median([min(p.pixel_size) for p in patches]))
@@ -86,29 +85,55 @@ def untied(
             placed.append((bank, MosaicState.from_transforms(transforms, bank, scale)))
         surfaces, state = placed[0]
         step = ((int(u[0]), int(u[1])), (-int(u[0]), -int(u[1])))
-        # a pair between two blocks that confirms the axis joins them; tried until none does
+        blocks = _Blocks(n, pairs[tied])
+        # a pair between two blocks that confirms the axis joins them
         for k in np.flatnonzero(~tied).tolist():
             a, b = int(pairs[k, 0]), int(pairs[k, 1])
-            if label[a] == label[b]:
+            if blocks.find(a) == blocks.find(b):
                 continue
             checkpoint()
             rise = moved_misfit_rise(surfaces, state, pairs[k : k + 1], b, directions=step)
             if rise >= CONFIRMS:
-                tied[k] = True
-                label = _blocks(n, pairs[tied])
+                blocks.join(a, b)
+        label = np.array([blocks.find(c) for c in range(n)], dtype=np.intp)
         for c in np.flatnonzero(_outside_largest(label, group)).tolist():
             out[c] = out.get(c, "") + name
     return out
 
 
+class _Blocks:
+    """Patches joined into blocks one pair at a time (a disjoint-set forest)."""
+
+    def __init__(self, n: int, edges: IntArray) -> None:
+        labels = _blocks(n, edges).tolist()
+        root: dict[int, int] = {}  # each block's first patch is its root
+        for c, label in enumerate(labels):
+            root.setdefault(label, c)
+        self.parent = [root[label] for label in labels]
+
+    def find(self, c: int) -> int:
+        """The root of ``c``'s block."""
+        while self.parent[c] != c:
+            self.parent[c] = self.parent[self.parent[c]]
+            c = self.parent[c]
+        return c
+
+    def join(self, a: int, b: int) -> None:
+        """Join the blocks of ``a`` and ``b``."""
+        self.parent[self.find(a)] = self.find(b)
+
+
 def _outside_largest(label: IntArray, group: IntArray) -> NDArray[np.bool_]:
     """(n,) whether each patch lies outside the largest block (``label``) of its overlap
     group (``group``): groups that overlap nowhere are merged each on its own."""
-    out = np.zeros(len(label), dtype=bool)
-    for g in np.unique(group).tolist():
-        members = group == g
-        main = np.bincount(label[members]).argmax()
-        out |= members & (label != main)
+    base = int(label.max()) + 1
+    key, count = np.unique(group * base + label, return_counts=True)
+    in_group, block = key // base, key % base
+    order = np.lexsort((-count, in_group))  # by group, the largest block first
+    first = order[np.r_[True, in_group[order][1:] != in_group[order][:-1]]]
+    main = np.zeros(int(group.max()) + 1, dtype=np.intp)
+    main[in_group[first]] = block[first]
+    out: NDArray[np.bool_] = label != main[group]
     return out
 
 

@@ -7,6 +7,7 @@ import numpy as np
 from backend.synthetic import patch_set_from_synth
 from hardware.sim.surfaces import Chessboard
 from merge import PatchTransform, run
+from merge.report import ties
 from merge.report.ties import untied
 from tests.conftest import make_synthetic, narrow_paper_grid, still
 
@@ -53,3 +54,12 @@ def test_narrow_overlaps_no_longer_claim_a_block_they_do_not_tie() -> None:
     loose = {p.id for p in result.patches if not p.xy_constrained}
     assert {s.id for s in synth if s.col >= 7} <= loose
     assert any("no chain of overlaps" in w for w in result.warnings)
+
+
+def test_each_overlap_group_keeps_its_own_largest_block() -> None:
+    group = np.array([0, 0, 0, 1, 1, 2])
+    label = np.array([5, 5, 7, 2, 3, 4])
+    # group 0: block 5 is the largest; group 1: a tie, the first block; group 2: alone
+    np.testing.assert_array_equal(
+        ties._outside_largest(label, group), [False, False, True, False, True, False]
+    )
