@@ -327,6 +327,14 @@ def _measure(
             prior=SHIFT_PRIOR,
             ambiguity=AMBIGUITY,
         )
+    # the first pass's peak stood out of its window and this one scores well below it: the
+    # overlap says the first, whatever the network predicts (it may be the network that errs)
+    if (
+        peak is not None
+        and corr.excess[i] >= SIGNIFICANCE
+        and peak.score < corr.score[i] - AMBIGUITY
+    ):
+        return
     _accept(lat, corr, i, peak, radius=radius)
 
 

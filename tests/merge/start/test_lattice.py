@@ -172,3 +172,15 @@ def test_structure_both_ways_or_none_has_no_edge_direction() -> None:
     assert overlap_measurement(rough, rough, (1, 2), 1e-10, **kw)[1] is None
     flat = rng.normal(0.0, 1e-9, (30, 40))
     assert overlap_measurement(flat, flat, (1, 2), 1e-9, **kw)[1] is None
+
+
+def test_a_slope_the_whole_overlap_shares_measures_no_shift_along_it() -> None:
+    # a ramp wider than the overlap (a chessboard's 300 nm edges in strips of a few cells):
+    # shifted along it, the overlap only rises, which its Z offset takes
+    rng = np.random.default_rng(6)
+    cols = np.arange(40.0)
+    ramp = np.tile(2e-9 * cols, (30, 1))
+    a = ramp + rng.normal(0.0, 0.5e-9, ramp.shape)
+    b = _seen_at(ramp, (0, 5)) + rng.normal(0.0, 0.5e-9, ramp.shape)
+    info = overlap_information(a, b, (0, 5), 0.5e-9, precision=0.1, aperture=0.01)
+    assert np.abs(info).max() < 1.0  # nothing near the cap of 100 per cell²
