@@ -96,7 +96,7 @@ def patch_reports(
     registered: bool,
     unsettled: NDArray[np.bool_] | None = None,
     unconfirmed: dict[int, float] | None = None,
-    untied: dict[int, str] | None = None,
+    untied: dict[int, tuple[str, ...]] | None = None,
 ) -> tuple[list[PatchReport], list[str]]:
     """One report per patch, and a warning for each whose overlaps constrain Z but not XY,
     which the refinement stopped before it had settled, or whose texture does not confirm
@@ -126,9 +126,9 @@ def patch_reports(
         (:func:`merge.report.confirmation.unconfirmed`): their XY is a dip of the noise as
         likely as a registration. Default none.
     untied : dict, keyword-only
-        Patches (index: the axes, ``"x"``, ``"y"`` or ``"xy"``) that no chain of overlaps
-        which measured them ties to the mosaic's largest block along those axes
-        (:func:`merge.report.ties.untied`). Default none.
+        Patches (index: the names of the axes) that no chain of overlaps which measured them
+        ties to the mosaic's largest block along those axes (:func:`merge.report.ties.untied`).
+        Default none.
     """
     unconfirmed, untied = unconfirmed or {}, untied or {}
     reports, warnings = [], []
@@ -174,11 +174,12 @@ def patch_reports(
                 "not a measurement (a texture weaker than the noise?)"
             )
         elif linked[c] and c in untied and registered:
-            axes = " and ".join(untied[c])
+            axes = ", ".join(untied[c])
             warnings.append(
-                f"patch {p.id!r}: no chain of overlaps that measured it ties its {axes} to the "
-                "largest block of the mosaic (overlaps too narrow or too flat along it); where "
-                "its block lies against the rest is the stage's placement, not a measurement"
+                f"patch {p.id!r}: no chain of overlaps that measured it ties it to the largest "
+                f"block of the mosaic along {axes} (overlaps too narrow or too flat along it); "
+                "where its block lies against the rest is the stage's placement, not a "
+                "measurement"
             )
         elif linked[c] and not xy_ok and registered:
             warnings.append(

@@ -7,9 +7,9 @@ faces' roughness at whatever shift the block stands: in overlaps a few pixels wi
 the start measured none of them along x, and the refinement kept three columns 120 nm off the
 other seven, every patch claiming 2 nm.
 
-So, along x and along y apart, the pairs the start measured well along that axis tie their
-patches together (:data:`STRONG`); any other pair ties them when its misfit rises as one of
-its patches is moved along the axis
+So, along x, y and the two diagonals apart, the pairs the start measured well along that axis
+tie their patches together (:data:`STRONG`); any other pair ties them when its misfit rises as
+one of its patches is moved along the axis
 (:func:`merge.report.confirmation.moved_misfit_rise`, only the pairs between two blocks are
 tried). Patches outside the largest block of their overlap group (groups that overlap nowhere
 are merged each on its own) are not held along that axis: where they lie against the rest is
@@ -39,8 +39,14 @@ IntArray = NDArray[np.intp]
 #: (the start's precision cap) ties its patches along it. Less is not enough: a corner's
 #: overlap measured along a tilted direction, 92 nm off in x, claimed a fifth of the cap.
 STRONG = 0.5
-#: The axes, as (name, unit vector).
-AXES = (("x", np.array([1.0, 0.0])), ("y", np.array([0.0, 1.0])))
+#: The axes, as (name, direction (x, y) in pixels): x, y and the diagonals (a grating at 45°
+#: measures one diagonal, and its stripes leave the other to its defects).
+AXES = (
+    ("x", np.array([1.0, 0.0])),
+    ("y", np.array([0.0, 1.0])),
+    ("x = y", np.array([1.0, 1.0])),
+    ("x = -y", np.array([1.0, -1.0])),
+)
 
 
 def untied(
@@ -50,9 +56,9 @@ def untied(
     information: FloatArray,
     *,
     bank: SurfaceBank | None = None,
-) -> dict[int, str]:
+) -> dict[int, tuple[str, ...]]:
     """The patches no chain of measured overlaps ties to the mosaic's largest block, with the
-    axes (``"x"``, ``"y"`` or ``"xy"``) along which it does not.
+    axes (:data:`AXES`' names) along which it does not.
 
     Parameters
     ----------
@@ -68,14 +74,14 @@ def untied(
     """
     pairs = np.asarray(pairs, dtype=np.intp).reshape(-1, 2)
     n = len(patches)
-    out: dict[int, str] = {}
+    out: dict[int, tuple[str, ...]] = {}
     if n < 2 or not len(pairs):
         return out
     group = _blocks(n, pairs)
     largest = np.linalg.eigvalsh(information)[:, 1]
     placed: list[tuple[SurfaceBank, MosaicState]] = []  # built once, when a pair is tried
     for name, u in AXES:
-        along = np.einsum("i,kij,j->k", u, information, u)
+        along = np.einsum("i,kij,j->k", u, information, u) / float(u @ u)
         tied = (along > 0) & (along >= STRONG * largest.max())
         if not _outside_largest(_blocks(n, pairs[tied]), group).any():
             continue
@@ -97,7 +103,7 @@ def untied(
                 blocks.join(a, b)
         label = np.array([blocks.find(c) for c in range(n)], dtype=np.intp)
         for c in np.flatnonzero(_outside_largest(label, group)).tolist():
-            out[c] = out.get(c, "") + name
+            out[c] = (*out.get(c, ()), name)
     return out
 
 

@@ -32,7 +32,7 @@ def test_a_block_the_start_measured_along_y_only_is_tied_along_x_where_its_textu
     assert untied(patches, truth, pairs, info) == {}
     # six pixels off along x its roughness no longer agrees: the last patch is not tied in x
     off = [PatchTransform(), PatchTransform(), PatchTransform(t=np.array([1.6e-7, 0.0, 0.0]))]
-    assert untied(patches, off, pairs, info) == {2: "x"}
+    assert untied(patches, off, pairs, info) == {2: ("x",)}
     # measured both ways, the start's own measurement ties it whatever the texture says
     assert untied(patches, off, pairs, np.stack([BOTH, BOTH])) == {}
 
@@ -41,8 +41,9 @@ def test_nothing_measured_and_no_overlap_left_ties_nothing() -> None:
     patches = _row_of_three()
     apart = [PatchTransform(t=np.array([3e-6 * k, 0.0, 0.0])) for k in range(3)]
     loose = untied(patches, apart, np.array([[0, 1], [1, 2]]), np.zeros((2, 2, 2)))
-    # three blocks of one: the largest is the first, the others are loose both ways
-    assert loose == {1: "xy", 2: "xy"}
+    # three blocks of one: the largest is the first, the others are loose every way
+    every = ("x", "y", "x = y", "x = -y")
+    assert loose == {1: every, 2: every}
 
 
 def test_narrow_overlaps_no_longer_claim_a_block_they_do_not_tie() -> None:
