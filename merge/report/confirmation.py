@@ -132,13 +132,23 @@ def unconfirmed(
     ``bank``: the patches' raw heights as surfaces, if already built."""
     if not len(which):
         return {}
-    scale = float(np.median([min(p.pixel_size) for p in patches]))
-    if bank is None:
-        bank = SurfaceBank(patches, scale, 0.0, 1)
-    state = MosaicState.from_transforms(transforms, bank, scale)
+    bank, state = placement(patches, transforms, bank)
     out = {}
     for c in which:
         rise = moved_misfit_rise(bank, state, pairs, int(c))
         if not rise >= CONFIRMS:
             out[int(c)] = rise
     return out
+
+
+def placement(
+    patches: Sequence[Patch],
+    transforms: Sequence[PatchTransform],
+    bank: SurfaceBank | None = None,
+) -> tuple[SurfaceBank, MosaicState]:
+    """The patches' raw heights as surfaces (``bank``, if already built) and where
+    ``transforms`` put them, in the bank's units (the median pixel's smaller side)."""
+    scale = float(np.median([min(p.pixel_size) for p in patches]))
+    if bank is None:
+        bank = SurfaceBank(patches, scale, 0.0, 1)
+    return bank, MosaicState.from_transforms(transforms, bank, scale)

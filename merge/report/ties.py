@@ -29,8 +29,7 @@ from merge.core.patchset import Patch
 from merge.core.progress import checkpoint
 from merge.core.transforms import PatchTransform
 from merge.refine.bank import SurfaceBank
-from merge.refine.state import MosaicState
-from merge.report.confirmation import CONFIRMS, moved_misfit_rise
+from merge.report.confirmation import CONFIRMS, moved_misfit_rise, placement
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
@@ -79,19 +78,19 @@ def untied(
         return out
     group = _blocks(n, pairs)
     largest = np.linalg.eigvalsh(information)[:, 1]
-    placed: list[tuple[SurfaceBank, MosaicState]] = []  # built once, when a pair is tried
+    loose = []  # the axes along which the start's measured pairs leave blocks apart
     for name, u in AXES:
         along = np.einsum("i,kij,j->k", u, information, u) / float(u @ u)
         tied = (along > 0) & (along >= STRONG * largest.max())
-        if not _outside_largest(_blocks(n, pairs[tied]), group).any():
-            continue
-        if not placed:
-            scale = float(np.median([min(p.pixel_size) for p in patches]))
-            bank = bank if bank is not None else SurfaceBank(patches, scale, 0.0, 1)
-            placed.append((bank, MosaicState.from_transforms(transforms, bank, scale)))
-        surfaces, state = placed[0]
+        label = _blocks(n, pairs[tied])
+        if _outside_largest(label, group).any():
+            loose.append((name, u, tied, label))
+    if not loose:
+        return out
+    surfaces, state = placement(patches, transforms, bank)
+    for name, u, tied, label in loose:
         step = ((int(u[0]), int(u[1])), (-int(u[0]), -int(u[1])))
-        blocks = _Blocks(n, pairs[tied])
+        blocks = _Blocks(label)
         # a pair between two blocks that confirms the axis joins them
         for k in np.flatnonzero(~tied).tolist():
             a, b = int(pairs[k, 0]), int(pairs[k, 1])
@@ -101,8 +100,8 @@ def untied(
             rise = moved_misfit_rise(surfaces, state, pairs[k : k + 1], b, directions=step)
             if rise >= CONFIRMS:
                 blocks.join(a, b)
-        label = np.array([blocks.find(c) for c in range(n)], dtype=np.intp)
-        for c in np.flatnonzero(_outside_largest(label, group)).tolist():
+        joined = np.array([blocks.find(c) for c in range(n)], dtype=np.intp)
+        for c in np.flatnonzero(_outside_largest(joined, group)).tolist():
             out[c] = (*out.get(c, ()), name)
     return out
 
@@ -110,12 +109,12 @@ def untied(
 class _Blocks:
     """Patches joined into blocks one pair at a time (a disjoint-set forest)."""
 
-    def __init__(self, n: int, edges: IntArray) -> None:
-        labels = _blocks(n, edges).tolist()
+    def __init__(self, label: IntArray) -> None:
+        """Start from the blocks ``label`` (n,) names (:func:`_blocks`)."""
         root: dict[int, int] = {}  # each block's first patch is its root
-        for c, label in enumerate(labels):
-            root.setdefault(label, c)
-        self.parent = [root[label] for label in labels]
+        for c, block in enumerate(label.tolist()):
+            root.setdefault(block, c)
+        self.parent = [root[block] for block in label.tolist()]
 
     def find(self, c: int) -> int:
         """The root of ``c``'s block."""
