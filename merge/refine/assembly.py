@@ -14,6 +14,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from merge.core.progress import checkpoint
+from merge.core.sparse import sum_at
 from merge.refine.bank import SurfaceBank
 from merge.refine.lines import SharedLines
 from merge.refine.rows import PatchState
@@ -47,17 +48,17 @@ def assemble(
     Tt = np.swapaxes(T, 1, 2)
     Bbb = T @ Baa @ Tt
     Bab = -(Baa @ Tt)
-    g = np.zeros((n, 6))
-    diag = np.zeros((n, 6, 6))
-    np.add.at(g, a_seg, -ga)
-    np.add.at(g, b_seg, np.einsum("kij,kj->ki", T, ga))
-    np.add.at(diag, a_seg, Baa)
-    np.add.at(diag, b_seg, Bbb)
+    Tga = np.einsum("kij,kj->ki", T, ga)
+    g = sum_at(np.concatenate([a_seg, b_seg]), np.concatenate([-ga, Tga]), n)
     # blocks (row patch, column patch) off the diagonal: every run's, and the three of each pair
     # of runs sharing lines (``y_one' M y_other``, ``M = -C``)
     one, other = shared.first, shared.second
     M = -shared.C
-    np.add.at(diag, a_seg[one], M + np.swapaxes(M, 1, 2))
+    diag = sum_at(
+        np.concatenate([a_seg, b_seg, a_seg[one]]),
+        np.concatenate([Baa, Bbb, M + np.swapaxes(M, 1, 2)]),
+        n,
+    )
     parts: list[tuple[IntArray, IntArray, Callable[[], FloatArray]]] = [
         (a_seg, b_seg, lambda: Bab),
         (a_seg[one], b_seg[other], lambda: -(M @ Tt[other])),
@@ -76,8 +77,8 @@ def assemble(
     for (r, c, made), key in zip(parts, keys, strict=True):
         where, start = at[start : start + len(key)], start + len(key)
         blocks, below = made(), r > c
-        np.add.at(off, where[~below], blocks[~below])
-        np.add.at(off, where[below], np.swapaxes(blocks[below], 1, 2))
+        blocks[below] = np.swapaxes(blocks[below], 1, 2)  # a fresh array: each part's own
+        off += sum_at(where, blocks, len(pair))
         checkpoint()
     first, second = pair // n, pair % n
     a_rows, a_cols, vals = _block_triplets(

@@ -61,6 +61,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from merge.core.progress import checkpoint
+from merge.core.sparse import sum_at
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
@@ -316,6 +317,4 @@ def _between_runs(
     # a run holds a line once, and the runs of a line follow the groups' order: run i < run j
     blocks = np.einsum("pi,pj->pij", fj[i], sj[j])
     pair, where = np.unique(run[i] * k + run[j], return_inverse=True)
-    C = np.zeros((len(pair), 6, 6))
-    np.add.at(C, where, blocks)
-    return SharedLines(pair // k, pair % k, C)
+    return SharedLines(pair // k, pair % k, sum_at(where, blocks, len(pair)))

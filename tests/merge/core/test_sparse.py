@@ -11,7 +11,13 @@ from scipy.sparse import csc_matrix, diags, eye, kron, random
 
 from merge.core.errors import MergeCancelled
 from merge.core.progress import tracking
-from merge.core.sparse import LISTEN_FROM, _listening, factor_symmetric, solve_symmetric
+from merge.core.sparse import (
+    LISTEN_FROM,
+    _listening,
+    factor_symmetric,
+    solve_symmetric,
+    sum_at,
+)
 
 
 def test_symmetric_solves_equal_the_dense_ones() -> None:
@@ -80,3 +86,18 @@ def test_positive_definite_systems_keep_their_symmetric_order() -> None:
     np.testing.assert_array_equal(factor.perm_r, factor.perm_c)
     b = np.random.default_rng(4).normal(size=2 * n)
     np.testing.assert_allclose(solve_symmetric(A, b), np.linalg.solve(A.toarray(), b), rtol=1e-9)
+
+
+def test_sums_at_equal_numpy_add_at() -> None:
+    rng = np.random.default_rng(3)
+    index = rng.integers(0, 7, 50)
+    values = rng.normal(size=(50, 6, 6))
+    expected = np.zeros((9, 6, 6))
+    np.add.at(expected, index, values)
+    out = sum_at(index, values, 9)
+    assert out.shape == (9, 6, 6)
+    np.testing.assert_allclose(out, expected, rtol=1e-14, atol=1e-14)
+    assert not out[7:].any()  # indices never taken stay zero
+    assert sum_at(np.empty(0, dtype=np.intp), np.empty((0, 6)), 3).shape == (3, 6)
+    with pytest.raises(ValueError, match="one per value"):
+        sum_at(index[:-1], values, 9)
