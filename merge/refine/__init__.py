@@ -8,12 +8,14 @@ The schedule (:mod:`~merge.refine.icp`) runs coarse to fine over levels; every i
 builds one sparse normal system (:mod:`~merge.refine.normal_system`, with the scan lines'
 offsets marginalised, :mod:`~merge.refine.lines`) from the surfaces
 (:mod:`~merge.refine.bank`), solves it with its priors (:mod:`~merge.refine.solve`) and moves
-every patch, its gauge held (:mod:`~merge.refine.state`). The scanner's self-calibration
+every patch, its gauge held (:mod:`~merge.refine.state`), level by level until each stops
+(:mod:`~merge.refine.level`). The scanner's self-calibration
 (:mod:`~merge.refine.scanner`) measures the bend every patch shares from a refined merge.
 """
 
 from merge.refine.bank import SurfaceBank
-from merge.refine.icp import DEFAULT_LEVELS, Level, RefineResult, refine
+from merge.refine.icp import DEFAULT_LEVELS, RefineResult, refine
+from merge.refine.level import Level
 from merge.refine.scanner import ScanDistortion, estimate_distortion, undistort
 
 __all__ = [

@@ -1,0 +1,41 @@
+"""One level of the refinement: when its steps stop."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from merge import pipeline
+from merge.refine import level
+from merge.refine.level import _cycled
+from tests.conftest import Synthetic
+
+
+def test_steps_that_cycle_count_as_a_stall_and_a_creep_does_not() -> None:
+    step = np.zeros((3, 6))
+    step[1, 0] = 0.01
+    two = [(3.1213e-9, step), (3.1221e-9, -step), (3.1213e-9, step)]
+    assert _cycled(two)
+    turn = np.zeros((3, 6))
+    turn[2, 1] = 0.01
+    three = [(3.0969e-9, step), (3.0971e-9, turn), (3.0979e-9, -step - turn), (3.0969e-9, step)]
+    assert _cycled(three)
+    # a patch creeping along a grating's stripes moves on the same way, the cost barely falling
+    creep = [(1.3783e-9, step), (1.3782e-9, step), (1.3781e-9, step), (1.3780e-9, step)]
+    assert not _cycled(creep)
+    assert not _cycled(two[:2])  # too short to tell
+
+
+def test_the_raw_level_stops_once_steps_move_no_height_by_a_tenth_of_the_noise(
+    small_mosaic: Synthetic, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    ps = small_mosaic.patch_set
+    default = pipeline.run(ps)
+    monkeypatch.setattr(level, "HEIGHT_TOL", 0.0)
+    polished = pipeline.run(ps)
+    assert default.iterations < polished.iterations
+    e_default = small_mosaic.registration_error(default.transforms)
+    e_polished = small_mosaic.registration_error(polished.transforms)
+    # what the extra iterations buy is far below the noise (1 nm) in either direction
+    assert abs(e_default[0] - e_polished[0]) < 0.05e-9
+    assert abs(e_default[1] - e_polished[1]) < 0.05e-9
