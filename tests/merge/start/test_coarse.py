@@ -12,8 +12,8 @@ from merge.core.information import signal_information
 from merge.core.overlap import overlapping_pairs
 from merge.core.patchset import Patch, PatchSet
 from merge.pipeline import default_cell, default_max_shift
-from merge.start import coarse as coarse_module
 from merge.start import coarse_cell
+from merge.start import measure as measure_module
 from merge.start.coarse import CoarseStart, coarse_start
 from tests.conftest import Synthetic
 
@@ -179,7 +179,7 @@ def test_maps_past_the_cache_are_computed_again_alike(
     patches = small_mosaic.patch_set.patches
     pairs = overlapping_pairs(np.array([p.footprint for p in patches]), margin=3e-7)
     kept = coarse_start(patches, pairs, cell=2e-8, max_shift=3e-7)
-    monkeypatch.setattr(coarse_module, "MAP_CACHE_BYTES", 0)
+    monkeypatch.setattr(measure_module, "MAP_CACHE_BYTES", 0)
     again = coarse_start(patches, pairs, cell=2e-8, max_shift=3e-7)
     np.testing.assert_allclose(again.translation, kept.translation, rtol=0, atol=1e-15)
     np.testing.assert_array_equal(again.xy_complete, kept.xy_complete)
