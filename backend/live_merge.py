@@ -26,7 +26,7 @@ from numpy.typing import NDArray
 
 from backend.allocator import share_one_heap
 from backend.events import EventBus
-from backend.merge_jobs import WORKER_NICENESS, PatchInput, die_with_parent, patch_id
+from backend.merge_worker import WORKER_NICENESS, PatchInput, die_with_parent, patch_id
 from merge.live.gate import ScanRecord
 
 log = logging.getLogger("mosaic_afm.live_merge")

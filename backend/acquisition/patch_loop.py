@@ -25,7 +25,7 @@ from backend.db.patch_store import read_patch, write_patch
 from backend.db.space import check_space
 from backend.events import EventBus
 from backend.live_merge import LiveMergeService, scan_record
-from backend.merge_jobs import PatchInput, patch_id
+from backend.merge_worker import PatchInput, patch_id
 from hardware.errors import ProcedureError
 from hardware.microscope import Microscope
 from hardware.procedures import move_stage, retract, sample_origin

@@ -160,7 +160,7 @@ def _state(pid: int) -> bytes:
 
 
 def test_start_up_reaps_a_worker_a_previous_server_left(tmp_path: Path) -> None:
-    from backend.merge_jobs import PID_FILE, reap_leftover
+    from backend.merge_worker import PID_FILE, reap_leftover
 
     leftover = subprocess.Popen(
         [sys.executable, "-c", "import multiprocessing, time; time.sleep(120)"]
