@@ -14,6 +14,7 @@ lines lost, the sample lifted).
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from typing import Literal, get_args
 
 import numpy as np
@@ -41,6 +42,45 @@ STRIKE = 0.45
 def strike_line(lines: int) -> int:
     """The line the fault strikes on, of ``lines``."""
     return min(lines - 1, max(1, round(STRIKE * lines)))
+
+
+@dataclass
+class ArmedFault:
+    """A fault armed for one scan of ``lines`` lines, as the simulated instrument spoils it
+    line by line: its ``kind``, the line it strikes on and the lines recorded so far."""
+
+    kind: str
+    lines: int
+    strike: int
+    recorded: int = 0
+
+    @classmethod
+    def arm(cls, kind: str, lines: int) -> ArmedFault:
+        """Fault ``kind`` (one of :data:`SPOILING`) for the next scan of ``lines`` lines,
+        striking on :func:`strike_line`."""
+        if kind not in SPOILING:
+            raise ValueError(f"unknown fault {kind!r}; expected one of {', '.join(SPOILING)}")
+        if lines < 2:
+            raise ValueError(f"a spoiled scan needs at least 2 lines, got {lines}")
+        return cls(kind, lines, strike_line(lines))
+
+    @property
+    def over(self) -> bool:
+        """Whether every line of its scan has been recorded."""
+        return self.recorded >= self.lines
+
+    def next_line(self) -> tuple[str | None, bool, bool]:
+        """The fault acting on the line about to be recorded (None: it has not struck yet),
+        whether that line's data are lost, and whether the sample jumps in Z at it; counts
+        the line."""
+        k = self.recorded
+        self.recorded += 1
+        if k < self.strike:
+            return None, False, False
+        lost = self.kind == "lost_lines" and k < self.strike + max(
+            1, round(LOST_SHARE * self.lines)
+        )
+        return self.kind, lost, self.kind == "z_jump" and k == self.strike
 
 
 def spoil(heights: FloatArray, kind: str, *, pixel_size: tuple[float, float]) -> FloatArray:

@@ -11,7 +11,7 @@ What the control software sees goes through :class:`~hardware.smaract_mcs.MCSCon
 ``socket://`` links to :class:`~hardware.sim.mcs_server.MCSServer`; the physics reads the
 simulated channels directly. The force loop is the analogue Z loop of the AFM controller: it
 drives the robot Z fine level from the frequency shift, with a finite bandwidth, so steep
-edges and fast scans show tracking error.
+edges and fast scans show tracking error (:mod:`hardware.sim.force_loop`).
 """
 
 from __future__ import annotations
@@ -21,12 +21,12 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.signal import lfilter
 
 from hardware.errors import CrashError, ProcedureError
 from hardware.mcs_axis import FineCalibration, MCSAxis
 from hardware.sim.clock import SimClock
-from hardware.sim.faults import BLUNT_TIP, LOST_SHARE, SPOILING, Z_JUMP, strike_line
+from hardware.sim.faults import BLUNT_TIP, Z_JUMP, ArmedFault
+from hardware.sim.force_loop import MAX_LOOP_STEP, PARACHUTE_STEP, Loop, follow_line
 from hardware.sim.mcs_channel import ChannelParams
 from hardware.sim.mcs_device import MCSDevice
 from hardware.sim.mcs_server import MCSServer
@@ -48,22 +48,6 @@ def _tip_offsets() -> tuple[FloatArray, FloatArray, FloatArray]:
 
 
 _TIP_OFFSETS = _tip_offsets()
-
-#: Largest approach the loop makes per update off the surface, metres (its slew-rate limit).
-MAX_LOOP_STEP = 20e-9
-#: The slew-rate limit of a loop that parachutes (a spoiled patch, :mod:`hardware.sim.faults`).
-PARACHUTE_STEP = 0.4e-9
-
-
-@dataclass
-class _Spoiling:
-    """A fault armed for one scan: its kind, the scan's lines, the line it strikes on, and
-    how many lines have been recorded since it was armed."""
-
-    kind: str
-    lines: int
-    strike: int
-    recorded: int = 0
 
 
 @dataclass(frozen=True)
@@ -150,7 +134,7 @@ class SimulatedAFM:
         #: where every sample of every recorded line truly was (simulator-only truth)
         self.line_positions: list[FloatArray] = []
         #: the fault armed for the next scan (:meth:`spoil_next_scan`), if any
-        self._spoiling: _Spoiling | None = None
+        self._spoiling: ArmedFault | None = None
         self._max_loop_step = MAX_LOOP_STEP
 
     # -- lifecycle --------------------------------------------------------------------------
@@ -314,35 +298,6 @@ class SimulatedAFM:
         if self.distance(t) < 0:
             self.crashed = True
 
-    def _integrate_line(
-        self, surf: FloatArray, tip0: float, ext: float, d_set: float, gain: float, samples: int
-    ) -> tuple[FloatArray, float]:
-        """The loop over one line sample by sample, with its slew limit, range and crash."""
-        zrange = self.robot_device.axes[2].params.fine_range
-        sub = self.params.substeps
-        branch_end = self.probe.attraction_minimum()
-        crash_depth = self.probe.crash_distance()
-        line = np.zeros(samples)
-        lags = np.empty(samples * sub)
-        for k in range(samples * sub):
-            dist = tip0 - ext - surf[k]
-            error = dist - d_set
-            if dist > branch_end:
-                error = min(error, self._max_loop_step)
-            ext = min(max(ext + gain * error, 0.0), zrange)
-            if ext in (0.0, zrange):
-                self._saturated = True
-            if tip0 - ext - surf[k] < crash_depth:
-                self.crashed = True
-                raise CrashError(
-                    "the tip crashed into the surface: the scan is too fast for the force "
-                    "loop here (lower the line rate)"
-                )
-            line[k // sub] += (tip0 - ext) / sub
-            lags[k] = tip0 - ext - surf[k] - d_set  # what the loop's update left
-        self._tracking = _held_error(lags)
-        return line, ext
-
     # -- spoiled scans ----------------------------------------------------------------------
 
     def spoil_next_scan(self, kind: str, *, lines: int) -> None:
@@ -350,11 +305,7 @@ class SimulatedAFM:
         its strike line on (:func:`hardware.sim.faults.strike_line`): the tip turns blunt
         (``tip_change``), the loop parachutes after steps down (``parachute``), a block of
         lines is lost (``lost_lines``), or the sample jumps in Z (``z_jump``, for good)."""
-        if kind not in SPOILING:
-            raise ValueError(f"unknown fault {kind!r}; expected one of {', '.join(SPOILING)}")
-        if lines < 2:
-            raise ValueError(f"a spoiled scan needs at least 2 lines, got {lines}")
-        self._spoiling = _Spoiling(kind, lines, strike_line(lines))
+        self._spoiling = ArmedFault.arm(kind, lines)
 
     @property
     def spoiling(self) -> str | None:
@@ -364,19 +315,15 @@ class SimulatedAFM:
     def _spoiled_line(self) -> tuple[str | None, bool]:
         """The fault acting on the line about to be recorded (None: none), and whether its
         data are lost; counts the line."""
-        sp = self._spoiling
-        if sp is None:
+        armed = self._spoiling
+        if armed is None:
             return None, False
-        k = sp.recorded
-        sp.recorded += 1
-        if sp.recorded >= sp.lines:
+        kind, lost, jump = armed.next_line()
+        if armed.over:
             self._spoiling = None
-        if k < sp.strike:
-            return None, False
-        if sp.kind == "z_jump" and k == sp.strike:
+        if jump:
             self.sample_z += Z_JUMP
-        lost = sp.kind == "lost_lines" and k < sp.strike + max(1, round(LOST_SHARE * sp.lines))
-        return sp.kind, lost
+        return kind, lost
 
     # -- LineRecorder -----------------------------------------------------------------------
 
@@ -414,12 +361,16 @@ class SimulatedAFM:
         t0 = self.clock.now()
         self._settle_loop(t0)
         z = self.robot_device.axes[2]
-        zrange = z.params.fine_range
         sub = self.params.substeps
         dt = duration / (samples * sub)
-        gain = 1.0 - math.exp(-2 * math.pi * self.params.loop_bandwidth * dt)
-        branch_end = self.probe.attraction_minimum()
-        crash_depth = self.probe.crash_distance()
+        loop = Loop(
+            gain=1.0 - math.exp(-2 * math.pi * self.params.loop_bandwidth * dt),
+            substeps=sub,
+            zrange=z.params.fine_range,
+            branch_end=self.probe.attraction_minimum(),
+            crash_depth=self.probe.crash_distance(),
+            max_step=self._max_loop_step,
+        )
         # the true tip path over the line, from the channels at a few knots (the ramp is
         # smooth: linear in level, bent slightly by hysteresis and creep)
         ts = t0 + dt * (np.arange(samples * sub) + 0.5)
@@ -435,32 +386,14 @@ class SimulatedAFM:
         ext = z.extension(t0)
         tip0 = self.params.z_top - (z.true_position(t0) - ext)
         d_set = self.probe.distance_at(setpoint - self.charging_offset(t0))
-        # On the repulsive branch Δf maps one to one onto distance, so the loop acts as a
-        # distance regulator of finite bandwidth: a first-order filter of the extension that
-        # puts the tip at the set-point, run at once over the line. Where it would leave that
-        # regime (beyond the attractive minimum the signal is weak and the loop approaches at
-        # its slew rate, "parachuting"; Z at an end of its range; a crash) the line is
-        # integrated sample by sample instead.
-        target = tip0 - surf - d_set
-        exts = lfilter([gain], [1.0, gain - 1.0], target, zi=[(1.0 - gain) * ext])[0]
-        before = tip0 - np.concatenate([[ext], exts[:-1]]) - surf
-        linear = (
-            not np.any((before > branch_end) & (before - d_set > self._max_loop_step))
-            and exts.min() > 0.0
-            and exts.max() < zrange
-            and (tip0 - exts - surf).min() >= crash_depth
-        )
-        if linear:
-            line = (tip0 - exts).reshape(samples, sub).mean(axis=1)
-            ext = float(exts[-1])
-            self._tracking = _held_error(tip0 - exts - surf - d_set)
-        else:
-            line, ext = self._integrate_line(surf, tip0, ext, d_set, gain, samples)
+        try:
+            followed = follow_line(surf, tip0, ext, d_set, loop)
+        except CrashError:
+            self.crashed = True
+            raise
+        self._tracking = followed.tracking
+        self._saturated = self._saturated or followed.saturated
+        ext = followed.extension
         self.clock.advance_to(t0 + duration)
         z.drive_extension(ext, self.clock.now())
-        return line + self.rng.normal(0.0, self.params.z_noise, samples), t0
-
-
-def _held_error(lags: FloatArray) -> float:
-    """The error a loop's updates ``lags`` (metres) stood at or above for a quarter of them."""
-    return float(np.quantile(np.abs(lags), 0.75))
+        return followed.heights + self.rng.normal(0.0, self.params.z_noise, samples), t0

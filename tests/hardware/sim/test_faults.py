@@ -11,6 +11,7 @@ from hardware.sim.faults import (
     LOST_SHARE,
     PARACHUTE_RATE,
     Z_JUMP,
+    ArmedFault,
     dilate,
     parachute,
     spoil,
@@ -68,3 +69,23 @@ def test_a_parachuting_tip_falls_back_no_faster_than_its_rate() -> None:
 def test_an_unknown_fault_is_refused() -> None:
     with pytest.raises(ValueError, match="unknown fault"):
         spoil(_image(), "gremlins", pixel_size=PIXEL)
+
+
+def test_an_armed_fault_acts_on_the_lines_a_spoiled_image_has_it_on() -> None:
+    lines = 40
+    armed = ArmedFault.arm("lost_lines", lines)
+    seen = [armed.next_line() for _ in range(lines)]
+    assert armed.over
+    # the same lines as spoil() empties: a block from the strike line on
+    lost = np.isnan(spoil(_image(), "lost_lines", pixel_size=PIXEL)).all(axis=1)
+    np.testing.assert_array_equal([line_lost for _, line_lost, _ in seen], lost)
+    assert [kind for kind, _, _ in seen].index("lost_lines") == strike_line(lines)
+    jumps = ArmedFault.arm("z_jump", lines)
+    assert [jumps.next_line()[2] for _ in range(lines)].count(True) == 1  # lifted once, for good
+
+
+def test_a_fault_is_armed_only_for_a_known_kind_and_a_real_scan() -> None:
+    with pytest.raises(ValueError, match="unknown fault"):
+        ArmedFault.arm("gremlins", 30)
+    with pytest.raises(ValueError, match="at least 2 lines"):
+        ArmedFault.arm("z_jump", 1)
