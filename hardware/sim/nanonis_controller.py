@@ -14,7 +14,7 @@ whose error block says what is wrong. What the commands act on is the physics of
 * the auto-approach runs the woodpecker landing on the robot's Z (coarse steps between fine
   approaches) and ends with the loop engaged at the set-point;
 * the coarse motor module steps the robot's Z (``Z-`` approaches) and moves the sample
-  stage's X and Y (open loop, or closed loop on its sensors).
+  stage's X and Y (open loop, or closed loop on its sensors: :mod:`hardware.sim.nanonis_motor`).
 """
 
 from __future__ import annotations
@@ -31,22 +31,13 @@ from hardware.nanonis import wire
 from hardware.nanonis.errors import NanonisProtocolError
 from hardware.procedures import LandingConfig, land
 from hardware.sim.instrument import SimulatedAFM
+from hardware.sim.nanonis_motor import MotorModule
 from hardware.sim.nanonis_scan import Frame, FrameScan, ramp_xy
 
 #: The signal slot the scan buffer records Z from (as on many installations).
 Z_SLOT = 14
 #: Signals by index (Signals.NamesGet, Signals.ValGet): the ones the simulator has.
 SIGNALS = ("Current (A)", "Bias (V)", "Z (m)", "OC M1 Freq. Shift (Hz)", "OC M1 Amplitude (m)")
-#: Step amplitude and frequency of the simulated coarse motor (MCS units).
-MOTOR_AMPLITUDE, MOTOR_FREQUENCY = 2000, 1000
-_MOTOR = {
-    0: ("stage", 0, 1),
-    1: ("stage", 0, -1),
-    2: ("stage", 1, 1),
-    3: ("stage", 1, -1),
-    4: ("z", 2, -1),
-    5: ("z", 2, 1),
-}  # Motor.StartMove direction -> (device, channel, sign)
 
 
 class Refused(Exception):
@@ -85,6 +76,7 @@ class NanonisController:
         #: faults of the physics waiting for a frame's line: (what it does, after how many)
         self.pending: list[tuple[Callable[[], None], int]] = []
         c = _Command
+        motor = self.motor = MotorModule(afm)
         self.commands: dict[str, _Command] = {
             "PLL.FreqShiftGet": c("i", "f", lambda a: [self._df()]),
             "PLL.FreqRangeGet": c("i", "f", lambda a: [afm.probe.pll_range]),
@@ -119,10 +111,10 @@ class NanonisController:
             "Scan.FrameDataGrab": c("II", ("s", "2f", "I"), self._grab),
             "AutoApproach.OnOffSet": c("H", "", self._approach),
             "AutoApproach.OnOffGet": c("", "H", lambda a: [int(self._busy("approach"))]),
-            "Motor.StartMove": c("IHII", "", self._motor_move),
-            "Motor.StartClosedLoop": c("IdddII", "", self._motor_closed_loop),
-            "Motor.PosGet": c("II", "ddd", lambda a: list(self._motor_position())),
-            "Motor.StopMove": c("", "", lambda a: self._stop_motors()),
+            "Motor.StartMove": c("IHII", "", motor.start_move),
+            "Motor.StartClosedLoop": c("IdddII", "", motor.closed_loop),
+            "Motor.PosGet": c("II", "ddd", lambda a: motor.position()),
+            "Motor.StopMove": c("", "", lambda a: motor.stop()),
         }
 
     # -- the request/response cycle ---------------------------------------------------------
@@ -296,13 +288,6 @@ class NanonisController:
         self._halt()
         return []
 
-    def _stop_motors(self) -> list[Any]:
-        """Motor.StopMove: the coarse motors (the robot's Z, the sample stage) stop."""
-        t = self.afm.clock.now()
-        for axis in (self.afm.robot_device.axes[2], *self.afm.stage_device.axes):
-            axis.stop(t)
-        return []
-
     # -- scan -------------------------------------------------------------------------------
 
     def _set_frame(self, a: list[Any]) -> list[Any]:
@@ -387,7 +372,7 @@ class NanonisController:
         data = self._scan.data
         return ["Z (m)", data.forward if forward else data.backward, int(data.up)]
 
-    # -- approach and motors ----------------------------------------------------------------
+    # -- approach ---------------------------------------------------------------------------
 
     def _approach(self, a: list[Any]) -> list[Any]:
         if a[0] == 0:
@@ -408,35 +393,3 @@ class NanonisController:
 
         self._start("approach", work)
         return []
-
-    def _motor_move(self, a: list[Any]) -> list[Any]:
-        direction, steps = int(a[0]), int(a[1])
-        if direction not in _MOTOR:
-            raise Refused(f"motor direction {direction} is not in 0..5")
-        device, channel, sign = _MOTOR[direction]
-        axis = (self.afm.stage_device if device == "stage" else self.afm.robot_device).axes[channel]
-        t = self.afm.clock.now()
-        axis.step(sign * steps, MOTOR_AMPLITUDE, MOTOR_FREQUENCY, t)
-        self.afm.clock.advance_to(axis.busy_until(t))
-        axis.status(self.afm.clock.now())
-        return []
-
-    def _motor_closed_loop(self, a: list[Any]) -> list[Any]:
-        absolute, x, y = int(a[0]), float(a[1]), float(a[2])
-        t = self.afm.clock.now()
-        axes = self.afm.stage_device.axes
-        if absolute not in (0, 1):
-            raise Refused(f"absolute/relative must be 0 or 1, got {absolute}")
-        if not absolute:
-            x, y = x + axes[0].sensor(t), y + axes[1].sensor(t)
-        for axis, target in zip(axes, (x, y), strict=True):
-            axis.move_to(target, 0, t)
-        self.afm.clock.advance_to(max(axis.busy_until(t) for axis in axes))
-        for axis in axes:
-            axis.status(self.afm.clock.now())
-        return []
-
-    def _motor_position(self) -> tuple[float, float, float]:
-        t = self.afm.clock.now()
-        sx, sy = (ax.sensor(t) for ax in self.afm.stage_device.axes)
-        return sx, sy, self.afm.robot_device.axes[2].sensor(t)
