@@ -12,13 +12,16 @@ abort, reset); the worker thread alone touches the instrument while a run is act
 * Any fault: the safe state, the run ``failed`` with a message for the operator, the patch
   back to ``pending``. If the safe state cannot be confirmed the run goes to ``fault``, which
   blocks the instrument until an operator resets it.
+
+Its parts: the patch loop (:mod:`backend.acquisition.patch_loop`), how a run ends
+(:mod:`backend.acquisition.ending`), and what keeps the instrument safe with no run driving it,
+recovery after a restart and the supervisor between runs (:mod:`backend.acquisition.unattended`).
 """
 
 from __future__ import annotations
 
 import errno
 import logging
-import shutil
 import threading
 import time
 from collections.abc import Callable
@@ -33,14 +36,13 @@ from backend.acquisition.ending import RunEnding
 from backend.acquisition.patch_loop import PatchLoop
 from backend.acquisition.rescans import Rescans, Verdict
 from backend.acquisition.state import (
-    ACTIVE,
     STARTABLE,
     PatchStep,
     RunState,
 )
 from backend.acquisition.status import read_instrument
+from backend.acquisition.unattended import UnattendedSafety
 from backend.db.models import Run
-from backend.db.patch_store import reconcile
 from backend.db.space import StorageFull, check_space, full_message, is_full
 from backend.events import EventBus
 from backend.live_merge import LiveMergeService
@@ -51,7 +53,7 @@ from hardware.procedures import safe_state
 log = logging.getLogger("mosaic_afm.runner")
 
 
-class Runner(RunEnding, PatchLoop):
+class Runner(RunEnding, PatchLoop, UnattendedSafety):
     """Runs acquisitions on one instrument, one run at a time.
 
     Parameters
@@ -114,52 +116,6 @@ class Runner(RunEnding, PatchLoop):
             if patch.step != PatchStep.STORED.value:
                 raise Conflict(f"patch {index} of run {run_id} is {patch.step}, not stored")
         self.rescans.tell(Verdict(run_id, index, False, "marked for re-scan", operator=actor))
-
-    # -- start-up ---------------------------------------------------------------------------
-
-    def recover(self) -> list[str]:
-        """After a (re)start: runs that were active become ``interrupted``; every run's file
-        and rows are reconciled. Return what was done."""
-        notes: list[str] = []
-        with self.sessions() as session:
-            runs = session.scalars(select(Run).order_by(Run.id)).all()
-            if any(RunState(run.state) in ACTIVE for run in runs):
-                # the server died mid-run: whatever the tip was doing, it stops now
-                problem = self._try_safe_state()
-                notes.append(problem or "the instrument was put in its safe state")
-            for run in runs:
-                if RunState(run.state) in ACTIVE:
-                    reason = "the server stopped during the run; resume to continue"
-                    self._transition(session, run, RunState.INTERRUPTED, reason, "server")
-                    notes.append(f"run {run.id}: interrupted")
-                for patch in run.patches:
-                    if patch.step not in (PatchStep.PENDING.value, PatchStep.STORED.value):
-                        patch.step = PatchStep.PENDING.value
-                session.commit()
-                try:
-                    notes.extend(f"run {run.id}: {n}" for n in reconcile(session, run))
-                except (OSError, KeyError, ValueError, RuntimeError) as exc:
-                    session.rollback()
-                    notes.append(f"run {run.id}: {self._quarantine(session, run, exc)}")
-        for note in notes:
-            self.events.emit("recovery", note, data={})
-        return notes
-
-    def _quarantine(self, session: Session, run: Run, exc: BaseException) -> str:
-        """Move a run file that cannot be opened aside and mark its run ``damaged``."""
-        source = run.file
-        aside = self.data_dir / "quarantine" / f"{source.name}.{int(time.time())}"
-        aside.parent.mkdir(parents=True, exist_ok=True)
-        shutil.move(source, aside)
-        reason = (
-            f"its file {source.name} could not be opened ({type(exc).__name__}: "
-            f"{str(exc)[:200]}); moved to {aside.relative_to(self.data_dir)}"
-        )
-        log.error("run %s: %s", run.id, reason)
-        if RunState(run.state) == RunState.FAULT:  # it still blocks until an operator's reset
-            return f"in fault, and {reason}"
-        self._transition(session, run, RunState.DAMAGED, reason, "server")
-        return f"damaged: {reason}"
 
     # -- what the API asks ------------------------------------------------------------------
 
@@ -286,40 +242,6 @@ class Runner(RunEnding, PatchLoop):
             thread.join(timeout)
             return not thread.is_alive()
         return True
-
-    def start_supervisor(self, interval: float = 1.0) -> None:
-        """Watch the instrument while no run does: record ends the disk refused once it has
-        room again, and make the instrument safe if the tip is down with nobody scanning."""
-        if self._supervisor is None:
-            self._supervisor = threading.Thread(
-                target=self._supervise, args=(interval,), name="supervisor", daemon=True
-            )
-            self._supervisor.start()
-
-    def _supervise(self, interval: float) -> None:
-        while not self._stopping.wait(interval):
-            try:
-                self.flush()
-                self._watch_instrument()
-            except Exception:  # the supervisor keeps watching
-                log.exception("supervisor: check failed")
-
-    def _watch_instrument(self) -> None:
-        loop = self.microscope.loop
-        if loop is None or self.active_run is not None or not self._io.acquire(timeout=0):
-            return
-        try:
-            if self.active_run is None and loop.engaged():
-                problem = self._try_safe_state()
-                message = "the tip was down with no run scanning: " + (
-                    problem or "the instrument is now in its safe state"
-                )
-                log.error("supervisor: %s", message)
-                self.events.publish(
-                    "fault", message, data={"state": "safe" if not problem else "fault"}
-                )
-        finally:
-            self._io.release()
 
     def close(self, timeout: float = 30.0) -> None:
         """Server shutdown: stop an active run in the safe state (it stays resumable)."""
