@@ -10,7 +10,7 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from backend.api.deps import OperatorDep, ServicesDep
-from backend.api.runs import NPY, npy_response
+from backend.api.responses import NPY, npy_response
 from backend.api.schemas import InstrumentOut, SimFaultIn
 from backend.db.models import Run
 from backend.services import Services

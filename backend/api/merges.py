@@ -10,7 +10,8 @@ from fastapi import APIRouter, HTTPException, Query, Response
 from fastapi.responses import JSONResponse
 
 from backend.api.deps import OperatorDep, ServicesDep, SessionDep
-from backend.api.runs import NPY, PNG_RESPONSES, get_run, height_map, npy_response, png_response
+from backend.api.responses import NPY, PNG_RESPONSES, height_map, npy_response, png_response
+from backend.api.runs import get_run
 from backend.api.schemas import JobId, MergeIn, MergeOut, RunId
 from backend.db.models import MergeJob, Run
 from backend.db.patch_store import read_merge

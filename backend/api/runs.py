@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import io
 from typing import Annotated, Any
 
 import numpy as np
@@ -13,6 +12,7 @@ from sqlalchemy.orm import Session
 from backend.acquisition.planner import PatchSpec, Plan, PlanError, Roi, plan_mosaic
 from backend.acquisition.state import RunState
 from backend.api.deps import OperatorDep, ServicesDep, SessionDep
+from backend.api.responses import NPY, PNG_RESPONSES, height_map, npy_response, png_response
 from backend.api.schemas import (
     AbortIn,
     PatchIn,
@@ -32,36 +32,9 @@ from backend.db.patch_store import LIVE_GROUP, StoredPatch, read_merge, read_pat
 from backend.services import Services
 from hardware.protocols import SEMImage
 from merge.io.png import encode_png
-from merge.io.preview import afm_colors, fit_size, render_panels
-from merge.render import Mosaic
+from merge.io.preview import afm_colors, fit_size
 
 router = APIRouter(prefix="/api/runs", tags=["runs"])
-
-NPY = "application/x-npy"
-PNG_RESPONSES: dict[int | str, dict[str, Any]] = {
-    200: {"content": {"image/png": {}}, "description": "a PNG image"}
-}
-
-
-def png_response(panels: list[tuple[str, Mosaic]], *, size: int) -> Response:
-    """Height maps in the AFM colour map with a nm colour bar and a scale bar, as PNG."""
-    return Response(encode_png(render_panels(panels, size=size)), media_type="image/png")
-
-
-def height_map(
-    heights: np.ndarray, origin: tuple[float, float], pixel: tuple[float, float]
-) -> Mosaic:
-    return Mosaic(heights, origin, pixel, np.isfinite(heights).astype(np.int32))
-
-
-def npy_response(array: np.ndarray, filename: str) -> Response:
-    buffer = io.BytesIO()
-    np.save(buffer, np.asarray(array, dtype=np.float64), allow_pickle=False)
-    return Response(
-        buffer.getvalue(),
-        media_type=NPY,
-        headers={"Content-Disposition": f'attachment; filename="{filename}"'},
-    )
 
 
 def _plan(body: PlanIn, services: Services, session: Session) -> Plan:
@@ -402,4 +375,4 @@ def _stored(session: Session, run_id: int, index: int) -> StoredPatch:
     return read_patch(run.file, index)
 
 
-__all__ = ["PlanError", "add_run", "get_run", "npy_response", "router", "run_out"]
+__all__ = ["PlanError", "add_run", "get_run", "router", "run_out"]

@@ -10,7 +10,7 @@ import numpy as np
 from fastapi import APIRouter, File, Form, HTTPException, Request, Response, UploadFile
 
 from backend.api.deps import OperatorDep, ServicesDep, SessionDep
-from backend.api.runs import NPY, PNG_RESPONSES, npy_response
+from backend.api.responses import NPY, PNG_RESPONSES, npy_response
 from backend.api.schemas import SemAcquireIn, SemId, SemOut
 from backend.db.models import SemImageRecord
 from backend.sem_files import TiffError, read_sem_tiff, save_pixels, sem_path
