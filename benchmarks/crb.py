@@ -58,7 +58,7 @@ from merge.core.overlap import overlapping_pairs
 from merge.core.transforms import rotation_about_z
 
 if TYPE_CHECKING:
-    from merge_bench import Case
+    from bench_cases import Case
 
 FloatArray = NDArray[np.float64]
 ROOT = Path(__file__).resolve().parents[1]
@@ -330,7 +330,7 @@ def efficient_errors(
 ) -> dict[str, float]:
     """Registration errors (nm, expected) and map error (nm, RMS over ``samples`` draws) at the
     Cramér-Rao bound, the floor (nm) and the spread of the map error over it."""
-    from merge_bench import floor_of, map_error
+    from bench_cases import floor_of, map_error
 
     scale, centres = correction_scale(
         synth, surface, drift, sampled=sampled, plane_prior=plane_prior
@@ -359,7 +359,7 @@ def merge_over_noise(case: Case, draws: int, *, seed: int = 0) -> dict[str, floa
     """The default merge on ``draws`` draws of the noise (white and per line) over the case's
     surface, geometry and drift: registration errors (nm, RMS over the draws) and the spread
     of the map error over each draw's floor."""
-    from merge_bench import floor_of, map_error
+    from bench_cases import floor_of, map_error
 
     still = dataclasses.replace(
         case, drift=dataclasses.replace(case.drift, noise=0.0, line_noise=0.0)
@@ -402,7 +402,7 @@ def _rms_nm(values: Sequence[float]) -> float:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from merge_bench import CASES
+    from bench_cases import CASES
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--cases", default="tgx1,folded,tgx1-harsh,folded-harsh,mos2-real")

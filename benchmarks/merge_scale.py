@@ -51,7 +51,7 @@ from typing import Any
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from merge_bench import true_mosaic  # a script beside this one
+from bench_cases import true_mosaic  # a module beside this script
 
 ROOT = Path(__file__).resolve().parents[1]
 #: Patch side, metres, and overlap of every case (the issue's measurements).

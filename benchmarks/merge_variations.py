@@ -29,7 +29,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from merge_bench import CASES, ROOT, Case, floor_of, map_error
+from bench_cases import CASES, ROOT, Case, floor_of, map_error
 
 from backend.synthetic import patch_set_from_synth, scored
 from hardware.sim.drift import DriftModel
