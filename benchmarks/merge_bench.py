@@ -69,10 +69,10 @@ CLI = [sys.executable, "-m", "backend.cli"]
 def grating_row(case: Case, count: int, work: Path) -> dict[str, Any]:
     """The default method on ``count`` draws of a sweep case: map error over the floor, XY
     error, and the Cramér-Rao bound of XY on every draw (its expectation,
-    :func:`crb.registration_bound`). XY against the bound: the merge's RMS over the draws
+    :func:`cramer_rao.registration_bound`). XY against the bound: the merge's RMS over the draws
     against the bound's, both estimates of an expected square (a median of the merge's against
     the first draw's bound mixed a median with an RMS, and one draw's texture with another's)."""
-    from crb import registration_bound  # a script beside this one
+    from cramer_rao import registration_bound  # a module beside this script
 
     runs = [default_run(case, k, work) for k in range(count)]
     bounds = []

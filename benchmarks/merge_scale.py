@@ -184,11 +184,11 @@ def map_error(
 
 
 def bound_of(synth: Any, surface: Any, drift: Any, *, samples: int = 8) -> dict[str, float]:
-    """What an efficient merge could reach on this patch set (:mod:`crb`): the Cramér-Rao bound
-    with the simulator's own drift as the drift planes' prior (slow axis: the drift over a
-    patch; fast axis: a line's share of it), its expected XY and Z errors and the spread of its
-    map error over the floor (``samples`` draws of corrections from it)."""
-    import crb  # a script beside this one
+    """What an efficient merge could reach on this patch set (:mod:`cramer_rao`): the
+    Cramér-Rao bound with the simulator's own drift as the drift planes' prior (slow axis: the
+    drift over a patch; fast axis: a line's share of it), its expected XY and Z errors and the
+    spread of its map error over the floor (``samples`` draws of corrections from it)."""
+    import cramer_rao  # a module beside this script
 
     s = synth[0]
     ny, nx = s.heights.shape
@@ -197,7 +197,7 @@ def bound_of(synth: Any, surface: Any, drift: Any, *, samples: int = 8) -> dict[
     # a drift in time over the patch: across the lines all of it, along a line one line's share
     rise = drift.z_drift_sigma * radius / side  # the planes' rise, centre to corner
     prior = (float(rise[0]) / ny, float(rise[1]))
-    r = crb.efficient_errors(synth, surface, drift, samples=samples, plane_prior=prior)
+    r = cramer_rao.efficient_errors(synth, surface, drift, samples=samples, plane_prior=prior)
     return {f"bound_{k}": v for k, v in r.items()}
 
 
