@@ -92,12 +92,26 @@ class Scored:
 
 
 def scored(
-    synth: Sequence[SynthPatch], transforms: Sequence[PatchTransform], *, stride: int = 1
+    synth: Sequence[SynthPatch],
+    transforms: Sequence[PatchTransform],
+    *,
+    stride: int = 1,
+    gauge_on: NDArray[np.bool_] | None = None,
 ) -> Scored:
     """:class:`Scored` of ``transforms``, the points placed and the gauge fitted once.
-    ``stride``: every so many points along both axes of a patch (large mosaics)."""
+    ``stride``: every so many points along both axes of a patch (large mosaics). ``gauge_on``
+    (n,): the patches the gauge is fitted to (default all; the errors are every patch's): the
+    patches a merge reports held, judged among themselves, not against a gauge that the
+    patches it reports loose pull away."""
     placed = _placed(synth, transforms, stride)
-    P, Q, (G, g) = _gauge(placed)
+    if gauge_on is None:
+        P, Q, (G, g) = _gauge(placed)
+    else:
+        gauge_on = np.asarray(gauge_on, dtype=bool)
+        if gauge_on.shape != (len(placed),) or not gauge_on.any():
+            raise ValueError(f"gauge_on must mark some of the {len(placed)} patches")
+        _, _, (G, g) = _gauge([placed[i] for i in np.flatnonzero(gauge_on)])
+        P, Q = np.concatenate([p for p, _ in placed]), np.concatenate([q for _, q in placed])
     e = P @ G.T + g - Q
     ends = np.cumsum([len(p) for p, _ in placed])[:-1]
     return Scored(

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from backend.synthetic import patch_errors, registration_error
+from backend.synthetic import patch_errors, registration_error, scored
 from merge import PatchTransform
 from tests.conftest import Synthetic
 
@@ -80,3 +80,22 @@ def test_patch_errors_sample_with_a_stride(small_mosaic: Synthetic) -> None:
     np.testing.assert_allclose(thin[:, 2], full[:, 2], atol=0.25e-9)
     with pytest.raises(ValueError, match="stride must be a positive integer"):
         patch_errors(small_mosaic.synth, moved, stride=0)
+
+
+def test_patches_judged_among_themselves_are_not_pulled_by_one_far_off(
+    small_mosaic: Synthetic,
+) -> None:
+    truth = [PatchTransform(s.rotation, s.translation) for s in small_mosaic.synth]
+    far = list(truth)
+    t = np.array(truth[0].t, dtype=float)
+    t[0] += 200e-9  # one patch lost: a merge would report it loose
+    far[0] = PatchTransform(truth[0].R, t)
+    held = np.ones(len(far), dtype=bool)
+    held[0] = False
+    pulled = np.hypot(*scored(small_mosaic.synth, far).patches[1:, :2].T)
+    among = np.hypot(*scored(small_mosaic.synth, far, gauge_on=held).patches[:, :2].T)
+    # fitted to all, the gauge follows the lost patch by its share, and the rest look off
+    assert pulled.min() > 200e-9 / len(far) / 2
+    assert among[1:].max() < 0.5e-9 and among[0] == pytest.approx(200e-9, rel=0.01)
+    with pytest.raises(ValueError, match="must mark some"):
+        scored(small_mosaic.synth, far, gauge_on=np.zeros(len(far), dtype=bool))
