@@ -9,7 +9,9 @@ measures the XY shift — it is blind to Z offsets by construction; of peaks a p
 grating) that score alike, the one nearest the expected shift wins — and the median height
 difference at that shift measures the Z offset. All patches are then solved at once from these
 pairwise differences (:mod:`merge.start.network`), with robust weights and with each pair's XY
-information as a 2 x 2 matrix (a straight edge fixes only its normal). A patch whose links
+information as a 2 x 2 matrix (a straight edge fixes only its normal). Inside a large mosaic
+the corner pairs (patches diagonal to each other) are measured only where the side pairs around
+them conflict (:func:`spare_corners`). A patch whose links
 found nothing or disagree with the rest is then placed against all its neighbours at once
 (:mod:`merge.start.placement`), and a second pass re-measures the doubtful pairs in a narrow window
 around the shift the network, so mended, predicts. Scans levelled one by one before export get
@@ -61,6 +63,11 @@ from merge.start.trust import (
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
 
+#: A pair whose nominal overlap is under this share of the largest of its patches' is a corner
+#: pair (:func:`spare_corners`).
+CORNER_SHARE = 0.5
+#: Side pairs that put a patch in closed loops enough to spare its corner pairs at first.
+LOOP_SIDES = 4
 #: Search radius of a patch placed against all its neighbours, in first-pass radii: wider, since
 #: a patch whose links all failed may be the one whose stage error exceeded the first search,
 #: and the pooled score of all its pairs is far less prone to chance peaks than one pair's.
@@ -150,12 +157,25 @@ def _xy_offsets(
     radius = max_shift / lat.cell
     # every patch's stage error is a priori within about half the searched range
     xy_prior = 1.0 / (0.5 * max_shift) ** 2
-    _first_pass(lat, corr, radius)
+    spare = spare_corners(lat)
+    _first_pass(lat, corr, radius, np.flatnonzero(~spare))
     drop_odd_scores(corr.score, corr.xy_w, excess=corr.excess, significance=SIGNIFICANCE)
     sol = solve_pair_differences(n, pairs, corr.xy_m, corr.xy_w, prior=xy_prior)
-    unmeasured = np.trace(corr.xy_w, axis1=1, axis2=2) == 0
-    doubtful = unmeasured | (sol.robust < DOUBT)
-    x_start, moved = _place_doubtful(lat, corr, sol, unmeasured, radius)
+    # the corners of patches whose links found nothing or conflict are the loops that tell
+    # which link is wrong: measured after all, and the network solved again
+    unmeasured = (np.trace(corr.xy_w, axis1=1, axis2=2) == 0) & ~spare
+    can = np.array([lat.measurable(i) for i in range(len(pairs))], dtype=bool)
+    doubted = np.zeros(n, dtype=bool)
+    doubted[pairs[can & ~spare & (unmeasured | (sol.robust < DOUBT))].ravel()] = True
+    late = spare & (doubted[pairs[:, 0]] | doubted[pairs[:, 1]])
+    if late.any():
+        _first_pass(lat, corr, radius, np.flatnonzero(late))
+        spare &= ~late
+        drop_odd_scores(corr.score, corr.xy_w, excess=corr.excess, significance=SIGNIFICANCE)
+        sol = solve_pair_differences(n, pairs, corr.xy_m, corr.xy_w, prior=xy_prior)
+        unmeasured = (np.trace(corr.xy_w, axis1=1, axis2=2) == 0) & ~spare
+    doubtful = (unmeasured | (sol.robust < DOUBT)) & ~spare
+    x_start, moved = _place_doubtful(lat, corr, sol, unmeasured, radius, spare)
     # second pass: doubtful pairs, and those of placed patches, re-measured near the shift the
     # network (mended by the placements) predicts
     redo = np.flatnonzero(doubtful | moved[pairs[:, 0]] | moved[pairs[:, 1]])
@@ -171,10 +191,35 @@ def _xy_offsets(
     return (*drop_unconstrained(sol.x, pairs, weighed), weighed)
 
 
-def _first_pass(lat: Lattice, corr: Correlations, radius: float) -> None:
-    """Every measurable pair correlated (batched by image shapes through one set of FFTs) and
-    its peak within ``radius`` cells of the nominal shift accepted or not."""
-    todo = [i for i in range(len(lat.pairs)) if lat.measurable(i)]
+def spare_corners(lat: Lattice) -> NDArray[np.bool_]:
+    """(k,) the corner pairs a first pass may leave out: both patches hold loops enough in
+    their side pairs.
+
+    A corner pair (its nominal overlap under :data:`CORNER_SHARE` of its patches' largest:
+    patches diagonal to each other) costs a whole correlation map, as a side pair does, for a
+    quarter of its information at 25 % overlaps; half the pairs of a large mosaic are such.
+    What corners add is loops: a wrong side pair shows where the loops around it do not close.
+    A patch with :data:`LOOP_SIDES` side pairs (inside a mosaic) sits in four closed squares
+    of them; one with fewer (at a border or a corner of the mosaic, where a wrong pair has no
+    loop to show it) keeps its corners. The start measures the spared corners of patches whose
+    links conflict after all (:func:`_xy_offsets`)."""
+    pairs, overlap = lat.pairs, lat.nominal_overlap
+    n = len(lat.grids)
+    can = np.array([lat.measurable(i) for i in range(len(pairs))], dtype=bool)
+    largest = np.zeros(n)
+    np.maximum.at(largest, pairs[:, 0], overlap)
+    np.maximum.at(largest, pairs[:, 1], overlap)
+    corner = overlap < CORNER_SHARE * np.maximum(largest[pairs[:, 0]], largest[pairs[:, 1]])
+    sides = np.bincount(pairs[can & ~corner].ravel(), minlength=n)
+    looped = sides >= LOOP_SIDES
+    out: NDArray[np.bool_] = can & corner & looped[pairs[:, 0]] & looped[pairs[:, 1]]
+    return out
+
+
+def _first_pass(lat: Lattice, corr: Correlations, radius: float, which: IntArray) -> None:
+    """The measurable pairs ``which`` correlated (batched by image shapes through one set of
+    FFTs) and each peak within ``radius`` cells of the nominal shift accepted or not."""
+    todo = [i for i in which.tolist() if lat.measurable(i)]
     for i, ncc, count, zero in pair_maps(lat.channels, lat.pairs, todo, weights=CHANNEL_WEIGHTS):
         checkpoint(1)
         e = lat.expected(i)
@@ -199,11 +244,14 @@ def _place_doubtful(
     sol: NetworkSolution,
     unmeasured: NDArray[np.bool_],
     radius: float,
+    spare: NDArray[np.bool_],
 ) -> tuple[FloatArray, NDArray[np.bool_]]:
     """The network's XY (n, 2) with the patches whose links found nothing or conflict placed
-    against all their neighbours at once; and which patches moved."""
+    against all their neighbours at once (the ``spare`` corner pairs, not measured, left
+    out); and which patches moved."""
     n, pairs, cell = len(lat.grids), lat.pairs, lat.cell
-    can_measure = np.array([lat.measurable(i) for i in range(len(pairs))], dtype=bool)
+    can_measure = np.array([lat.measurable(i) for i in range(len(pairs))], dtype=bool) & ~spare
+    unmeasured = unmeasured | spare
     x_start = sol.x.copy()
     moved = np.zeros(n, dtype=bool)
     for c in patches_in_doubt(n, pairs, unmeasured, sol.robust, can_measure, corr.xy_w):

@@ -12,6 +12,7 @@ from merge.core.information import signal_information
 from merge.core.overlap import overlapping_pairs
 from merge.core.patchset import Patch, PatchSet
 from merge.pipeline import default_cell, default_max_shift
+from merge.start import coarse as coarse_module
 from merge.start import coarse_cell
 from merge.start import measure as measure_module
 from merge.start.coarse import CoarseStart, coarse_start
@@ -238,3 +239,62 @@ def test_a_second_pass_keeps_a_first_peak_that_stood_out_over_a_much_weaker_one(
     result = run(patch_set_from_synth(synth))
     exy, _, _ = registration_error(synth, [p.transform for p in result.patches])
     assert exy < 3e-9
+
+
+def _grid_start(
+    rows: int, cols: int, monkeypatch: pytest.MonkeyPatch | None = None
+) -> tuple[CoarseStart, np.ndarray, int]:
+    """The start of ``rows`` x ``cols`` patches of 48 x 48 px at 25 % overlaps on a TGX1-like
+    chessboard under the typical drift; its XY errors less their mean (m); and how many corner
+    pairs it spared."""
+    synth = synthesize(
+        Chessboard(seed=4),
+        rows=rows,
+        cols=cols,
+        patch_size=(1e-6, 1e-6),
+        pixels=(48, 48),
+        overlap=(0.25, 0.25),
+        drift=DriftModel(),
+        seed=4,
+    )
+    ps = patch_set_from_synth(synth)
+    pairs = overlapping_pairs(np.array([p.footprint for p in ps]), margin=1e-7)
+    spared: list[int] = []
+    if monkeypatch is not None:
+        chosen = coarse_module.spare_corners
+        monkeypatch.setattr(
+            coarse_module,
+            "spare_corners",
+            lambda lat: spared.append(int(chosen(lat).sum())) or chosen(lat),
+        )
+    cell = coarse_cell(ps, default_cell(ps))
+    start = coarse_start(ps.patches, pairs, cell=cell, max_shift=default_max_shift(ps))
+    err = start.translation[:, :2] - np.array([s.translation[:2] for s in synth])
+    return start, err - err.mean(axis=0), sum(spared)
+
+
+def test_corners_inside_a_mosaic_are_spared_and_the_start_is_the_same(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # 5 x 5 patches: the 3 x 3 inside each sit in four closed squares of side pairs, so the
+    # corner pairs between two of them (8) are left out unless their links conflict
+    spared_start, spared_err, spared = _grid_start(5, 5, monkeypatch)
+    assert spared == 8
+    with monkeypatch.context() as m:
+        m.setattr(coarse_module, "LOOP_SIDES", 99)  # every corner measured
+        full_start, full_err, none = _grid_start(5, 5, m)
+    assert none == 0
+    np.testing.assert_array_equal(spared_start.xy_complete, full_start.xy_complete)
+    # a start, within a cell or so (42 nm) of the truth, with or without the corners
+    assert np.abs(spared_err).max() < 40e-9 and np.abs(full_err).max() < 40e-9
+    # the corners' own information is a quarter of a side pair's: without them the start is
+    # about as good (12.2 against 12.0 nm RMS), the refinement measuring every overlap anyway
+    rms = [float(np.sqrt(np.mean(e**2))) for e in (spared_err, full_err)]
+    assert rms[0] < 1.1 * rms[1]
+
+
+def test_a_mosaic_two_patches_wide_keeps_every_corner(monkeypatch: pytest.MonkeyPatch) -> None:
+    # no patch of a 4 x 2 mosaic has four side pairs: a wrong one would have no loop to show it
+    _, err, spared = _grid_start(4, 2, monkeypatch)
+    assert spared == 0
+    assert np.abs(err).max() < 40e-9
