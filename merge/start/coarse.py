@@ -150,9 +150,11 @@ def _xy_offsets(
     lat: Lattice, corr: Correlations, max_shift: float
 ) -> tuple[FloatArray, NDArray[np.bool_], FloatArray]:
     """Every patch's XY (n, 2), metres, whether its pairs measured both axes, and every pair's
-    information as the network weighed it (k, 2, 2): a first pass over all pairs, the network
-    solved, the patches in doubt placed against all their neighbours, their pairs and the
-    doubtful ones measured again, the network solved again."""
+    information as the network weighed it (k, 2, 2): a first pass over the pairs but the
+    spared corners (:func:`spare_corners`), the network solved, the spared corners of patches
+    whose links found nothing or conflict measured too and the network solved again, the
+    patches in doubt placed against all their neighbours, their pairs and the doubtful ones
+    measured again, the network solved again."""
     n, pairs = len(lat.grids), lat.pairs
     radius = max_shift / lat.cell
     # every patch's stage error is a priori within about half the searched range
