@@ -295,14 +295,16 @@ def _z_offsets(lat: Lattice, translation: FloatArray) -> FloatArray:
     n, pairs, cell, sigma = len(lat.grids), lat.pairs, lat.cell, lat.sigma
     k = len(pairs)
     z_m, z_w = np.zeros(k), np.zeros(k)
-    for i in range(k):
+    # pairs that do not overlap nominally (two thirds of a large mosaic's, near neighbours
+    # within the search margin) measure nothing
+    for i in np.flatnonzero(lat.nominal_overlap > 0).tolist():
         checkpoint()
         a, b = int(pairs[i, 0]), int(pairs[i, 1])
         e = lat.expected(i)
         pred = translation[a, :2] - translation[b, :2]
         shift = (round(e[0] + pred[1] / cell), round(e[1] + pred[0] / cell))
         dz, cnt = overlap_z_difference(lat.grids[a].heights, lat.grids[b].heights, shift)
-        if lat.nominal_overlap[i] > 0 and cnt >= 16 and np.isfinite(dz):
+        if cnt >= 16 and np.isfinite(dz):
             # variance of a median of differences of two noisy maps: (π/2) · 2σ² / count
             var = np.pi * (sigma[a] ** 2 + sigma[b] ** 2) / 2.0 / cnt
             z_m[i], z_w[i] = dz, 1.0 / var
