@@ -75,6 +75,15 @@ class Lattice:
         a, b = self.pairs[i]
         return bool(self.nominal_overlap[i] > 0 and self.textured[a] and self.textured[b])
 
+    def measurable_pairs(self) -> NDArray[np.bool_]:
+        """(k,) :meth:`measurable` of every pair."""
+        out: NDArray[np.bool_] = (
+            (self.nominal_overlap > 0)
+            & self.textured[self.pairs[:, 0]]
+            & self.textured[self.pairs[:, 1]]
+        )
+        return out
+
 
 def averaged_on_lattice(
     patches: Sequence[Patch], pairs: IntArray, *, cell: float, max_shift: float

@@ -134,7 +134,7 @@ def coarse_start(
     measured = np.zeros(n, dtype=bool)
     measured[pairs[np.trace(corr.xy_w, axis1=1, axis2=2) > 0].ravel()] = True
     measurable = np.zeros(n, dtype=bool)
-    can = np.array([lat.measurable(i) for i in range(len(pairs))], dtype=bool)
+    can = lat.measurable_pairs()
     measurable[pairs[can].ravel()] = True
     return CoarseStart(
         translation=translation,
@@ -166,7 +166,7 @@ def _xy_offsets(
     # the corners of patches whose links found nothing or conflict are the loops that tell
     # which link is wrong: measured after all, and the network solved again
     unmeasured = (np.trace(corr.xy_w, axis1=1, axis2=2) == 0) & ~spare
-    can = np.array([lat.measurable(i) for i in range(len(pairs))], dtype=bool)
+    can = lat.measurable_pairs()
     doubted = np.zeros(n, dtype=bool)
     doubted[pairs[can & ~spare & (unmeasured | (sol.robust < DOUBT))].ravel()] = True
     late = spare & (doubted[pairs[:, 0]] | doubted[pairs[:, 1]])
@@ -207,7 +207,7 @@ def spare_corners(lat: Lattice) -> NDArray[np.bool_]:
     links conflict after all (:func:`_xy_offsets`)."""
     pairs, overlap = lat.pairs, lat.nominal_overlap
     n = len(lat.grids)
-    can = np.array([lat.measurable(i) for i in range(len(pairs))], dtype=bool)
+    can = lat.measurable_pairs()
     largest = np.zeros(n)
     np.maximum.at(largest, pairs[:, 0], overlap)
     np.maximum.at(largest, pairs[:, 1], overlap)
@@ -221,7 +221,7 @@ def spare_corners(lat: Lattice) -> NDArray[np.bool_]:
 def _first_pass(lat: Lattice, corr: Correlations, radius: float, which: IntArray) -> None:
     """The measurable pairs ``which`` correlated (batched by image shapes through one set of
     FFTs) and each peak within ``radius`` cells of the nominal shift accepted or not."""
-    todo = [i for i in which.tolist() if lat.measurable(i)]
+    todo = which[lat.measurable_pairs()[which]].tolist()
     for i, ncc, count, zero in pair_maps(lat.channels, lat.pairs, todo, weights=CHANNEL_WEIGHTS):
         checkpoint(1)
         e = lat.expected(i)
@@ -252,7 +252,7 @@ def _place_doubtful(
     against all their neighbours at once (the ``spare`` corner pairs, not measured, left
     out); and which patches moved."""
     n, pairs, cell = len(lat.grids), lat.pairs, lat.cell
-    can_measure = np.array([lat.measurable(i) for i in range(len(pairs))], dtype=bool) & ~spare
+    can_measure = lat.measurable_pairs() & ~spare
     unmeasured = unmeasured | spare
     x_start = sol.x.copy()
     moved = np.zeros(n, dtype=bool)

@@ -25,6 +25,7 @@ def test_neighbours_lie_a_whole_number_of_cells_apart_on_one_lattice(
         lat.nominal_overlap > 0
     ).all()  # 40 % overlaps: every pair that touches overlaps by cells
     assert lat.textured.all() and all(lat.measurable(i) for i in range(len(pairs)))
+    assert lat.measurable_pairs().all()
     assert not lat.tilt.any()  # raw scans: no plane to restore
 
 
@@ -38,5 +39,5 @@ def test_a_patch_of_pure_noise_has_no_texture_to_correlate() -> None:
     ]
     lat = averaged_on_lattice(patches, np.array([[0, 1]]), cell=2e-8, max_shift=2e-7)
     assert lat.textured.tolist() == [True, False]
-    assert not lat.measurable(0)
+    assert not lat.measurable(0) and not lat.measurable_pairs().any()
     assert 0.5e-9 < lat.sigma[1] < 2e-9
