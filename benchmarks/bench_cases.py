@@ -201,16 +201,26 @@ def map_error(
     surface: Surface,
     G: FloatArray,
     g: FloatArray,
+    *,
+    stride: int = 1,
 ) -> float:
-    """RMS of the mosaic against the true surface, the mosaic taken through ``q -> G q + g``."""
+    """RMS (m) of the mosaic against the true surface, the mosaic taken through
+    ``q -> G q + g``: every ``stride``-th pixel along both axes, read row block by row block (a
+    large mosaic's may be memory-mapped)."""
     ny, nx = heights.shape
-    xx, yy = np.meshgrid(origin[0] + np.arange(nx) * pixel[0], origin[1] + np.arange(ny) * pixel[1])
-    ok = np.isfinite(heights)
-    q = np.column_stack([xx[ok], yy[ok], heights[ok]]) @ G.T + g
-    truth = surface.height(q[:, 0], q[:, 1])
-    d = q[:, 2] - truth
-    d = d[np.isfinite(d)]
-    return float(np.sqrt(np.mean(d**2)))
+    cols = np.arange(0, nx, stride)
+    total, count = 0.0, 0
+    for i0 in range(0, ny, 256 * stride):
+        rows = np.arange(i0, min(ny, i0 + 256 * stride), stride)
+        block = np.asarray(heights[rows][:, cols], dtype=np.float64)
+        xx, yy = np.meshgrid(origin[0] + cols * pixel[0], origin[1] + rows * pixel[1])
+        ok = np.isfinite(block)
+        q = np.column_stack([xx[ok], yy[ok], block[ok]]) @ G.T + g
+        d = q[:, 2] - surface.height(q[:, 0], q[:, 1])
+        d = d[np.isfinite(d)]
+        total += float(np.sum(d**2))
+        count += d.size
+    return float(np.sqrt(total / max(count, 1)))
 
 
 def true_mosaic(synth: list[SynthPatch]) -> Mosaic:

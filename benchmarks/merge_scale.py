@@ -51,7 +51,7 @@ from typing import Any
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_cases import true_mosaic  # a module beside this script
+from bench_cases import map_error, true_mosaic  # a module beside this script
 
 ROOT = Path(__file__).resolve().parents[1]
 #: Patch side, metres, and overlap of every case (the issue's measurements).
@@ -153,34 +153,6 @@ def _merge_in_child(manifest: Path, out: Path, warm: Path) -> dict[str, Any]:
         raise RuntimeError(f"the merge failed:\n{proc.stdout}\n{proc.stderr}")
     said: dict[str, Any] = json.loads(proc.stdout.strip().splitlines()[-1])
     return said
-
-
-def map_error(
-    heights: Any,
-    origin: tuple[float, float],
-    pixel: tuple[float, float],
-    surface: Any,
-    G: Any,
-    g: Any,
-    *,
-    stride: int = 1,
-) -> float:
-    """RMS (m) of the mosaic (every ``stride``-th pixel along both axes, read row block by row
-    block) against the true surface, the mosaic taken through ``q -> G q + g``."""
-    ny, nx = heights.shape
-    cols = np.arange(0, nx, stride)
-    total, count = 0.0, 0
-    for i0 in range(0, ny, 256 * stride):
-        rows = np.arange(i0, min(ny, i0 + 256 * stride), stride)
-        block = np.asarray(heights[rows][:, cols], dtype=np.float64)
-        xx, yy = np.meshgrid(origin[0] + cols * pixel[0], origin[1] + rows * pixel[1])
-        ok = np.isfinite(block)
-        q = np.column_stack([xx[ok], yy[ok], block[ok]]) @ G.T + g
-        d = q[:, 2] - surface.height(q[:, 0], q[:, 1])
-        d = d[np.isfinite(d)]
-        total += float(np.sum(d**2))
-        count += d.size
-    return float(np.sqrt(total / max(count, 1)))
 
 
 def bound_of(synth: Any, surface: Any, drift: Any, *, samples: int = 8) -> dict[str, float]:
