@@ -177,7 +177,8 @@ def _xy_offsets(
         sol = solve_pair_differences(n, pairs, corr.xy_m, corr.xy_w, prior=xy_prior)
         unmeasured = (np.trace(corr.xy_w, axis1=1, axis2=2) == 0) & ~spare
     doubtful = (unmeasured | (sol.robust < DOUBT)) & ~spare
-    x_start, moved = _place_doubtful(lat, corr, sol, unmeasured, radius, spare)
+    # the spared corners, not measured, are no links of the placements
+    x_start, moved = _place_doubtful(lat, corr, sol, unmeasured | spare, radius, can & ~spare)
     # second pass: doubtful pairs, and those of placed patches, re-measured near the shift the
     # network (mended by the placements) predicts
     redo = np.flatnonzero(doubtful | moved[pairs[:, 0]] | moved[pairs[:, 1]])
@@ -246,14 +247,12 @@ def _place_doubtful(
     sol: NetworkSolution,
     unmeasured: NDArray[np.bool_],
     radius: float,
-    spare: NDArray[np.bool_],
+    can_measure: NDArray[np.bool_],
 ) -> tuple[FloatArray, NDArray[np.bool_]]:
     """The network's XY (n, 2) with the patches whose links found nothing or conflict placed
-    against all their neighbours at once (the ``spare`` corner pairs, not measured, left
-    out); and which patches moved."""
+    against all their neighbours at once, on the pairs ``can_measure`` (k,); and which
+    patches moved."""
     n, pairs, cell = len(lat.grids), lat.pairs, lat.cell
-    can_measure = lat.measurable_pairs() & ~spare
-    unmeasured = unmeasured | spare
     x_start = sol.x.copy()
     moved = np.zeros(n, dtype=bool)
     for c in patches_in_doubt(n, pairs, unmeasured, sol.robust, can_measure, corr.xy_w):
