@@ -15,6 +15,7 @@ from merge.pipeline import default_cell, default_max_shift
 from merge.start import coarse as coarse_module
 from merge.start import coarse_cell
 from merge.start import measure as measure_module
+from merge.start.averaging import Lattice
 from merge.start.coarse import CoarseStart, coarse_start
 from tests.conftest import Synthetic
 
@@ -262,11 +263,13 @@ def _grid_start(
     spared: list[int] = []
     if monkeypatch is not None:
         chosen = coarse_module.spare_corners
-        monkeypatch.setattr(
-            coarse_module,
-            "spare_corners",
-            lambda lat: spared.append(int(chosen(lat).sum())) or chosen(lat),
-        )
+
+        def counted(lat: Lattice) -> np.ndarray:
+            out = chosen(lat)
+            spared.append(int(out.sum()))
+            return out
+
+        monkeypatch.setattr(coarse_module, "spare_corners", counted)
     cell = coarse_cell(ps, default_cell(ps))
     start = coarse_start(ps.patches, pairs, cell=cell, max_shift=default_max_shift(ps))
     err = start.translation[:, :2] - np.array([s.translation[:2] for s in synth])
