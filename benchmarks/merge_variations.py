@@ -158,8 +158,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--narrow",
         action="store_true",
-        help=f"overlaps of {NARROW[0]:.0%}-{NARROW[1]:.0%} instead of "
-        f"{OVERLAPS[0]:.0%}-{OVERLAPS[1]:.0%}",
+        # argparse %-formats its help: the percent signs doubled
+        help=(
+            f"overlaps of {NARROW[0]:.0%}-{NARROW[1]:.0%} instead of "
+            f"{OVERLAPS[0]:.0%}-{OVERLAPS[1]:.0%}"
+        ).replace("%", "%%"),
     )
     parser.add_argument(
         "--json", default=str(ROOT / "benchmarks" / "results" / "merge_variations.json")

@@ -1,0 +1,32 @@
+"""Every benchmark script answers ``--help`` (argparse %-formats its help texts: a literal
+percent sign in one made the variations' script raise instead of printing its usage)."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+BENCHMARKS = Path(__file__).resolve().parents[2] / "benchmarks"
+SCRIPTS = sorted(
+    p.name for p in BENCHMARKS.glob("*.py") if "def main(" in p.read_text(encoding="utf-8")
+)
+
+
+def test_the_scripts_are_found() -> None:
+    assert "merge_variations.py" in SCRIPTS and "merge_scale.py" in SCRIPTS
+
+
+@pytest.mark.parametrize("script", SCRIPTS)
+def test_a_benchmark_prints_its_usage(script: str) -> None:
+    done = subprocess.run(
+        [sys.executable, str(BENCHMARKS / script), "--help"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+    )
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.startswith("usage:")
