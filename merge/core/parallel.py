@@ -62,13 +62,14 @@ def _shared_pool() -> ThreadPoolExecutor:
         return _pool
 
 
-def each(work: Callable[[T], None], items: Sequence[T]) -> None:
-    """Call ``work`` on every item, on up to :data:`WORKERS` threads; re-raises the first error.
+def each(work: Callable[[T], None], items: Sequence[T], *, on_cores: bool = True) -> None:
+    """Call ``work`` on every item, on up to :data:`WORKERS` threads (on this one only, in
+    order, unless ``on_cores``); re-raises the first error.
 
     ``work`` must not call :func:`each` itself (the threads are shared: waiting on them from
     one of them could wait forever).
     """
-    if len(items) < 2 or WORKERS < 2:
+    if len(items) < 2 or WORKERS < 2 or not on_cores:
         for item in items:
             work(item)
             checkpoint()

@@ -32,6 +32,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from merge.core import parallel
 from merge.core.information import line_design, line_sums, noise_share, psd_part
 from merge.core.parallel import each
 from merge.core.progress import checkpoint
@@ -60,7 +61,16 @@ BLOCK_ROWS = 1 << 15
 #: input pixel). 100 patches of 64 x 64 px: 8,192 rows, the refinement's peak 30 -> 19 MB, 74 ->
 #: 47 bytes per input pixel; 400 patches reach the cap. Counted in the patches' pixels, not in
 #: the level's rows: the coarse levels, with a quarter of the rows, took four times the blocks.
-PIXELS_PER_BLOCK_ROW, LEAST_BLOCK_ROWS = 50, 4096
+#: Below 8,192 rows a block's Python-level work outweighs its array work (50 patches of 30 x 60
+#: px, one core: a raw step 0.077 s at 4,096 rows, 0.065 at 8,192, 0.063 at 16,384).
+PIXELS_PER_BLOCK_ROW, LEAST_BLOCK_ROWS = 50, 8192
+#: Rows a block holds before sharing the blocks among the cores pays: a smaller block is many
+#: small array operations, between which two threads hand the interpreter to each other. On
+#: two cores, a raw step of 50 patches of 30 x 60 px took 0.10-0.11 s on both at 4,096 rows, 0.075
+#: s on one; 400 patches of 64 x 64 px at 8,192 rows 0.88-1.03 s on both, 0.80-0.84 on one; 16
+#: patches of 200 x 200 px at 12,800 rows 0.083 s on both, 0.11 on one (in blocks twice as
+#: large); 400 patches at 16,384 rows 0.67-0.76 s on both, 0.76-0.78 on one.
+SHARED_BLOCK_ROWS = 12_000
 #: Storage of every row's residual and of its destination's slopes between the build's passes
 #: (:class:`ScoredRows`): all that a row holds beyond its block.
 RESIDUAL_DTYPE = np.float32
@@ -69,6 +79,27 @@ GRAD_DTYPE = np.float16
 #: millions moves by a thousandth of itself, and a copy of every row's residual was a sixth of
 #: the build's memory).
 MEDIAN_ROWS = 1 << 22
+
+
+@dataclass(frozen=True)
+class BlockPlan:
+    """How the system's rows are built: ``rows`` per block, and whether the blocks are shared
+    among the cores (``on_cores``, :func:`merge.core.parallel.each`)."""
+
+    rows: int
+    on_cores: bool
+
+
+def block_plan(pixels: int) -> BlockPlan:
+    """The blocks of a mosaic of ``pixels`` input pixels: one of :data:`PIXELS_PER_BLOCK_ROW`
+    pixels a row on each core where that holds :data:`SHARED_BLOCK_ROWS` (at most
+    :data:`BLOCK_ROWS`); else all on one core, in blocks as large as the cores' would have
+    been together (the same working set; :data:`LEAST_BLOCK_ROWS` at least)."""
+    per_core = pixels // PIXELS_PER_BLOCK_ROW
+    if parallel.WORKERS > 1 and per_core >= SHARED_BLOCK_ROWS:
+        return BlockPlan(min(per_core, BLOCK_ROWS), True)
+    together = per_core * parallel.WORKERS
+    return BlockPlan(int(np.clip(together, LEAST_BLOCK_ROWS, BLOCK_ROWS)), False)
 
 
 @dataclass(frozen=True)
@@ -140,9 +171,8 @@ def build_normal_system(
     noise : float
         Height noise, pixel units: the least robust scale.
     block_rows : int, keyword-only
-        Rows per block; changes memory and speed, never the result. Default one per
-        :data:`PIXELS_PER_BLOCK_ROW` of the patches' pixels, within
-        ``[LEAST_BLOCK_ROWS, BLOCK_ROWS]``.
+        Rows per block; changes memory and speed, never the result. Default
+        :func:`block_plan`'s (which also shares the blocks among the cores or not).
     signal : bool, keyword-only
         Also compute ``signal_vals`` (for uncertainties, not for steps).
     lines : bool, keyword-only
@@ -150,11 +180,11 @@ def build_normal_system(
         the residuals.
     """
     n = len(bank.centre)
-    if block_rows is None:
-        pixels = int(np.dot(bank.nx, bank.ny))
-        block_rows = int(np.clip(pixels // PIXELS_PER_BLOCK_ROW, LEAST_BLOCK_ROWS, BLOCK_ROWS))
-    blocks = runs.blocks(block_rows)
-    rows = None if runs.size == 0 else _scored_rows(bank, runs, state, noise, blocks)
+    plan = block_plan(int(np.dot(bank.nx, bank.ny)))
+    if block_rows is not None:
+        plan = BlockPlan(block_rows, plan.on_cores)
+    blocks = runs.blocks(plan.rows)
+    rows = None if runs.size == 0 else _scored_rows(bank, runs, state, noise, blocks, plan.on_cores)
     if rows is None:
         return NormalSystem.empty(n)
     rms, rscale = rows.rms, rows.rscale
@@ -162,9 +192,11 @@ def build_normal_system(
     if signal:
         pitch2 = 0.5 * (bank.dx[runs.dst] ** -2 + bank.dy[runs.dst] ** -2)
         noise2 = bank.slope_noise * noise**2 * pitch2
-    rho = _offset_ratios(runs, rows, blocks) if lines else OffsetRatios(np.inf, np.inf)
+    rho = (
+        _offset_ratios(runs, rows, blocks, plan.on_cores) if lines else OffsetRatios(np.inf, np.inf)
+    )
     checkpoint()  # between the passes too: the lines' ratios took up to a second on 10,000 patches
-    info = _run_information(bank, runs, state, rows, blocks, rho, noise2)
+    info = _run_information(bank, runs, state, rows, blocks, rho, noise2, on_cores=plan.on_cores)
     del rows  # every row's residual and slopes: not needed past here
     signal_blocks, design = None, 1.0
     if info.share is not None:
@@ -236,9 +268,10 @@ def _scored_rows(
     state: PatchState,
     noise: float,
     blocks: list[tuple[int, int]],
+    on_cores: bool,
 ) -> ScoredRows | None:
-    """Pass 1: every row's residual and slopes (block by block, on the cores), then the robust
-    scale, which needs all of them; None if no row is valid."""
+    """Pass 1: every row's residual and slopes (block by block, on the cores if
+    ``on_cores``), then the robust scale, which needs all of them; None if no row is valid."""
     m = runs.size
     r = np.empty(m, dtype=RESIDUAL_DTYPE)
     grad = np.empty((m, 2), dtype=GRAD_DTYPE)
@@ -254,7 +287,7 @@ def _scored_rows(
             smoothed[lo:hi] = own
         squares[j] = ok.sum(), rr @ rr
 
-    each(block_residuals, range(len(blocks)))
+    each(block_residuals, range(len(blocks)), on_cores=on_cores)
     valid, total = squares.sum(axis=0)
     if valid == 0:
         return None
@@ -266,7 +299,9 @@ def _scored_rows(
     return ScoredRows(r, grad, rms, rscale, smoothed)
 
 
-def _offset_ratios(runs: Runs, rows: ScoredRows, blocks: list[tuple[int, int]]) -> OffsetRatios:
+def _offset_ratios(
+    runs: Runs, rows: ScoredRows, blocks: list[tuple[int, int]], on_cores: bool
+) -> OffsetRatios:
     """:func:`merge.refine.lines.shared_ratios` over every line of every run, block by block."""
     lines = runs.box[:, 1] - runs.box[:, 0]
     first_group = np.concatenate([[0], np.cumsum(lines)])
@@ -278,7 +313,7 @@ def _offset_ratios(runs: Runs, rows: ScoredRows, blocks: list[tuple[int, int]]) 
         g_lo, g_hi = first_group[block[0]], first_group[block[1]]
         sums[:, g_lo:g_hi] = group_sums(r, w, ok, runs.groups(*block))
 
-    each(block_sums, blocks)
+    each(block_sums, blocks, on_cores=on_cores)
     spans = np.repeat(runs.box[:, 2:], lines, axis=0)
     return shared_ratios(sums, runs.lines(), spans)
 
@@ -308,6 +343,8 @@ def _run_information(
     blocks: list[tuple[int, int]],
     rho: OffsetRatios,
     noise2: FloatArray | None = None,
+    *,
+    on_cores: bool = True,
 ) -> RunInformation:
     """Pass 2: per run, the source's information block and gradient, the offsets of its lines
     marginalised (``rho`` from :func:`merge.refine.lines.shared_ratios`; a block holds every
@@ -360,6 +397,6 @@ def _run_information(
         )
         shared[j] = between.moved(first)
 
-    each(information, range(len(blocks)))
+    each(information, range(len(blocks)), on_cores=on_cores)
     line_total = lines.sum(axis=0)
     return RunInformation(Baa, ga, share, patch_sums, line_total, SharedLines.joined(shared))

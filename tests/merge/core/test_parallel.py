@@ -9,6 +9,7 @@ import threading
 import pytest
 from threadpoolctl import threadpool_info, threadpool_limits
 
+from merge.core import parallel
 from merge.core.parallel import WORKERS, each, one_blas_thread
 
 
@@ -17,6 +18,15 @@ def test_each_item_is_worked_exactly_once() -> None:
     each(seen.append, list(range(100)))
     assert sorted(seen) == list(range(100))
     assert WORKERS >= 1
+
+
+def test_off_the_cores_the_items_are_worked_in_order_on_this_thread(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    monkeypatch.setattr(parallel, "WORKERS", 2)
+    seen: list[tuple[int, int]] = []
+    each(lambda i: seen.append((i, threading.get_ident())), list(range(50)), on_cores=False)
+    assert seen == [(i, threading.get_ident()) for i in range(50)]
 
 
 def test_an_error_in_a_block_reaches_the_caller() -> None:
