@@ -55,6 +55,7 @@ def moved_misfit_rise(
     c: int,
     *,
     directions: Sequence[tuple[int, int]] = COMPASS,
+    enough: float = np.inf,
 ) -> float:
     """How many standard errors patch ``c``'s misfit over its neighbours rises when it is moved.
 
@@ -70,6 +71,9 @@ def moved_misfit_rise(
         The patch.
     directions : sequence of (x, y), keyword-only
         The directions it is moved in (default ±x and ±y).
+    enough : float, keyword-only
+        A rise that answers the caller's question: the distances after the first to reach it
+        are not tried (the rise returned is then at least ``enough``, not the largest).
 
     Returns
     -------
@@ -102,6 +106,8 @@ def moved_misfit_rise(
             rises.append(_rise(r0[ok], r1[ok], rows.dst[ok]))
         if len(rises) == len(directions) and not min(rises) <= best:  # NaN-safe max
             best = min(rises)
+        if best >= enough:
+            break
     return best
 
 

@@ -97,7 +97,9 @@ def untied(
             if blocks.find(a) == blocks.find(b):
                 continue
             checkpoint()
-            rise = moved_misfit_rise(surfaces, state, pairs[k : k + 1], b, directions=step)
+            rise = moved_misfit_rise(
+                surfaces, state, pairs[k : k + 1], b, directions=step, enough=CONFIRMS
+            )
             if rise >= CONFIRMS:
                 blocks.join(a, b)
         joined = np.array([blocks.find(c) for c in range(n)], dtype=np.intp)

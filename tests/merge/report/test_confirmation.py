@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import pytest
 
@@ -10,15 +12,17 @@ from hardware.sim.surfaces import Chessboard
 from merge import PatchTransform, run
 from merge.core.overlap import overlapping_pairs
 from merge.refine.bank import SurfaceBank
+from merge.refine.rows import residuals
 from merge.refine.state import MosaicState
-from merge.report.confirmation import CONFIRMS, moved_misfit_rise, unconfirmed
+from merge.report import confirmation
+from merge.report.confirmation import COMPASS, CONFIRMS, moved_misfit_rise, unconfirmed
 from tests.conftest import make_synthetic, still
 
 #: A grating's flat face (1.5 nm of roughness at a pixel's scale) without any drift.
 STILL = still(0.5e-9)
 
 
-def _rise(transforms: list[PatchTransform], c: int) -> float:
+def _rise(transforms: list[PatchTransform], c: int, *, enough: float = np.inf) -> float:
     syn = make_synthetic(
         Chessboard(step=0.0, seed=3),
         rows=1,
@@ -31,11 +35,31 @@ def _rise(transforms: list[PatchTransform], c: int) -> float:
     scale = float(min(patches[0].pixel_size))
     bank = SurfaceBank(patches, scale, 0.0, 1)
     state = MosaicState.from_transforms(transforms, bank, scale)
-    return moved_misfit_rise(bank, state, np.array([[0, 1]]), c)
+    return moved_misfit_rise(bank, state, np.array([[0, 1]]), c, enough=enough)
 
 
 def test_registered_roughness_confirms_its_place() -> None:
     assert _rise([PatchTransform(), PatchTransform()], 1) > 3 * CONFIRMS
+
+
+def test_a_rise_that_is_enough_ends_the_search_with_the_same_answer(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    looks: list[int] = []
+
+    def counted(*args: Any) -> Any:
+        looks.append(1)
+        return residuals(*args)
+
+    monkeypatch.setattr(confirmation, "residuals", counted)
+    placed = [PatchTransform(), PatchTransform()]
+    full, tries = _rise(placed, 1), len(looks)
+    early = _rise(placed, 1, enough=CONFIRMS)
+    assert CONFIRMS <= early <= full
+    # the fit, then the first distance's four directions: the others are not tried
+    assert len(looks) - tries == 1 + len(COMPASS) < tries
+    off = [PatchTransform(), PatchTransform(t=np.array([1.3e-7, 1e-8, 0.0]))]
+    assert _rise(off, 1, enough=CONFIRMS) == _rise(off, 1)  # not enough anywhere: all tried
 
 
 @pytest.mark.parametrize("dx", [1.3e-7, -1.6e-7])
