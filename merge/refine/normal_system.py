@@ -32,7 +32,6 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from merge.core import parallel
 from merge.core.information import line_design, line_sums, noise_share, psd_part
 from merge.core.parallel import each
 from merge.core.progress import checkpoint
@@ -46,31 +45,13 @@ from merge.refine.lines import (
     shared_ratios,
 )
 from merge.refine.rows import PatchState, jacobians, lever_arms, residuals, segment_sums
-from merge.refine.runs import Runs
+from merge.refine.runs import BlockPlan, Runs, block_plan
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
 #: Float arrays of any width (float32 where the mosaic's memory counts).
 Floats = NDArray[np.floating[Any]]
 
-#: Rows per block of the system build (whole runs are kept together), at most; a block holds
-#: about 400 bytes a row while it is processed, on each core.
-BLOCK_ROWS = 1 << 15
-#: Input pixels per row of a block, and the fewest rows of a block: a small mosaic's blocks are
-#: smaller, so its working set stays a share of its data (a block on each core: 16 bytes per
-#: input pixel). 100 patches of 64 x 64 px: 8,192 rows, the refinement's peak 30 -> 19 MB, 74 ->
-#: 47 bytes per input pixel; 400 patches reach the cap. Counted in the patches' pixels, not in
-#: the level's rows: the coarse levels, with a quarter of the rows, took four times the blocks.
-#: Below 8,192 rows a block's Python-level work outweighs its array work (50 patches of 30 x 60
-#: px, one core: a raw step 0.077 s at 4,096 rows, 0.065 at 8,192, 0.063 at 16,384).
-PIXELS_PER_BLOCK_ROW, LEAST_BLOCK_ROWS = 50, 8192
-#: Rows a block holds before sharing the blocks among the cores pays: a smaller block is many
-#: small array operations, between which two threads hand the interpreter to each other. On
-#: two cores, a raw step of 50 patches of 30 x 60 px took 0.10-0.11 s on both at 4,096 rows, 0.075
-#: s on one; 400 patches of 64 x 64 px at 8,192 rows 0.88-1.03 s on both, 0.80-0.84 on one; 16
-#: patches of 200 x 200 px at 12,800 rows 0.083 s on both, 0.11 on one (in blocks twice as
-#: large); 400 patches at 16,384 rows 0.67-0.76 s on both, 0.76-0.78 on one.
-SHARED_BLOCK_ROWS = 12_000
 #: Storage of every row's residual and of its destination's slopes between the build's passes
 #: (:class:`ScoredRows`): all that a row holds beyond its block.
 RESIDUAL_DTYPE = np.float32
@@ -79,27 +60,6 @@ GRAD_DTYPE = np.float16
 #: millions moves by a thousandth of itself, and a copy of every row's residual was a sixth of
 #: the build's memory).
 MEDIAN_ROWS = 1 << 22
-
-
-@dataclass(frozen=True)
-class BlockPlan:
-    """How the system's rows are built: ``rows`` per block, and whether the blocks are shared
-    among the cores (``on_cores``, :func:`merge.core.parallel.each`)."""
-
-    rows: int
-    on_cores: bool
-
-
-def block_plan(pixels: int) -> BlockPlan:
-    """The blocks of a mosaic of ``pixels`` input pixels: one of :data:`PIXELS_PER_BLOCK_ROW`
-    pixels a row on each core where that holds :data:`SHARED_BLOCK_ROWS` (at most
-    :data:`BLOCK_ROWS`); else all on one core, in blocks as large as the cores' would have
-    been together (the same working set; :data:`LEAST_BLOCK_ROWS` at least)."""
-    per_core = pixels // PIXELS_PER_BLOCK_ROW
-    if parallel.WORKERS > 1 and per_core >= SHARED_BLOCK_ROWS:
-        return BlockPlan(min(per_core, BLOCK_ROWS), True)
-    together = per_core * parallel.WORKERS
-    return BlockPlan(int(np.clip(together, LEAST_BLOCK_ROWS, BLOCK_ROWS)), False)
 
 
 @dataclass(frozen=True)

@@ -7,8 +7,9 @@ import pytest
 from scipy import ndimage
 
 from merge.core import parallel
-from merge.refine import normal_system
-from merge.refine.normal_system import BlockPlan, block_plan, build_normal_system
+from merge.refine import runs
+from merge.refine.normal_system import build_normal_system
+from merge.refine.runs import block_plan
 from merge.refine.slope_widths import choose_source_slopes
 from tests.merge.refine.test_rows import four_patches
 from tests.merge.refine.test_slope_widths import overlapping_pair
@@ -21,7 +22,7 @@ def test_the_system_does_not_depend_on_its_blocks(
 ) -> None:
     monkeypatch.setattr(parallel, "WORKERS", 2)
     if on_cores:  # these patches' blocks are small: shared among the cores all the same
-        monkeypatch.setattr(normal_system, "SHARED_BLOCK_ROWS", 0)
+        monkeypatch.setattr(runs, "SHARED_BLOCK_ROWS", 0)
     bank, state = four_patches()
     assert block_plan(int(np.dot(bank.nx, bank.ny))).on_cores == on_cores
     pairs = np.array([[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]])
@@ -37,22 +38,6 @@ def test_the_system_does_not_depend_on_its_blocks(
     assert split.rscale == whole.rscale
     assert split.rms == pytest.approx(whole.rms, rel=1e-12)
     assert split.line_design == pytest.approx(whole.line_design, rel=1e-12)
-
-
-def test_blocks_are_shared_among_the_cores_only_where_they_are_large(
-    monkeypatch: pytest.MonkeyPatch,
-) -> None:
-    monkeypatch.setattr(parallel, "WORKERS", 2)
-    large = normal_system.SHARED_BLOCK_ROWS * normal_system.PIXELS_PER_BLOCK_ROW
-    assert block_plan(large) == BlockPlan(normal_system.SHARED_BLOCK_ROWS, True)
-    assert block_plan(100 * large) == BlockPlan(normal_system.BLOCK_ROWS, True)
-    # below, one core works the blocks both would have held at once
-    assert block_plan(large - normal_system.PIXELS_PER_BLOCK_ROW) == BlockPlan(
-        2 * (normal_system.SHARED_BLOCK_ROWS - 1), False
-    )
-    assert block_plan(1000) == BlockPlan(normal_system.LEAST_BLOCK_ROWS, False)
-    monkeypatch.setattr(parallel, "WORKERS", 1)
-    assert block_plan(100 * large) == BlockPlan(normal_system.BLOCK_ROWS, False)
 
 
 def test_no_correspondence_gives_an_empty_system() -> None:
