@@ -29,7 +29,8 @@ from merge.core.patchset import Patch
 from merge.core.progress import checkpoint
 from merge.core.transforms import PatchTransform
 from merge.refine.bank import SurfaceBank
-from merge.refine.rows import residuals
+from merge.refine.rows import feet
+from merge.refine.runs import RowBlock
 from merge.refine.state import MosaicState
 
 FloatArray = NDArray[np.float64]
@@ -89,26 +90,47 @@ def moved_misfit_rise(
         return float("nan")
     pitch = np.array([bank.dx[c], bank.dy[c]], dtype=np.float64)
     margin = 1.5 * float(max(bank.dx.max(), bank.dy.max())) + max(STEPS) * float(pitch.max())
-    rows = bank.rows(bank.candidates(mine, state.R, state.s, margin))
-    own = rows.src == c
-    r0, valid0, _, _ = residuals(bank, rows, state)
+    runs = bank.candidates(mine, state.R, state.s, margin)
+    # c's points over its neighbours (a source's runs follow each other)
+    own = np.flatnonzero(runs.src == c)
+    if not len(own):
+        return float("nan")
+    rows = bank.rows(runs, int(own[0]), int(own[-1]) + 1)
+    checkpoint()
+    r0, valid0 = _moved_residuals(bank, rows, state, np.zeros((1, 3)))
     best = float("nan")
     for step in STEPS:
+        checkpoint()
+        shifts = np.array([[step * pitch[0] * x, step * pitch[1] * y, 0.0] for x, y in directions])
+        r1, valid1 = _moved_residuals(bank, rows, state, shifts)
         rises = []
-        for direction in directions:
-            checkpoint()
-            moved = MosaicState(state.R, state.s.copy(), state.slope)
-            moved.s[c, :2] += step * pitch * np.array(direction)
-            r1, valid1, _, _ = residuals(bank, rows, moved)
-            ok = own & valid0 & valid1
+        for k in range(len(directions)):
+            ok = valid0[0] & valid1[k]
             if ok.sum() < MIN_POINTS:
                 continue
-            rises.append(_rise(r0[ok], r1[ok], rows.dst[ok]))
+            rises.append(_rise(r0[0, ok], r1[k, ok], rows.dst[ok]))
         if len(rises) == len(directions) and not min(rises) <= best:  # NaN-safe max
             best = min(rises)
         if best >= enough:
             break
     return best
+
+
+def _moved_residuals(
+    bank: SurfaceBank, rows: RowBlock, state: MosaicState, shifts: FloatArray
+) -> tuple[FloatArray, NDArray[np.bool_]]:
+    """The residuals (K, m) of ``rows``, all of one source patch, and their validity, with
+    that patch moved by each of ``shifts`` (K, 3; mosaic frame, the bank's units): as
+    :func:`merge.refine.rows.residuals` of the moved placement, every move in one look-up
+    (moving the source by ``d`` moves every foot by ``R_dst' d``)."""
+    _, p_dst, solid = feet(bank, rows, state)
+    moved = p_dst[None] + np.einsum("mji,kj->kmi", state.R[rows.dst], shifts)
+    k, m = moved.shape[:2]
+    h, _, _, ok = bank.lookup(np.tile(rows.dst, k), moved.reshape(-1, 3))
+    ok = ok.reshape(k, m) & solid
+    slope = state.slope[rows.dst]
+    above = moved[..., 2] - np.einsum("mi,kmi->km", slope, moved[..., :2]) - h.reshape(k, m)
+    return np.where(ok, above, 0.0), ok
 
 
 def _rise(fitted: FloatArray, moved: FloatArray, dst: IntArray) -> float:

@@ -38,6 +38,26 @@ def _rise(transforms: list[PatchTransform], c: int, *, enough: float = np.inf) -
     return moved_misfit_rise(bank, state, np.array([[0, 1]]), c, enough=enough)
 
 
+def test_the_moves_look_up_what_moving_the_patch_would() -> None:
+    syn = make_synthetic(Chessboard(seed=3), rows=1, cols=2, drift=STILL, pixels=(30, 30))
+    patches = list(syn.patch_set)
+    scale = float(min(patches[0].pixel_size))
+    bank = SurfaceBank(patches, scale, 0.0, 1)
+    state = MosaicState.from_transforms([PatchTransform(), PatchTransform()], bank, scale)
+    runs = bank.candidates(np.array([[0, 1]]), state.R, state.s, 10.0)
+    own = np.flatnonzero(runs.src == 1)
+    rows = bank.rows(runs, int(own[0]), int(own[-1]) + 1)
+    shifts = np.array([[0.0, 0.0, 0.0], [2.0, 0.0, 0.0], [0.0, -4.0, 0.0]])
+    r, ok = confirmation._moved_residuals(bank, rows, state, shifts)
+    for k, d in enumerate(shifts):
+        moved = MosaicState(state.R, state.s.copy(), state.slope)
+        moved.s[1] += d
+        r1, ok1, _, _ = residuals(bank, rows, moved)
+        np.testing.assert_array_equal(ok[k], ok1)
+        np.testing.assert_allclose(r[k], r1, rtol=0, atol=1e-12)
+    assert ok.sum() > 100
+
+
 def test_registered_roughness_confirms_its_place() -> None:
     assert _rise([PatchTransform(), PatchTransform()], 1) > 3 * CONFIRMS
 
@@ -46,18 +66,19 @@ def test_a_rise_that_is_enough_ends_the_search_with_the_same_answer(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     looks: list[int] = []
+    look = confirmation._moved_residuals
 
     def counted(*args: Any) -> Any:
-        looks.append(1)
-        return residuals(*args)
+        looks.append(len(args[-1]))
+        return look(*args)
 
-    monkeypatch.setattr(confirmation, "residuals", counted)
+    monkeypatch.setattr(confirmation, "_moved_residuals", counted)
     placed = [PatchTransform(), PatchTransform()]
-    full, tries = _rise(placed, 1), len(looks)
+    full, tries = _rise(placed, 1), sum(looks)
     early = _rise(placed, 1, enough=CONFIRMS)
     assert CONFIRMS <= early <= full
     # the fit, then the first distance's four directions: the others are not tried
-    assert len(looks) - tries == 1 + len(COMPASS) < tries
+    assert sum(looks) - tries == 1 + len(COMPASS) < tries
     off = [PatchTransform(), PatchTransform(t=np.array([1.3e-7, 1e-8, 0.0]))]
     assert _rise(off, 1, enough=CONFIRMS) == _rise(off, 1)  # not enough anywhere: all tried
 
