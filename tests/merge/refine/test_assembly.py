@@ -19,7 +19,7 @@ def test_lines_shared_between_runs_enter_the_system_through_the_runs_relative_un
     pairs = np.array([[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]])
     cand = bank.candidates(pairs, state.R, state.s, 1.5)
     blocks = cand.blocks(1000)
-    rows = ns._scored_rows(bank, cand, state, 0.1, blocks)
+    rows = ns._scored_rows(bank, cand, state, 0.1, blocks, False)
     assert rows is not None
     info = ns._run_information(bank, cand, state, rows, blocks, OffsetRatios(3.0, 2.0))
     shared = info.shared
