@@ -26,7 +26,7 @@ sums, for the size of their offsets; the information of every run.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -45,7 +45,7 @@ from merge.refine.lines import (
     shared_ratios,
 )
 from merge.refine.rows import PatchState, jacobians, lever_arms, residuals, segment_sums
-from merge.refine.runs import BlockPlan, Runs, block_plan
+from merge.refine.runs import BLOCK_ROWS, BlockPlan, Runs, block_plan
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
@@ -56,6 +56,9 @@ Floats = NDArray[np.floating[Any]]
 #: (:class:`ScoredRows`): all that a row holds beyond its block.
 RESIDUAL_DTYPE = np.float32
 GRAD_DTYPE = np.float16
+#: Storage of the robust weights a level keeps from one step to the next (in [0, 1]: a
+#: thousandth is more than their own precision).
+WEIGHT_DTYPE = np.float16
 #: Rows the robust scale is the median of, at most (evenly spread over the mosaic; a median of
 #: millions moves by a thousandth of itself, and a copy of every row's residual was a sixth of
 #: the build's memory).
@@ -91,6 +94,8 @@ class NormalSystem:
     signal_vals: FloatArray | None = None
     line_design: float = 1.0
     slope_count: FloatArray | None = None
+    #: (m,) the robust weight of every row of the build, if asked for (``keep_weights``)
+    weights: Floats | None = None
 
     @classmethod
     def empty(cls, n: int) -> NormalSystem:
@@ -117,6 +122,8 @@ def build_normal_system(
     block_rows: int | None = None,
     signal: bool = False,
     lines: bool = True,
+    weights: Floats | None = None,
+    keep_weights: bool = False,
 ) -> NormalSystem:
     """The Gauss-Newton system over all correspondences, and per-patch statistics.
 
@@ -138,7 +145,14 @@ def build_normal_system(
     lines : bool, keyword-only
         Marginalise the offsets of scan lines (:mod:`merge.refine.lines`), their size measured on
         the residuals.
+    weights : (m,) array, keyword-only
+        Robust weights of every row of ``runs`` (in their order) to use instead of the Cauchy
+        weights of this placement's residuals (an earlier step's, ``keep_weights``).
+    keep_weights : bool, keyword-only
+        Return the robust weights this build used (``NormalSystem.weights``).
     """
+    if weights is not None and len(weights) != runs.size:
+        raise ValueError(f"weights must hold one per row ({runs.size}), not {len(weights)}")
     n = len(bank.centre)
     plan = block_plan(int(np.dot(bank.nx, bank.ny)))
     if block_rows is not None:
@@ -147,6 +161,9 @@ def build_normal_system(
     rows = None if runs.size == 0 else _scored_rows(bank, runs, state, noise, blocks, plan.on_cores)
     if rows is None:
         return NormalSystem.empty(n)
+    if weights is not None:
+        rows = replace(rows, fixed=weights)
+    kept = rows.fixed if rows.fixed is not None or not keep_weights else rows.weights()
     rms, rscale = rows.rms, rows.rscale
     noise2 = None
     if signal:
@@ -195,6 +212,7 @@ def build_normal_system(
         signal_vals=signal_vals,
         line_design=design,
         slope_count=slope_count if signal else None,
+        weights=kept if keep_weights else None,
     )
 
 
@@ -212,14 +230,32 @@ class ScoredRows:
     rms: float
     rscale: float
     smoothed: NDArray[np.bool_] | None = None
+    #: (m,) robust weights kept from an earlier step (:func:`build_normal_system`'s
+    #: ``weights``), or None: each row's own Cauchy weight
+    fixed: Floats | None = None
 
     def block(self, lo: int, hi: int) -> tuple[FloatArray, NDArray[np.bool_], FloatArray]:
-        """Rows ``[lo, hi)``: residual (0 where not valid), validity and Cauchy weight."""
+        """Rows ``[lo, hi)``: residual (0 where not valid), validity and robust weight."""
         r = self.r[lo:hi].astype(np.float64)
         ok = np.isfinite(r)
         r[~ok] = 0.0
-        w = np.where(ok, 1.0 / (1.0 + (r / (3.0 * self.rscale)) ** 2), 0.0)
-        return r, ok, w
+        if self.fixed is not None:
+            return r, ok, np.where(ok, self.fixed[lo:hi].astype(np.float64), 0.0)
+        return r, ok, np.where(ok, cauchy(r, self.rscale), 0.0)
+
+    def weights(self) -> Floats:
+        """(m,) every row's Cauchy weight here (0 where not valid), block by block."""
+        out = np.empty(len(self.r), dtype=WEIGHT_DTYPE)
+        for lo in range(0, len(self.r), BLOCK_ROWS):
+            r = self.r[lo : lo + BLOCK_ROWS].astype(np.float64)
+            out[lo : lo + BLOCK_ROWS] = np.nan_to_num(cauchy(r, self.rscale))
+        return out
+
+
+def cauchy(r: FloatArray, rscale: float) -> FloatArray:
+    """The Cauchy weight of residuals ``r`` at robust scale ``rscale`` (both pixel units)."""
+    out: FloatArray = 1.0 / (1.0 + (r / (3.0 * rscale)) ** 2)
+    return out
 
 
 def _scored_rows(

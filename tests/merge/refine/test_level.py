@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import pytest
 
@@ -39,3 +41,28 @@ def test_the_raw_level_stops_once_steps_move_no_height_by_a_tenth_of_the_noise(
     # what the extra iterations buy is far below the noise (1 nm) in either direction
     assert abs(e_default[0] - e_polished[0]) < 0.05e-9
     assert abs(e_default[1] - e_polished[1]) < 0.05e-9
+
+
+def test_the_raw_level_holds_its_robust_weights_once_its_steps_are_small(
+    small_mosaic: Synthetic, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    steps: list[tuple[bool, bool, bool]] = []  # raw level, weights held, weights kept
+    step = level._step
+
+    def recorded(fit: Any, lv: Any, cand: Any, **kwargs: Any) -> Any:
+        steps.append((lv.raw, kwargs["weights"] is not None, kwargs["freeze"]))
+        return step(fit, lv, cand, **kwargs)
+
+    monkeypatch.setattr(level, "_step", recorded)
+    monkeypatch.setattr(level, "FREEZE_MOTION", 1e6)  # as soon as the first raw step is done
+    monkeypatch.setattr(level, "HEIGHT_TOL", 0.0)  # steps until no patch moves 1e-3 px
+    pipeline.run(small_mosaic.patch_set)
+    raw = [s for s in steps if s[0]]
+    assert not any(held or freeze for r, held, freeze in steps if not r)
+    assert len(raw) >= 3 and raw[0] == (True, False, False)
+    assert raw[1] == (True, False, True)  # the weights of the second step are kept ...
+    assert all(s == (True, True, False) for s in raw[2:])  # ... and held after
+    steps.clear()
+    monkeypatch.setattr(level, "FREEZE_MOTION", 0.0)  # never
+    pipeline.run(small_mosaic.patch_set)
+    assert not any(held or freeze for _, held, freeze in steps)

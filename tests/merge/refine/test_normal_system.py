@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from scipy import ndimage
@@ -83,3 +85,25 @@ def test_smoothed_slopes_claim_less_of_the_information_for_noise() -> None:
     err_own = np.abs(own.signal_vals[place] / truth.vals[place] - 1.0)
     err_looked_up = np.abs(looked_up.signal_vals[place] / truth.vals[place] - 1.0)
     assert (err_own < 0.5 * err_looked_up).all()
+
+
+def test_held_weights_stand_in_for_the_rows_own_cauchy_weights() -> None:
+    bank, state = four_patches()
+    pairs = np.array([[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]])
+    cand = bank.candidates(pairs, state.R, state.s, 1.5)
+    own = build_normal_system(bank, cand, state, 0.1, keep_weights=True)
+    assert own.weights is not None and len(own.weights) == cand.size
+    w = own.weights.astype(np.float64)  # rows whose foot misses their destination: 0
+    assert (w >= 0.0).all() and 0.0 < w[w > 0].min() < w.max() <= 1.0
+    # the same weights given back: the same system, to the weights' storage precision
+    held = build_normal_system(bank, cand, state, 0.1, weights=own.weights)
+    np.testing.assert_allclose(held.g, own.g, rtol=2e-3, atol=1e-9)
+    np.testing.assert_allclose(held.diag, own.diag, rtol=2e-3, atol=1e-9)
+    # held where the rows have moved, they weight the rows as they did there
+    moved = replace(state, s=state.s + np.array([0.4, -0.3, 0.0]) * (np.arange(4) == 1)[:, None])
+    again = build_normal_system(bank, cand, moved, 0.1, weights=own.weights, keep_weights=True)
+    assert again.weights is own.weights
+    fresh = build_normal_system(bank, cand, moved, 0.1)
+    assert not np.allclose(again.g, fresh.g, rtol=1e-3)
+    with pytest.raises(ValueError, match="one per row"):
+        build_normal_system(bank, cand, state, 0.1, weights=own.weights[:-1])
