@@ -7,8 +7,9 @@ reused without page faults); after it, what the pass freed stays resident while 
 arrays come on top of it. At the peak of a merge of 900 patches of 64 x 64 px, with its threads
 on one heap and the heaps trimmed between stages (:mod:`backend.allocator`), the heap still held
 27 bytes per input pixel free, of a peak of 58-65. :func:`release_freed` gives such pages back:
-:func:`merge.core.parallel.each` calls it when a pass of blocks ends (a walk over the heaps' free
-lists, a few milliseconds per merge of 400 patches), not per block.
+:func:`merge.core.parallel.each` calls it when a pass of blocks shared among the cores ends (a
+walk over the heaps' free lists, a few milliseconds per merge of 400 patches), not per block; a
+small mosaic's passes, on one core, reuse their few megabytes as they are.
 """
 
 from __future__ import annotations

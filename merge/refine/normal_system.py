@@ -163,7 +163,9 @@ def build_normal_system(
         return NormalSystem.empty(n)
     if weights is not None:
         rows = replace(rows, fixed=weights)
-    kept = rows.fixed if rows.fixed is not None or not keep_weights else rows.weights()
+    kept = None
+    if keep_weights:  # the weights this build uses, for later builds to hold
+        kept = rows.fixed if rows.fixed is not None else rows.weights()
     rms, rscale = rows.rms, rows.rscale
     noise2 = None
     if signal:
@@ -212,7 +214,7 @@ def build_normal_system(
         signal_vals=signal_vals,
         line_design=design,
         slope_count=slope_count if signal else None,
-        weights=kept if keep_weights else None,
+        weights=kept,
     )
 
 
