@@ -146,8 +146,7 @@ def build_normal_system(
         Marginalise the offsets of scan lines (:mod:`merge.refine.lines`), their size measured on
         the residuals.
     weights : (m,) array, keyword-only
-        Robust weights of every row of ``runs`` (in their order) to use instead of the Cauchy
-        weights of this placement's residuals (an earlier step's, ``keep_weights``).
+        Robust weights of the rows of ``runs``, in order, instead of their own Cauchy weights.
     keep_weights : bool, keyword-only
         Return the robust weights this build used (``NormalSystem.weights``).
     """
@@ -249,6 +248,7 @@ class ScoredRows:
         """(m,) every row's Cauchy weight here (0 where not valid), block by block."""
         out = np.empty(len(self.r), dtype=WEIGHT_DTYPE)
         for lo in range(0, len(self.r), BLOCK_ROWS):
+            checkpoint()  # 50 million rows (10,000 patches) take 0.3 s
             r = self.r[lo : lo + BLOCK_ROWS].astype(np.float64)
             out[lo : lo + BLOCK_ROWS] = np.nan_to_num(cauchy(r, self.rscale))
         return out
