@@ -71,6 +71,19 @@ def feet(
     return M, p_dst, solid
 
 
+def heights_above(
+    bank: SurfaceBank, dst: Ints, p_dst: FloatArray, slope: FloatArray, solid: NDArray[np.bool_]
+) -> tuple[FloatArray, NDArray[np.bool_], FloatArray, FloatArray]:
+    """Each point ``p_dst`` (m, 3; its destination's frame) above its destination ``dst``
+    (m,)'s surface and drift plane ``slope`` (m, 2): the height (0 where not valid), whether
+    it is valid (the source holds a height there, ``solid`` (m,), and the look-up hits) and the
+    surface's slopes there (:meth:`SurfaceBank.lookup`)."""
+    h, gx, gy, ok = bank.lookup(dst, p_dst)
+    ok &= solid
+    r = np.where(ok, p_dst[:, 2] - np.einsum("mi,mi->m", slope, p_dst[:, :2]) - h, 0.0)
+    return r, ok, gx, gy
+
+
 def residuals(
     bank: SurfaceBank, rows: RowBlock, state: PatchState
 ) -> tuple[FloatArray, NDArray[np.bool_], FloatArray, NDArray[np.bool_]]:
@@ -98,10 +111,8 @@ def residuals(
     """
     starts = rows.starts
     M, p_dst, solid = feet(bank, rows, state)
-    h, gx, gy, ok = bank.lookup(rows.dst, p_dst)
-    ok &= solid
     slope = state.slope[rows.dst]
-    r = np.where(ok, p_dst[:, 2] - np.einsum("mi,mi->m", slope, p_dst[:, :2]) - h, 0.0)
+    r, ok, gx, gy = heights_above(bank, rows.dst, p_dst, slope, solid)
     grad = np.column_stack([gx, gy]) + slope
     if bank.nodes > 1:  # the raw heights' spline (the band, above)
         near = np.flatnonzero(ok & bank.near_border(rows.dst, p_dst))

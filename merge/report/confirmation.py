@@ -29,7 +29,7 @@ from merge.core.patchset import Patch
 from merge.core.progress import checkpoint
 from merge.core.transforms import PatchTransform
 from merge.refine.bank import SurfaceBank
-from merge.refine.rows import feet
+from merge.refine.rows import feet, heights_above
 from merge.refine.runs import RowBlock
 from merge.refine.state import MosaicState
 
@@ -126,11 +126,11 @@ def _moved_residuals(
     _, p_dst, solid = feet(bank, rows, state)
     moved = p_dst[None] + np.einsum("mji,kj->kmi", state.R[rows.dst], shifts)
     k, m = moved.shape[:2]
-    h, _, _, ok = bank.lookup(np.tile(rows.dst, k), moved.reshape(-1, 3))
-    ok = ok.reshape(k, m) & solid
-    slope = state.slope[rows.dst]
-    above = moved[..., 2] - np.einsum("mi,kmi->km", slope, moved[..., :2]) - h.reshape(k, m)
-    return np.where(ok, above, 0.0), ok
+    tile = np.tile(np.arange(m), k)
+    r, ok, _, _ = heights_above(
+        bank, rows.dst[tile], moved.reshape(-1, 3), state.slope[rows.dst][tile], solid[tile]
+    )
+    return r.reshape(k, m), ok.reshape(k, m)
 
 
 def _rise(fitted: FloatArray, moved: FloatArray, dst: IntArray) -> float:
