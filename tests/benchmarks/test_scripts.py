@@ -30,3 +30,18 @@ def test_a_benchmark_prints_its_usage(script: str) -> None:
     )
     assert done.returncode == 0, done.stderr
     assert done.stdout.startswith("usage:")
+
+
+def test_the_bound_names_a_case_it_does_not_know() -> None:
+    """``crb.py`` takes the bench's and the grating sweep's cases by name; another is a usage
+    error that lists them, before any bound is computed."""
+    done = subprocess.run(
+        [sys.executable, str(BENCHMARKS / "crb.py"), "--cases", "paper-r200-p3-s0.6,nope"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+    )
+    assert done.returncode == 2
+    assert "unknown cases nope" in done.stderr
+    assert "paper-r200-p3-s0.6" in done.stderr.split("use", 1)[1]
