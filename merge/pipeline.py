@@ -301,6 +301,7 @@ def _solve(
         progress=progress,
         cancel=cancel,
         first_free=None if placed.complete else ~placed.measured_both,
+        measured=placed.measured_both,
         report=True,
     )
     return Solution.of_refinement(

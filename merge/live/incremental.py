@@ -265,6 +265,7 @@ class LiveMerge:
             levels=levels,
             shift_prior=SHIFT_PRIOR_FRACTION * max_shift,
             cancel=cancel,
+            measured=np.array(self.complete, dtype=bool),
             report=report,
         )
         self.transforms = list(fit.transforms)
@@ -359,7 +360,8 @@ class LiveMerge:
         held = np.zeros(len(members), dtype=bool)
         held[len(free) :] = True
         # the widest level for patches no start measured both ways, as the batch merge does
-        loose = np.array([not self.complete[int(j)] for j in members]) & ~held
+        complete = np.array([self.complete[int(j)] for j in members], dtype=bool)
+        loose = ~complete & ~held
         fit = refine(
             [self.patches[int(j)] for j in members],
             sub_pairs,
@@ -368,6 +370,7 @@ class LiveMerge:
             shift_prior=SHIFT_PRIOR_FRACTION * max_shift,
             held=held,
             first_free=loose if loose.any() else None,
+            measured=complete,
         )
         for k, j in enumerate(members[: len(free)]):
             self.transforms[int(j)] = fit.transforms[k]

@@ -150,6 +150,7 @@ def refine(
     progress: Progress | None = None,
     cancel: Callable[[], bool] | None = None,
     first_free: NDArray[np.bool_] | None = None,
+    measured: NDArray[np.bool_] | None = None,
     held: NDArray[np.bool_] | None = None,
     report: bool = False,
 ) -> RefineResult:
@@ -182,6 +183,10 @@ def refine(
     first_free : (n,) bool, keyword-only
         The patches the first level moves (the others held, and only pairs with a free patch
         in the system); default all.
+    measured : (n,) bool, keyword-only
+        The patches the start measured in XY along both axes: the raw level holds its robust
+        weights sooner where only they still move (:data:`merge.refine.level.FREEZE_MEASURED`).
+        Default none (a patch slipped along a grating's stripes creeps, and so is flagged).
     held : (n,) bool, keyword-only
         Patches held at their start in every level (they hold the gauge; only pairs with a
         patch not held enter the system): a neighbourhood refined against the mosaic around it
@@ -207,7 +212,9 @@ def refine(
         lv = _level_setup(patches, fit, pairs, li, level, first_free, held)
         if li == 1:
             plane_sigma = _plane_sigma(state.slope * lv.bank.radius[:, None], drift_prior / scale)
-        lv = replace(lv, plane_sigma=plane_sigma, shift_sigma=shift_prior / scale)
+        lv = replace(
+            lv, plane_sigma=plane_sigma, shift_sigma=shift_prior / scale, measured=measured
+        )
         last = li == len(levels) - 1
         keep = report and last and lv.raw and held is None
         level_converged = run_level(fit, lv, level, progress=progress, cancel=cancel, keep=keep)

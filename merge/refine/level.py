@@ -8,7 +8,8 @@ would move no height by :data:`HEIGHT_TOL` of the noise (the raw level, through
 :mod:`merge.refine.convergence`) or no patch by the level's tolerance, when the cost stalls
 (:data:`STALLS` steps in a row, or a cycle of up to :data:`CYCLE` steps), or when it runs out
 of iterations. Once the raw level's steps are small its robust weights are held
-(:data:`FREEZE_MOTION`). :class:`Fit` is what the levels hand each other.
+(:data:`FREEZE_MOTION`; sooner where only patches the start measured still move,
+:data:`FREEZE_MEASURED`). :class:`Fit` is what the levels hand each other.
 """
 
 from __future__ import annotations
@@ -74,6 +75,14 @@ CYCLE = 3
 #: claimed held 186 nm off. :func:`merge.refine.normal_system.build_normal_system`'s
 #: ``weights``.
 FREEZE_MOTION = 10.0
+#: The same for patches the start measured in XY along both axes: their correlation peaks
+#: placed them, so what still moves them by 0.01-0.04 px a step is the weights of the rows on
+#: steep ramps settling, not a slip (held below 0.01 px only, the paper grid's 50 nm ramps took
+#: 29-37 iterations and 3.4-3.7 s for the CLI; held from here, 20-26 and at most 2.9 s over the
+#: sweep's 240 runs, their map/floor within 2.6 % either way and XY RMS 0.84 -> 0.87 nm on the
+#: slowest case, every other case and the bench identical). :data:`FREEZE_MOTION` stays the
+#: limit wherever a patch the start did not measure still moves.
+FREEZE_MEASURED = 40.0
 #: Standard deviation (radians) of the prior on a patch's rotation about z.
 SPIN_PRIOR = np.radians(2.0)
 
@@ -101,7 +110,8 @@ class Fit:
 class LevelSetup:
     """One level's surfaces and system: ``bank``; the pairs in it and the patches ``held``
     (None: none); the look-up ``margin`` (pixels); whether it works on the raw heights; the
-    priors' sigmas of the drift planes (x, y) and of the XY shifts (pixel units)."""
+    priors' sigmas of the drift planes (x, y) and of the XY shifts (pixel units); the patches
+    the start ``measured`` in XY along both axes (None: not known, as if none)."""
 
     bank: SurfaceBank
     pairs: IntArray
@@ -110,6 +120,7 @@ class LevelSetup:
     raw: bool
     plane_sigma: FloatArray
     shift_sigma: float = np.inf
+    measured: NDArray[np.bool_] | None = None
 
 
 def run_level(
@@ -140,6 +151,7 @@ def run_level(
     # noise the level is done
     slope = slope_rms(bank) if lv.raw else np.inf
     effect = motion = np.inf
+    motions = None  # how far the last step moved every patch (pixels)
     weights = None  # the robust weights held (FREEZE_MOTION)
     for step in range(level.max_iter):
         if cancel is not None and cancel():
@@ -152,16 +164,15 @@ def run_level(
         # the level's first step is never the last but where no patch moves: its system goes
         # without the signal share, which costs a tenth of a build
         signal = keep and step > 0
-        freeze = weights is None and lv.raw and motion < FREEZE_MOTION * level.tol
+        freeze = weights is None and lv.raw and _small(motions, lv.measured, level.tol)
         rms, delta, stats = _step(fit, lv, cand, signal=signal, weights=weights, freeze=freeze)
         if freeze:
             weights = stats.weights
         fit.system = stats if signal else None
         del stats
         last_motion = motion if step > 1 else np.inf
-        motion = float(
-            (np.abs(delta[:, :3]).max(axis=1) + np.abs(delta[:, 3:]).max(axis=1)).max(initial=0)
-        )
+        motions = np.abs(delta[:, :3]).max(axis=1) + np.abs(delta[:, 3:]).max(axis=1)
+        motion = float(motions.max(initial=0))
         moved += motion
         fit.last_step = np.hypot(delta[:, 0], delta[:, 1]) + np.abs(delta[:, 3])
         fit.iteration += 1
@@ -192,6 +203,18 @@ def run_level(
             return True
     fit.system = None
     return False
+
+
+def _small(motions: FloatArray | None, measured: NDArray[np.bool_] | None, tol: float) -> bool:
+    """Whether the last step's ``motions`` (n,) are small enough to hold the robust weights:
+    no patch moved by :data:`FREEZE_MOTION` x ``tol``, or by :data:`FREEZE_MEASURED` x ``tol``
+    where the start ``measured`` it along both axes (None: none)."""
+    if motions is None:
+        return False
+    limit = np.full(len(motions), FREEZE_MOTION * tol)
+    if measured is not None:
+        limit[measured] = FREEZE_MEASURED * tol
+    return bool(np.all(motions < limit))
 
 
 def _cycled(recent: list[tuple[float, FloatArray]]) -> bool:

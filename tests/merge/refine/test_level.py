@@ -9,7 +9,7 @@ import pytest
 
 from merge import pipeline
 from merge.refine import level
-from merge.refine.level import _cycled
+from merge.refine.level import FREEZE_MEASURED, FREEZE_MOTION, _cycled, _small
 from tests.conftest import Synthetic
 
 
@@ -47,14 +47,18 @@ def test_the_raw_level_holds_its_robust_weights_once_its_steps_are_small(
     small_mosaic: Synthetic, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     steps: list[tuple[bool, bool, bool]] = []  # raw level, weights held, weights kept
+    measured = []
     step = level._step
 
     def recorded(fit: Any, lv: Any, cand: Any, **kwargs: Any) -> Any:
         steps.append((lv.raw, kwargs["weights"] is not None, kwargs["freeze"]))
+        measured.append(lv.measured)
         return step(fit, lv, cand, **kwargs)
 
     monkeypatch.setattr(level, "_step", recorded)
-    monkeypatch.setattr(level, "FREEZE_MOTION", 1e6)  # as soon as the first raw step is done
+    # as soon as the first raw step is done
+    monkeypatch.setattr(level, "FREEZE_MOTION", 1e6)
+    monkeypatch.setattr(level, "FREEZE_MEASURED", 1e6)
     monkeypatch.setattr(level, "HEIGHT_TOL", 0.0)  # steps until no patch moves 1e-3 px
     pipeline.run(small_mosaic.patch_set)
     raw = [s for s in steps if s[0]]
@@ -62,7 +66,21 @@ def test_the_raw_level_holds_its_robust_weights_once_its_steps_are_small(
     assert len(raw) >= 3 and raw[0] == (True, False, False)
     assert raw[1] == (True, False, True)  # the weights of the second step are kept ...
     assert all(s == (True, True, False) for s in raw[2:])  # ... and held after
+    # the pipeline tells the levels which patches its start measured (here all of them)
+    assert all(m is not None and m.all() for m in measured)
     steps.clear()
     monkeypatch.setattr(level, "FREEZE_MOTION", 0.0)  # never
+    monkeypatch.setattr(level, "FREEZE_MEASURED", 0.0)
     pipeline.run(small_mosaic.patch_set)
     assert not any(held or freeze for _, held, freeze in steps)
+
+
+def test_the_weights_are_held_sooner_where_only_patches_the_start_measured_still_move() -> None:
+    tol = 1e-3
+    between = 0.5 * (FREEZE_MOTION + FREEZE_MEASURED) * tol  # past one limit, within the other
+    motions = np.array([0.1 * tol, between])
+    assert not _small(None, None, tol)  # no step yet
+    assert not _small(motions, None, tol)  # not known: as if no patch was measured
+    assert not _small(motions, np.array([True, False]), tol)  # the one still moving: unmeasured
+    assert _small(motions, np.array([False, True]), tol)  # ... measured: it may creep that much
+    assert not _small(np.array([0.1 * tol, 2 * FREEZE_MEASURED * tol]), np.ones(2, bool), tol)
