@@ -47,8 +47,10 @@ IntArray = NDArray[np.intp]
 WIDTHS = (1.0, 1.5, 2.0, 3.0)
 #: Compared rows a patch needs before its overlaps can choose for it.
 LEAST_ROWS = 50
-#: Patches whose overlaps are compared, at most (evenly spread over a larger mosaic).
-SAMPLE_PATCHES = 64
+#: Patches whose overlaps are compared, at most (evenly spread over a larger mosaic). The
+#: median gain of 32 is that of 64 within 0.04 on every bench case and at 400 patches (none
+#: near the choice's 1; the paper grid's 50 patches 0.07 s sooner, 400 patches 0.11 s).
+SAMPLE_PATCHES = 32
 #: Patches per task shared among the cores.
 PATCHES_PER_TASK = 8
 
