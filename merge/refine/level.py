@@ -78,7 +78,7 @@ FREEZE_MOTION = 10.0
 #: The same for patches the start measured in XY along both axes: their correlation peaks
 #: placed them, so what still moves them by 0.01-0.04 px a step is the weights of the rows on
 #: steep ramps settling, not a slip (held below 0.01 px only, the paper grid's 50 nm ramps took
-#: 29-37 iterations and 3.4-3.7 s for the CLI; held from here, 20-26 and at most 2.9 s over the
+#: 29-37 iterations and 3.4-3.7 s for the CLI; held from here, at most 26 and 2.9 s over the
 #: sweep's 240 runs, their map/floor within 2.6 % either way and XY RMS 0.84 -> 0.87 nm on the
 #: slowest case, every other case and the bench identical). :data:`FREEZE_MOTION` stays the
 #: limit wherever a patch the start did not measure still moves.
