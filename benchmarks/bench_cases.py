@@ -6,7 +6,8 @@ its patch set with the truth (:meth:`Case.synthesize`) and is drawn again with o
 drift and noise (:meth:`Case.redrawn`). :data:`CASES` are the fixed bench cases;
 :func:`grating_cases` the TGX1-like chessboards of the edge-ramp and period sweep. A merge's map
 error is scored against the true surface after the gauge (:func:`map_error`), beside the floor:
-the true transforms through the same renderer (:func:`floor_of`).
+the true transforms through the same renderer (:func:`floor_of`); both with the registration
+errors, for a merge's transforms and mosaic, by :func:`scored_merge`.
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
+from backend.synthetic import Scored, scored
 from hardware.sim.drift import DriftModel
 from hardware.sim.surfaces import Chessboard, FoldedSurface, ImageSurface, Surface
 from hardware.sim.synth import SynthPatch, scan_fraction, synthesize
@@ -246,3 +248,17 @@ def floor_of(synth: list[SynthPatch], surface: Surface) -> float:
     return map_error(
         mosaic.heights, mosaic.origin, mosaic.pixel_size, surface, np.eye(3), np.zeros(3)
     )
+
+
+def scored_merge(
+    synth: list[SynthPatch],
+    transforms: list[PatchTransform],
+    mosaic: Mosaic,
+    surface: Surface,
+) -> tuple[Scored, float]:
+    """A merge of ``synth`` against its truth: its ``transforms`` (one per patch, in order)
+    scored (:func:`backend.synthetic.scored`) and the map error (m) of its ``mosaic`` after
+    that score's gauge (:func:`map_error`)."""
+    score = scored(synth, transforms)
+    G, g = score.gauge
+    return score, map_error(mosaic.heights, mosaic.origin, mosaic.pixel_size, surface, G, g)

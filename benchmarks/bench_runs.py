@@ -15,11 +15,11 @@ from typing import Any
 
 import numpy as np
 
-from backend.synthetic import patch_set_from_synth, scored, sigma_calibration
+from backend.synthetic import patch_set_from_synth, sigma_calibration
 from merge import read_result, write_patch_set
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_cases import ROOT, Case, floor_of, map_error  # a module beside this script
+from bench_cases import ROOT, Case, floor_of, scored_merge  # a module beside this script
 
 CLI = [sys.executable, "-m", "backend.cli"]
 
@@ -61,10 +61,8 @@ def run_case(case: Case, work: Path) -> dict[str, Any]:
         wall, peak, _ = run_cli(args)
         res = read_result(out)
         tr = res.transforms
-        score = scored(synth, [tr[s.id] for s in synth])
-        exy, ez, (G, g) = score.xy, score.z, score.gauge
-        m = res.mosaic
-        merr = map_error(m.heights, m.origin, m.pixel_size, surface, G, g)
+        score, merr = scored_merge(synth, [tr[s.id] for s in synth], res.mosaic, surface)
+        exy, ez = score.xy, score.z
         unconstrained = sum(not p["xy_constrained"] for p in res.document["patches"])
         reports = {p["id"]: p for p in res.document["patches"]}
         sigmas = np.array(

@@ -28,7 +28,7 @@ import numpy as np
 from cramer_rao import efficient_errors, rms_nm, spread_of  # a module beside this script
 from numpy.typing import NDArray
 
-from backend.synthetic import patch_set_from_synth, registration_error
+from backend.synthetic import patch_set_from_synth
 from merge import run
 
 if TYPE_CHECKING:
@@ -78,14 +78,12 @@ def merge_over_noise(case: Case, draws: int, *, seed: int = 0) -> dict[str, floa
 def _merged(synth: list[SynthPatch], surface: Surface) -> tuple[float, float, float]:
     """The default merge of ``synth``: XY and Z registration errors (m) and the map error over
     the floor."""
-    from bench_cases import floor_of, map_error
+    from bench_cases import floor_of, scored_merge
 
     result = run(patch_set_from_synth(synth))
     by_id = {p.id: p.transform for p in result.patches}
-    exy, ez, (G, g) = registration_error(synth, [by_id[s.id] for s in synth])
-    m = result.mosaic
-    error = map_error(m.heights, m.origin, m.pixel_size, surface, G, g)
-    return exy, ez, error / floor_of(synth, surface)
+    score, error = scored_merge(synth, [by_id[s.id] for s in synth], result.mosaic, surface)
+    return score.xy, score.z, error / floor_of(synth, surface)
 
 
 def chosen_cases(names: str, draw: int) -> list[Case]:

@@ -31,7 +31,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from bench_cases import CASES, ROOT, Case, floor_of, map_error
+from bench_cases import CASES, ROOT, Case, floor_of, scored_merge
 
 from backend.synthetic import patch_set_from_synth, scored
 from hardware.sim.drift import DriftModel
@@ -104,10 +104,8 @@ def run_variation(k: int, overlaps: tuple[float, float] = OVERLAPS) -> dict[str,
     wall = time.perf_counter() - start
     by_id = {p.id: p for p in result.patches}
     transforms = [by_id[s.id].transform for s in synth]
-    score = scored(synth, transforms)
-    exy, ez, (G, g) = score.xy, score.z, score.gauge
-    m = result.mosaic
-    ratio = map_error(m.heights, m.origin, m.pixel_size, surface, G, g) / floor_of(synth, surface)
+    score, error = scored_merge(synth, transforms, result.mosaic, surface)
+    exy, ez, ratio = score.xy, score.z, error / floor_of(synth, surface)
     off = np.hypot(*score.patches[:, :2].T)
     held = np.array([by_id[s.id].xy_constrained for s in synth])
     sigma = np.array([by_id[s.id].xy_sigma for s in synth])
