@@ -289,8 +289,7 @@ def _solve(
     levels: tuple[Level, ...] = DEFAULT_LEVELS[1:] if placed.complete else DEFAULT_LEVELS
     if cfg.max_iter is not None:
         levels = tuple(
-            Level(lv.smooth, lv.stride, max(1, min(lv.max_iter, cfg.max_iter)), lv.tol)
-            for lv in levels
+            replace(lv, max_iter=max(1, min(lv.max_iter, cfg.max_iter))) for lv in levels
         )
     fit = refine(
         patches,

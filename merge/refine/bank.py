@@ -33,6 +33,9 @@ Ints = NDArray[np.integer[Any]]
 #: Arrays upsampled in one call: enough to spread the call's overhead, few enough that its
 #: temporaries stay a few megabytes (large ones cost page faults on every allocation).
 UPSAMPLE_BATCH = 16
+#: Share of a run's points (its outline's, without margin) that a border band must leave it,
+#: else the run keeps all its points (:meth:`SurfaceBank.candidates`).
+BAND_KEEPS = 0.5
 #: Storage of the nodes' heights (:attr:`SurfaceBank.height`): float32 keeps heights relative
 #: to a patch's median, in pixels, to a millionth of a pixel.
 SURFACE_DTYPE = np.float32
@@ -264,7 +267,9 @@ class SurfaceBank:
         out: FloatArray = top + fv * (h10 + fu * (h11 - h10) - top)
         return out
 
-    def candidates(self, pairs: IntArray, R: FloatArray, s: FloatArray, margin: float) -> Runs:
+    def candidates(
+        self, pairs: IntArray, R: FloatArray, s: FloatArray, margin: float, *, band: float = 0.0
+    ) -> Runs:
         """Points of every source patch that may fall on every destination patch.
 
         ``R`` (n, 3, 3) and ``s`` (n, 3) place every patch frame in the mosaic; ``margin``
@@ -273,11 +278,50 @@ class SurfaceBank:
         both patches of a pair). Returns one run per directed pair whose rectangle holds a point:
         the source's points within the destination's outline (its bounding box in the source's
         frame), the runs of each source one after another.
+
+        ``band`` (pixels): only the points of a run that far from both patches' borders (the
+        destination's outline narrowed by it, not widened by ``margin``), where that leaves it
+        :data:`BAND_KEEPS` of the points within the outline; else all of them (a narrow overlap
+        has none to spare). Smoothed heights near a border are partly the smoothing of the
+        heights' continuation beyond it, a guess that biases every pair, as patches overlap
+        along their borders (the widest level of :data:`merge.refine.icp.DEFAULT_LEVELS`).
         """
         pairs = np.asarray(pairs, dtype=np.intp).reshape(-1, 2)
         src, dst = pairs.ravel(), pairs[:, ::-1].ravel()
+        box, count = self._boxes(src, dst, R, s, margin=margin)
+        if band > 0:
+            inner, inner_count = self._boxes(src, dst, R, s, inset=band)
+            narrowed = inner_count >= BAND_KEEPS * self._boxes(src, dst, R, s)[1]
+            box[narrowed], count[narrowed] = inner[narrowed], inner_count[narrowed]
+        kept = np.flatnonzero(count > 0)
+        if not len(kept):
+            return Runs.empty()
+        # the runs of one source together: its scan lines' offsets are shared by all of them
+        kept = kept[np.argsort(src[kept], kind="stable")]
+        return Runs(
+            src[kept],
+            dst[kept],
+            box[kept],
+            np.concatenate([[0], np.cumsum(count[kept])]).astype(np.intp),
+        )
+
+    def _boxes(
+        self,
+        src: IntArray,
+        dst: IntArray,
+        R: FloatArray,
+        s: FloatArray,
+        *,
+        margin: float = 0.0,
+        inset: float = 0.0,
+    ) -> tuple[IntArray, IntArray]:
+        """Per directed pair: the rectangle (k, 4: rows ``[i0, i1)``, columns ``[j0, j1)``) of
+        the source's point grid within the destination's outline widened by ``margin`` (pixel
+        units), or narrowed by ``inset`` pixels and as far from the source's own border; the
+        points in each."""
         # every destination's outline in its source's local frame, all directed pairs at once
-        hx, hy = self.half[dst, 0], self.half[dst, 1]
+        hx = self.half[dst, 0] - inset * self.dx[dst]
+        hy = self.half[dst, 1] - inset * self.dy[dst]
         corners = np.zeros((len(dst), 4, 3))
         corners[:, :, 0] = np.column_stack([-hx, hx, hx, -hx])
         corners[:, :, 1] = np.column_stack([-hy, -hy, hy, hy])
@@ -286,6 +330,9 @@ class SurfaceBank:
         loc += np.einsum("kji,kj->ki", R[src], s[dst] - s[src])[:, None, :]
         lo = loc[:, :, :2].min(axis=1) - margin
         hi = loc[:, :, :2].max(axis=1) + margin
+        if inset > 0:  # the source's own pixels as far from its border
+            inner = self.half[src] - inset * np.column_stack([self.dx[src], self.dy[src]])
+            lo, hi = np.maximum(lo, -inner), np.minimum(hi, inner)
         # in the source's point grid (``pitch`` apart): point (t_y, t_x) lies at
         # (t_x, t_y) * pitch - half, so the box holds t from lo / pitch + half / pitch on
         pitch = np.column_stack([self.dx[src], self.dy[src]]) * self.stride
@@ -295,18 +342,7 @@ class SurfaceBank:
         g_hi = np.minimum(g_hi, np.column_stack([self.point_nx[src], self.point_ny[src]]))
         box = np.column_stack([g_lo[:, 1], g_hi[:, 1], g_lo[:, 0], g_hi[:, 0]])
         count = np.maximum(box[:, 1] - box[:, 0], 0) * np.maximum(box[:, 3] - box[:, 2], 0)
-        kept = count > 0
-        if not kept.any():
-            return Runs.empty()
-        # the runs of one source together: its scan lines' offsets are shared by all of them
-        kept = np.flatnonzero(kept)
-        kept = kept[np.argsort(src[kept], kind="stable")]
-        return Runs(
-            src[kept],
-            dst[kept],
-            box[kept],
-            np.concatenate([[0], np.cumsum(count[kept])]).astype(np.intp),
-        )
+        return box, count
 
     def rows(self, runs: Runs, first: int = 0, last: int | None = None) -> RowBlock:
         """The rows of runs ``[first, last)`` (all by default), line by line within each."""

@@ -43,6 +43,9 @@ class Level:
     stride: int
     max_iter: int
     tol: float  # largest patch motion (pixels) that counts as converged
+    #: pixels from both patches' borders within which the level takes no rows, where an
+    #: overlap leaves any beyond them (:meth:`merge.refine.bank.SurfaceBank.candidates`)
+    band: float = 0.0
 
 
 STALL = 1e-4
@@ -121,6 +124,7 @@ class LevelSetup:
     plane_sigma: FloatArray
     shift_sigma: float = np.inf
     measured: NDArray[np.bool_] | None = None
+    band: float = 0.0
 
 
 def run_level(
@@ -137,7 +141,7 @@ def run_level(
     one's is kept in ``fit.system`` if that step settled the level
     (:func:`merge.refine.icp.refine`'s ``report``)."""
     state, bank = fit.state, lv.bank
-    cand = bank.candidates(lv.pairs, state.R, state.s, lv.margin)
+    cand = bank.candidates(lv.pairs, state.R, state.s, lv.margin, band=lv.band)
     if lv.raw:
         # the Jacobians' slopes: the patches' own, smoothed, if the mosaic's overlaps at the
         # placement the smoothed levels reached show them better than the look-ups
@@ -158,7 +162,8 @@ def run_level(
             raise MergeCancelled("merge cancelled")
         checkpoint()
         if moved > 0.5 * lv.margin:
-            cand, moved = bank.candidates(lv.pairs, state.R, state.s, lv.margin), 0.0
+            cand = bank.candidates(lv.pairs, state.R, state.s, lv.margin, band=lv.band)
+            moved = 0.0
             weights = None
         fit.system = None  # a step's system is dropped before the next one is built
         # the level's first step is never the last but where no patch moves: its system goes

@@ -167,6 +167,34 @@ def test_runs_hold_exactly_the_points_inside_a_rotated_outline() -> None:
     np.testing.assert_allclose(xyz[:, 2], bank.grid(0)[rows.row + 1, rows.col + 1])
 
 
+def test_a_border_band_keeps_points_clear_of_both_borders_where_it_leaves_enough() -> None:
+    # a overlaps b by 15 columns along x, c (below it) by 3 rows along y
+    a = _plane_patch("a", (0.0, 0.0))
+    b = _plane_patch("b", (150e-9, 0.0))
+    c = _plane_patch("c", (0.0, 170e-9))
+    bank = SurfaceBank([a, b, c], 10e-9, 1.0, 1, border="repeat")
+    R = np.repeat(np.eye(3)[None], 3, axis=0)
+    s = bank.centre.copy()
+    pairs = np.array([[0, 1], [0, 2]])
+    plain = bank.candidates(pairs, R, s, 1.5)
+    banded = bank.candidates(pairs, R, s, 1.5, band=2.0)
+    assert banded.src.tolist() == plain.src.tolist() and banded.dst.tolist() == plain.dst.tolist()
+    rows = bank.rows(banded)
+    for k, (src, dst) in enumerate(zip(banded.src, banded.dst, strict=True)):
+        run = slice(banded.starts[k], banded.starts[k + 1])
+        row, col = rows.row[run], rows.col[run]
+        if {src, dst} == {0, 1}:  # 11 of the 15 columns, 16 of the 20 lines: two pixels clear
+            assert set(row.tolist()) == set(range(2, 18))
+            # of both borders: a's columns 17..27 (b's 2..12) and b's 2..12 (a's 17..27)
+            assert set(col.tolist()) == set(range(17, 28) if src == 0 else range(2, 13))
+        else:  # three lines of overlap keep too few of their points clear: all of them
+            kept = bank.rows(plain, k, k + 1)
+            assert row.tolist() == kept.row.tolist() and col.tolist() == kept.col.tolist()
+    # a band that would leave a run under BAND_KEEPS of its points leaves it whole
+    narrower = bank.candidates(pairs, R, s, 1.5, band=4.0)
+    assert narrower.starts.tolist() == plain.starts.tolist()
+
+
 def test_a_point_in_a_hole_gives_a_row_that_is_not_valid() -> None:
     p = _plane_patch("a", (0.0, 0.0))
     heights = p.heights.copy()

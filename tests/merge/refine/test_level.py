@@ -8,7 +8,10 @@ import numpy as np
 import pytest
 
 from merge import pipeline
+from merge.config import MergeConfig
 from merge.refine import level
+from merge.refine.bank import SurfaceBank
+from merge.refine.icp import DEFAULT_LEVELS
 from merge.refine.level import FREEZE_MEASURED, FREEZE_MOTION, _cycled, _small
 from tests.conftest import Synthetic
 
@@ -84,3 +87,33 @@ def test_the_weights_are_held_sooner_where_only_patches_the_start_measured_still
     assert not _small(motions, np.array([True, False]), tol)  # the one still moving: unmeasured
     assert _small(motions, np.array([False, True]), tol)  # ... measured: it may creep that much
     assert not _small(np.array([0.1 * tol, 2 * FREEZE_MEASURED * tol]), np.ones(2, bool), tol)
+
+
+@pytest.mark.parametrize("max_iter", [None, 3])
+def test_only_the_widest_level_keeps_its_rows_clear_of_the_patches_borders(
+    small_mosaic: Synthetic, monkeypatch: pytest.MonkeyPatch, max_iter: int | None
+) -> None:
+    # from the nominal places every level runs, the widest first; a cap on the iterations
+    # keeps its band
+    bands: list[tuple[float, float]] = []  # the level's smoothing, the candidates' band
+    candidates = SurfaceBank.candidates
+
+    def recorded(bank: SurfaceBank, *args: Any, band: float = 0.0) -> Any:
+        bands.append((bank.nodes, band))
+        return candidates(bank, *args, band=band)
+
+    monkeypatch.setattr(SurfaceBank, "candidates", recorded)
+    steps: list[float] = []
+    step = level._step
+
+    def stepped(fit: Any, lv: Any, cand: Any, **kwargs: Any) -> Any:
+        steps.append(lv.band)
+        return step(fit, lv, cand, **kwargs)
+
+    monkeypatch.setattr(level, "_step", stepped)
+    pipeline.run(small_mosaic.patch_set, MergeConfig(init="nominal", max_iter=max_iter))
+    assert DEFAULT_LEVELS[0].band == 4.0 and all(lv.band == 0.0 for lv in DEFAULT_LEVELS[1:])
+    # the widest level's steps come first, then the others'
+    first = steps.index(0.0)
+    assert first > 0 and set(steps[:first]) == {4.0} and set(steps[first:]) == {0.0}
+    assert (1, 4.0) in bands and (2, 4.0) not in bands  # never on the raw heights' nodes
