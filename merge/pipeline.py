@@ -43,6 +43,7 @@ from merge.refine import (
 from merge.render import render_mosaic
 from merge.report import MergeResult, assess, holds_xy, patch_reports, unconfirmed, untied
 from merge.start import coarse_cell, coarse_start
+from merge.start.trust import periodic_repeat
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
@@ -158,6 +159,7 @@ def merge_once(
         # the start's work: every patch averaged onto its lattice, every pair correlated
         with stage("start", len(patches) + len(layout.pairs), "correlating the overlaps"):
             placed = _start(patch_set, layout, cfg)
+        layout = replace(layout, warnings=layout.warnings + _periodic(placed))
     with watch.step("solve"), stage("refine", TYPICAL_ITERATIONS, "refining"):
         solution = _solve(patches, layout, placed, cfg, progress=progress, cancel=cancel)
     return finish(patches, layout, solution, cfg, watch)
@@ -265,7 +267,25 @@ def _start(patch_set: PatchSet, layout: Layout, cfg: MergeConfig) -> Placement:
         PatchTransform(t=tc, slope=-tilt, centre=np.array(p.center))
         for tc, tilt, p in zip(start.translation, start.tilt, patches, strict=True)
     ]
-    return Placement(transforms, start.xy_complete | ~layout.linked, start.pair_information)
+    return Placement(
+        transforms, start.xy_complete | ~layout.linked, start.pair_information, start.repeat
+    )
+
+
+def _periodic(placed: Placement) -> list[str]:
+    """A warning where the sample's overlaps repeat themselves (:func:`periodic_repeat`)."""
+    if placed.repeat is None or placed.pair_information is None:
+        return []
+    repeat = periodic_repeat(placed.repeat, placed.pair_information)
+    if not np.isfinite(repeat):
+        return []
+    return [
+        f"the overlaps repeat themselves every {repeat * 1e9:.0f} nm or so (a periodic sample): "
+        "each pair was placed at the repeat nearest where the stage put it, so a patch the "
+        f"stage put more than {0.5 * repeat * 1e9:.0f} nm off lies a whole repeat off, with "
+        "nothing in its overlaps to show it; compare the mosaic with an image of the sample "
+        "that spans several repeats (an SEM image, a wider scan)"
+    ]
 
 
 def _solve(

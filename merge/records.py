@@ -43,11 +43,14 @@ class Placement:
     """Where the start put every patch: ``T_mosaic_patch``, which patches it measured in XY
     along both axes (``measured_both``; patches that overlap nothing count as measured), and
     what it measured of each of the layout's pairs (``pair_information`` (k, 2, 2), 1 / m²;
-    None where it measured no XY)."""
+    None where it measured no XY); ``repeat`` (k,), metres from each pair's shift to one as
+    likely where the overlap repeats itself (infinite where none; None where no XY
+    measured: :attr:`merge.start.CoarseStart.repeat`)."""
 
     transforms: list[PatchTransform]
     measured_both: NDArray[np.bool_]
     pair_information: FloatArray | None = None
+    repeat: FloatArray | None = None
 
     @property
     def complete(self) -> bool:

@@ -72,6 +72,9 @@ LOOP_SIDES = 4
 #: a patch whose links all failed may be the one whose stage error exceeded the first search,
 #: and the pooled score of all its pairs is far less prone to chance peaks than one pair's.
 PLACE_RADIUS = 1.5
+#: NCC from which a pair's peak and the repeats as likely as it (within
+#: :data:`~merge.start.measure.AMBIGUITY`) are structure, not chance bumps on a faint texture.
+REPEAT_SCORE = 0.6
 
 
 @dataclass(frozen=True)
@@ -89,6 +92,9 @@ class CoarseStart:
         then at the patch's centre.
     pair_information : (k, 2, 2) what each pair's correlation measured of its XY, 1 / m²
         (zero: nothing), as the network weighed it.
+    repeat : (k,) metres from each pair's shift to the nearest as likely one a valley
+        separates from it, where the overlap repeats itself (:data:`REPEAT_SCORE`); infinite
+        elsewhere. The start took the repeat nearest where the stage put the pair.
     """
 
     translation: FloatArray
@@ -97,6 +103,7 @@ class CoarseStart:
     tilt: FloatArray
     xy_measurable: NDArray[np.bool_]
     pair_information: FloatArray
+    repeat: FloatArray
 
 
 def coarse_start(
@@ -128,8 +135,13 @@ def coarse_start(
     translation = np.zeros((n, 3))
     complete = np.zeros(n, dtype=bool)
     weighed = np.zeros((len(pairs), 2, 2))
+    repeat = np.full(len(pairs), np.inf)
     if estimate_xy and len(pairs):
         translation[:, :2], complete, weighed = _xy_offsets(lat, corr, max_shift)
+        for i, offsets in corr.repeats.items():
+            # a repeat of a clear peak, in a measurement the network kept
+            if offsets and corr.score[i] >= REPEAT_SCORE and np.trace(weighed[i]) > 0:
+                repeat[i] = lat.cell * min(float(np.hypot(*d)) for d in offsets)
     translation[:, 2] = _z_offsets(lat, translation)
     measured = np.zeros(n, dtype=bool)
     measured[pairs[np.trace(corr.xy_w, axis1=1, axis2=2) > 0].ravel()] = True
@@ -143,6 +155,7 @@ def coarse_start(
         tilt=lat.tilt,
         xy_measurable=measurable,
         pair_information=weighed,
+        repeat=repeat,
     )
 
 

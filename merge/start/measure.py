@@ -70,6 +70,8 @@ class Correlations:
     maps : the NCC maps computed, by pair (the second pass and the placements reuse them).
     ridges : per pair, the offsets (dy, dx) of the peaks the first pass found as likely as its
         own on its ridge (:attr:`merge.start.peaks.CorrelationPeak.ridge`), if any.
+    repeats : per pair, the offsets (dy, dx) of the peaks as likely that a valley separates
+        from its own (:attr:`merge.start.peaks.CorrelationPeak.repeats`), if any.
     """
 
     xy_m: FloatArray
@@ -80,6 +82,7 @@ class Correlations:
     #: bytes the maps hold (:data:`MAP_CACHE_BYTES` at most)
     held: int = 0
     ridges: dict[int, tuple[tuple[int, int], ...]] = field(default_factory=dict)
+    repeats: dict[int, tuple[tuple[int, int], ...]] = field(default_factory=dict)
     #: the textures of the patches last asked for (:func:`merge.start.texture.texture_image`),
     #: by patch, :data:`TEXTURES` at most: a patch's pairs come one after the other
     textures: dict[int, FloatArray | None] = field(default_factory=dict)
@@ -207,4 +210,5 @@ def accept(
     # corner patch merged 375 nm off
     known = corr.ridges.get(i, ())
     corr.ridges[i] = known or peak.ridge
+    corr.repeats[i] = corr.repeats.get(i, ()) or peak.repeats  # the same: far, all of them
     corr.xy_w[i] = along_ridge_removed(info, known + peak.ridge) / cell**2

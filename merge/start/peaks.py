@@ -34,6 +34,9 @@ class CorrelationPeak:
     ridge : (dy, dx) integer offsets, from the peak, of the peaks on its own ridge that are as
         likely (see :func:`find_peak`'s ``ambiguity``): along them the shift is not measured,
         whatever texture the overlap shows there. Empty when the peak stands out.
+    repeats : (dy, dx) integer offsets, from the peak, of the peaks as likely that a valley
+        separates from it: the overlap repeats itself (a periodic sample), and which repeat is
+        the true shift the overlap cannot tell. Empty when none is as likely.
     """
 
     shift: tuple[float, float]
@@ -43,6 +46,7 @@ class CorrelationPeak:
     at_border: bool
     window: FloatArray = field(repr=False, compare=False)  # the searched scores
     ridge: tuple[tuple[int, int], ...] = ()
+    repeats: tuple[tuple[int, int], ...] = ()
 
     @property
     def excess(self) -> float:
@@ -100,8 +104,9 @@ def find_peak(
     flat_best = np.unravel_index(int(np.argmax(score)), score.shape)
     best = (int(flat_best[0]), int(flat_best[1]))
     ridge: list[tuple[int, int]] = []
+    repeats: list[tuple[int, int]] = []
     if ambiguity > 0:
-        best, ridge = _nearest_alike(score, best, ky, kx, expected, ambiguity)
+        best, ridge, repeats = _nearest_alike(score, best, ky, kx, expected, ambiguity)
     iy, ix = best
     sub, border = _subpixel(score, ok, best)
     dy, dx = int(ky[iy]), int(kx[ix])
@@ -113,6 +118,7 @@ def find_peak(
         at_border=border,
         window=ncc[ok],
         ridge=tuple(ridge),
+        repeats=tuple(repeats),
     )
 
 
@@ -123,10 +129,11 @@ def _nearest_alike(
     kx: IntArray,
     expected: tuple[float, float],
     ambiguity: float,
-) -> tuple[tuple[int, int], list[tuple[int, int]]]:
+) -> tuple[tuple[int, int], list[tuple[int, int]], list[tuple[int, int]]]:
     """Among the local maxima of ``score`` within ``ambiguity`` of its ``best``, the one
-    nearest the ``expected`` shift that is as likely (:func:`_alike`); and the offsets (dy, dx)
-    of the alike peaks on its own ridge. ``ky``, ``kx``: the shifts of the rows and columns."""
+    nearest the ``expected`` shift that is as likely (:func:`_alike`); the offsets (dy, dx)
+    of the alike peaks on its own ridge, and of those a valley separates from it (repeats).
+    ``ky``, ``kx``: the shifts of the rows and columns."""
     iy, ix = best
     top = score[iy, ix]
     local = (score == ndimage.maximum_filter(score, size=3, mode="constant", cval=-np.inf)) & (
@@ -134,8 +141,9 @@ def _nearest_alike(
     )
     cy, cx = np.nonzero(local)
     ridge: list[tuple[int, int]] = []
+    repeats: list[tuple[int, int]] = []
     if len(cy) <= 1:
-        return best, ridge
+        return best, ridge, repeats
     dist2 = (ky[cy] - expected[0]) ** 2 + (kx[cx] - expected[1]) ** 2
     for k in np.argsort(dist2, kind="stable").tolist():
         if _alike(score, (iy, ix), (int(cy[k]), int(cx[k])), ambiguity):
@@ -144,9 +152,13 @@ def _nearest_alike(
     # the chosen peak's alike neighbours on its own ridge: no valley between them, and the
     # peak does not rise above the path to them (bumps of noise along a stripe)
     for y, x in zip(cy.tolist(), cx.tolist(), strict=True):
-        if (y, x) != (iy, ix) and _on_one_ridge(score, (iy, ix), (y, x), ambiguity):
+        if (y, x) == (iy, ix):
+            continue
+        if _on_one_ridge(score, (iy, ix), (y, x), ambiguity):
             ridge.append((y - iy, x - ix))
-    return (iy, ix), ridge
+        elif _between(score, (iy, ix), (y, x), ambiguity)[0]:
+            repeats.append((y - iy, x - ix))
+    return (iy, ix), ridge, repeats
 
 
 def _subpixel(

@@ -34,13 +34,30 @@ def test_along_a_bare_ridge_the_expected_shift_wins(seed: int) -> None:
     assert peak is not None and peak.integer_shift[0] == 0 and abs(peak.integer_shift[1]) <= 3
     # and the peak says so: its alike neighbours lie along the ridge (x), none across it
     assert peak.ridge and all(dy == 0 and dx != 0 for dy, dx in peak.ridge)
+    assert peak.repeats == ()  # no valley between them: one ridge, not a repeat
+
+
+@pytest.mark.parametrize("expected", [(0.0, 0.0), (0.0, 7.0)])
+def test_a_periodic_map_names_its_repeats_and_takes_the_nearest(
+    expected: tuple[float, float],
+) -> None:
+    # a grating's map: peaks every 8 cells along x, valleys between, falling off across
+    ky, kx = np.mgrid[-10:11, -20:21]
+    ncc = 0.1 + 0.8 * np.cos(np.pi * kx / 8.0) ** 2 * np.exp(-(ky**2) / 4.0)
+    ncc -= 0.001 * np.abs(kx)  # the one at the centre scores a little above the others
+    peak = find_peak(ncc, np.full(ncc.shape, 500.0), (10, 20), expected=expected, ambiguity=0.1)
+    assert peak is not None and peak.integer_shift == (0, 8 * round(expected[1] / 8))
+    assert peak.ridge == ()
+    # every other peak within reach of the best's score, each a multiple of 8 cells along x
+    assert peak.repeats and all(dy == 0 and dx % 8 == 0 for dy, dx in peak.repeats)
+    assert min(abs(dx) for _, dx in peak.repeats) == 8
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_a_peak_that_stands_out_of_its_ridge_has_no_alike_neighbours(seed: int) -> None:
     ncc, count = _ridge({0: 0.06, 8: 0.16}, seed)
     peak = find_peak(ncc, count, (10, 20), radius=(12, 12), ambiguity=0.1)
-    assert peak is not None and peak.ridge == ()
+    assert peak is not None and peak.ridge == () and peak.repeats == ()
 
 
 @pytest.mark.parametrize("pad", [(1, 0), (0, 1), (1, 1), (2, 3)])

@@ -2,7 +2,12 @@
 
 import numpy as np
 
-from merge.start.trust import along_ridge_removed, drop_odd_scores, patches_in_doubt
+from merge.start.trust import (
+    along_ridge_removed,
+    drop_odd_scores,
+    patches_in_doubt,
+    periodic_repeat,
+)
 
 
 def _weights(count: int) -> np.ndarray:
@@ -70,3 +75,22 @@ def testpatches_in_doubt_are_those_with_conflicting_or_no_trusted_links_seen_in_
     along_x = np.broadcast_to(np.diag([1.0, 0.0]), (4, 2, 2)).copy()
     along_x[3] = 0.0
     assert patches_in_doubt(4, pairs, unmeasured, robust, can, along_x) == [3]
+
+
+def test_a_sample_is_periodic_where_a_third_of_its_pairs_repeat_at_one_distance() -> None:
+    info = np.repeat(np.eye(2)[None], 9, axis=0)
+    none = np.full(9, np.inf)
+    assert np.isnan(periodic_repeat(none, info))
+    # three of nine pairs repeat 300-320 nm off: periodic, at their median
+    three = none.copy()
+    three[[1, 4, 7]] = [300e-9, 310e-9, 320e-9]
+    assert periodic_repeat(three, info) == 310e-9
+    # as many, scattered over 100-330 nm (bumps along edges): not
+    scattered = none.copy()
+    scattered[[1, 4, 7]] = [100e-9, 200e-9, 330e-9]
+    assert np.isnan(periodic_repeat(scattered, info))
+    # two of nine: too few; and pairs not measured do not count
+    assert np.isnan(periodic_repeat(np.where(np.arange(9) < 2, 300e-9, np.inf), info))
+    unmeasured = info.copy()
+    unmeasured[[1, 4]] = 0.0
+    assert np.isnan(periodic_repeat(three, unmeasured))
