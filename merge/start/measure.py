@@ -210,5 +210,6 @@ def accept(
     # corner patch merged 375 nm off
     known = corr.ridges.get(i, ())
     corr.ridges[i] = known or peak.ridge
-    corr.repeats[i] = corr.repeats.get(i, ()) or peak.repeats  # the same: far, all of them
+    # and so its repeats, which lie beyond that window too
+    corr.repeats[i] = corr.repeats.get(i, ()) or peak.repeats
     corr.xy_w[i] = along_ridge_removed(info, known + peak.ridge) / cell**2

@@ -150,14 +150,16 @@ def _nearest_alike(
             iy, ix = int(cy[k]), int(cx[k])
             break
     # the chosen peak's alike neighbours on its own ridge: no valley between them, and the
-    # peak does not rise above the path to them (bumps of noise along a stripe)
+    # peak does not rise above the path to them (bumps of noise along a stripe); and those a
+    # valley separates from it, where the overlap repeats itself
     for y, x in zip(cy.tolist(), cx.tolist(), strict=True):
         if (y, x) == (iy, ix):
             continue
-        if _on_one_ridge(score, (iy, ix), (y, x), ambiguity):
-            ridge.append((y - iy, x - ix))
-        elif _between(score, (iy, ix), (y, x), ambiguity)[0]:
+        separated, level = _between(score, (iy, ix), (y, x), ambiguity)
+        if separated:
             repeats.append((y - iy, x - ix))
+        elif level:
+            ridge.append((y - iy, x - ix))
     return (iy, ix), ridge, repeats
 
 
@@ -222,12 +224,3 @@ def _alike(score: FloatArray, best: tuple[int, int], other: tuple[int, int], mar
     """
     separated, level = _between(score, best, other, margin)
     return separated or level
-
-
-def _on_one_ridge(
-    score: FloatArray, peak: tuple[int, int], other: tuple[int, int], margin: float
-) -> bool:
-    """Whether ``other`` lies on ``peak``'s ridge, as likely: no valley deeper than ``margin``
-    between them and ``peak`` not rising above the path by more (see :func:`_alike`)."""
-    separated, level = _between(score, peak, other, margin)
-    return not separated and level
