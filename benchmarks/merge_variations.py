@@ -12,7 +12,8 @@ registration error XY and Z, patches reported XY-unconstrained, and *silent* pat
 XY-constrained yet off by more than 10 nm and three of their own XY sigmas (the failure an
 operator cannot see), after the gauge fitted to the patches reported held alone (fitted to all,
 a block the merge reports loose pulled it, and held patches registered with each other counted
-as off). The default method runs in-process (the CLI's wall time is
+as off); and whether the merge said the sample repeats itself (``per``: a patch the stage put
+a period off may lie there unseen). The default method runs in-process (the CLI's wall time is
 ``merge_bench.py``'s business).
 
 Prints a table per draw and a summary per surface, and writes JSON (``--json``, default
@@ -124,6 +125,8 @@ def run_variation(k: int, overlaps: tuple[float, float] = OVERLAPS) -> dict[str,
         "reg_xy_nm": round(exy * 1e9, 2),
         "reg_z_nm": round(ez * 1e9, 2),
         "unconstrained": int((~held).sum()),
+        # the merge said the sample repeats itself (a patch may lie a period off unseen)
+        "periodic": any(w.startswith(pipeline.PERIODIC) for w in result.warnings),
         "silent": int((held & (off > SILENT) & (off > SILENT_SIGMAS * sigma)).sum()),
         "iterations": result.iterations,
         "wall_s": round(wall, 2),
@@ -131,7 +134,8 @@ def run_variation(k: int, overlaps: tuple[float, float] = OVERLAPS) -> dict[str,
 
 
 def summary(rows: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
-    """Per surface: draws, map/floor median and worst, share within 1.5, silent patches."""
+    """Per surface: draws, map/floor median and worst, share within 1.5, silent patches, draws
+    said periodic."""
     out: dict[str, dict[str, Any]] = {}
     for name in SURFACES:
         mine = [r for r in rows if r["surface"] == name]
@@ -145,6 +149,7 @@ def summary(rows: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
             "within_1_5": int((ratio <= 1.5).sum()),
             "reg_xy_nm_median": round(float(np.median([r["reg_xy_nm"] for r in mine])), 2),
             "silent_patches": int(sum(r["silent"] for r in mine)),
+            "periodic_draws": int(sum(r["periodic"] for r in mine)),
         }
     return out
 
@@ -170,7 +175,8 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("--draws must be positive and --first non-negative")
     print(
         f"{'draw':>4} {'surface':<11}{'grid':>6}{'overlap':>12}{'pixels':>10}{'stage':>7}"
-        f"{'noise':>7}{'map/fl':>8}{'XY nm':>8}{'Z nm':>7}{'unc':>5}{'silent':>7}{'s':>6}"
+        f"{'noise':>7}{'map/fl':>8}{'XY nm':>8}{'Z nm':>7}{'unc':>5}{'silent':>7}{'per':>4}"
+        f"{'s':>6}"
     )
     rows = []
     for k in range(args.first, args.first + args.draws):
@@ -181,16 +187,19 @@ def main(argv: list[str] | None = None) -> int:
             f"{r['overlap'][0]:>6.2f}{r['overlap'][1]:>6.2f}"
             f"{r['pixels'][0]:>5}x{r['pixels'][1]:<4}{r['stage_nm']:>7.0f}{r['noise_nm']:>7.2f}"
             f"{r['map_over_floor']:>8.2f}{r['reg_xy_nm']:>8.2f}{r['reg_z_nm']:>7.2f}"
-            f"{r['unconstrained']:>5}{r['silent']:>7}{r['wall_s']:>6.1f}",
+            f"{r['unconstrained']:>5}{r['silent']:>7}{'yes' if r['periodic'] else '-':>4}"
+            f"{r['wall_s']:>6.1f}",
             flush=True,
         )
     table = summary(rows)
-    print("\nsurface      draws  map/floor median  worst  within 1.5  XY nm median  silent")
+    print(
+        "\nsurface      draws  map/floor median  worst  within 1.5  XY nm median  silent  periodic"
+    )
     for name, s in table.items():
         print(
             f"{name:<13}{s['draws']:>5}{s['map_over_floor_median']:>18.2f}"
             f"{s['map_over_floor_worst']:>7.2f}{s['within_1_5']:>12}"
-            f"{s['reg_xy_nm_median']:>14.2f}{s['silent_patches']:>8}"
+            f"{s['reg_xy_nm_median']:>14.2f}{s['silent_patches']:>8}{s['periodic_draws']:>10}"
         )
     Path(args.json).parent.mkdir(parents=True, exist_ok=True)
     Path(args.json).write_text(json.dumps({"draws": rows, "summary": table}, indent=1) + "\n")

@@ -59,6 +59,8 @@ TYPICAL_ITERATIONS = 10
 #: Prior standard deviation of a patch's XY correction in the refinement, as a fraction of the
 #: searched stage error: it decides only where the data are silent (flat, 1-D structure).
 SHIFT_PRIOR_FRACTION = 0.25
+#: How the warning of a periodic sample begins (:func:`merge.start.trust.periodic_repeat`).
+PERIODIC = "the overlaps repeat themselves"
 
 
 def default_cell(patch_set: Iterable[Patch]) -> float:
@@ -280,7 +282,7 @@ def _periodic(placed: Placement) -> list[str]:
     if not np.isfinite(repeat):
         return []
     return [
-        f"the overlaps repeat themselves every {repeat * 1e9:.0f} nm or so (a periodic sample): "
+        f"{PERIODIC} every {repeat * 1e9:.0f} nm or so (a periodic sample): "
         "each pair was placed at the repeat nearest where the stage put it, so a patch the "
         f"stage put more than {0.5 * repeat * 1e9:.0f} nm off lies a whole repeat off, with "
         "nothing in its overlaps to show it; compare the mosaic with an image of the sample "
