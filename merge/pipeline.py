@@ -161,7 +161,9 @@ def merge_once(
         # the start's work: every patch averaged onto its lattice, every pair correlated
         with stage("start", len(patches) + len(layout.pairs), "correlating the overlaps"):
             placed = _start(patch_set, layout, cfg)
-        layout = replace(layout, warnings=layout.warnings + _periodic(placed))
+        if placed.repeat is not None and placed.pair_information is not None:
+            said = periodic_warnings(placed.repeat, placed.pair_information)
+            layout = replace(layout, warnings=layout.warnings + said)
     with watch.step("solve"), stage("refine", TYPICAL_ITERATIONS, "refining"):
         solution = _solve(patches, layout, placed, cfg, progress=progress, cancel=cancel)
     return finish(patches, layout, solution, cfg, watch)
@@ -274,17 +276,16 @@ def _start(patch_set: PatchSet, layout: Layout, cfg: MergeConfig) -> Placement:
     )
 
 
-def _periodic(placed: Placement) -> list[str]:
-    """A warning where the sample's overlaps repeat themselves (:func:`periodic_repeat`)."""
-    if placed.repeat is None or placed.pair_information is None:
-        return []
-    repeat = periodic_repeat(placed.repeat, placed.pair_information)
-    if not np.isfinite(repeat):
+def periodic_warnings(repeat: FloatArray, information: FloatArray) -> list[str]:
+    """A warning where the sample's overlaps repeat themselves (:func:`periodic_repeat` of
+    the start's pairs: ``repeat`` (k,) metres, ``information`` (k, 2, 2)), else none."""
+    every = periodic_repeat(repeat, information)
+    if not np.isfinite(every):
         return []
     return [
-        f"{PERIODIC} every {repeat * 1e9:.0f} nm or so (a periodic sample): "
+        f"{PERIODIC} every {every * 1e9:.0f} nm or so (a periodic sample): "
         "each pair was placed at the repeat nearest where the stage put it, so a patch the "
-        f"stage put more than {0.5 * repeat * 1e9:.0f} nm off lies a whole repeat off, with "
+        f"stage put more than {0.5 * every * 1e9:.0f} nm off lies a whole repeat off, with "
         "nothing in its overlaps to show it; compare the mosaic with an image of the sample "
         "that spans several repeats (an SEM image, a wider scan)"
     ]

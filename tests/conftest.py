@@ -12,7 +12,7 @@ from numpy.typing import NDArray
 
 from backend.synthetic import patch_set_from_synth, registration_error
 from hardware.sim.drift import DriftModel
-from hardware.sim.surfaces import FoldedSurface, Surface
+from hardware.sim.surfaces import FoldedSurface, ImageSurface, Surface
 from hardware.sim.synth import SynthPatch, synthesize
 from merge import PatchSet, PatchTransform
 
@@ -75,6 +75,16 @@ def make_synthetic(
 def small_mosaic(folded: FoldedSurface) -> Synthetic:
     """2 x 3 patches of 40 x 40 pixels on the folded surface with typical drift."""
     return make_synthetic(folded)
+
+
+def stripes_mosaic() -> Synthetic:
+    """2 x 2 patches of 60 x 60 px on a 1-D grating at 45 degrees, stripes 300 nm apart
+    across, with a faint roughness: a sample whose overlaps repeat themselves."""
+    yy, xx = np.mgrid[0:300, 0:300] * 10e-9
+    heights = 15e-9 * np.sin(2 * np.pi * (xx + yy) / np.sqrt(2) / 300e-9)
+    rough = np.random.default_rng(3).normal(0.0, 0.3e-9, heights.shape)
+    grating = ImageSurface(heights + rough, (10e-9, 10e-9))
+    return make_synthetic(grating, rows=2, cols=2, pixels=(60, 60), overlap=(0.45, 0.45))
 
 
 def still(noise: float) -> DriftModel:

@@ -27,7 +27,7 @@ neighbourhood, not on the mosaic; the full refinements start converged and polis
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -46,6 +46,7 @@ from merge.pipeline import (
     default_max_shift,
     finish,
     layout_of,
+    periodic_warnings,
 )
 from merge.records import Solution, Stopwatch
 from merge.refine import DEFAULT_LEVELS, Level, RefineResult, refine
@@ -116,6 +117,8 @@ class LiveMerge:
         self.transforms: list[PatchTransform] = []
         #: per patch, whether a coarse start measured its XY along both axes
         self.complete: list[bool] = []
+        #: every coarse start's pairs: how far each repeats itself, and what it measured
+        self.repeats: list[tuple[FloatArray, FloatArray]] = []
         self.canvas: LiveCanvas | None = None
         self._since_full = 0
 
@@ -237,6 +240,11 @@ class LiveMerge:
             loose = ~np.array(self.complete, dtype=bool)
             solution = Solution.of_refinement(fit, refined_only=loose if loose.any() else None)
         layout = layout_of(PatchSet(self.patches), self.config)
+        if self.repeats:  # a periodic sample, as the starts saw it
+            repeat, information = (np.concatenate(a) for a in zip(*self.repeats, strict=True))
+            layout = replace(
+                layout, warnings=layout.warnings + periodic_warnings(repeat, information)
+            )
         return finish(self.patches, layout, solution, self.config, watch)
 
     def _refine_all(
@@ -318,6 +326,7 @@ class LiveMerge:
             cell=self.config.coarse_cell or coarse_cell(local, cell),
             max_shift=max_shift,
         )
+        self.repeats.append((start.repeat, start.pair_information))
         # the patches to place: c, and neighbours the start now measured both ways that their
         # own starts had not (an edge alone holds XY across it only); the others hold the frame
         complete = start.xy_complete

@@ -10,7 +10,8 @@ from backend.synthetic import registration_error
 from hardware.sim.surfaces import Chessboard, FoldedSurface
 from merge import MergeConfig, render_mosaic, run
 from merge.live import LiveMerge
-from tests.conftest import Synthetic, make_synthetic
+from merge.pipeline import PERIODIC
+from tests.conftest import Synthetic, make_synthetic, stripes_mosaic
 
 
 def _in_scan_order(live: LiveMerge, mosaic: Synthetic) -> None:
@@ -39,6 +40,16 @@ def test_patches_added_one_by_one_end_where_the_batch_merge_ends(surface: object
     assert abs(after[0] - reference[0]) < 0.1e-9 and abs(after[1] - reference[1]) < 0.1e-9
     assert len(result.patches) == 9 and result.method == "default"
     assert np.isfinite(result.mosaic.heights).mean() > 0.85  # corners of rotated patches
+
+
+def test_a_live_mosaic_of_a_periodic_sample_says_so_as_the_batch_merge_does(
+    small_mosaic: Synthetic,
+) -> None:
+    for mosaic, periodic in ((stripes_mosaic(), True), (small_mosaic, False)):
+        live = LiveMerge()
+        _in_scan_order(live, mosaic)
+        said = [w for w in live.result().warnings if w.startswith(PERIODIC)]
+        assert len(said) == int(periodic)
 
 
 def test_an_addition_moves_only_the_neighbourhood_it_touches(folded: FoldedSurface) -> None:
