@@ -43,8 +43,8 @@ class Level:
     stride: int
     max_iter: int
     tol: float  # largest patch motion (pixels) that counts as converged
-    #: pixels from both patches' borders within which the level takes no rows, where an
-    #: overlap leaves any beyond them (:meth:`merge.refine.bank.SurfaceBank.candidates`)
+    #: pixels from both patches' borders within which the level takes no rows, where that
+    #: leaves a pair half its rows (:meth:`merge.refine.bank.SurfaceBank.candidates`)
     band: float = 0.0
 
 
@@ -114,7 +114,8 @@ class LevelSetup:
     """One level's surfaces and system: ``bank``; the pairs in it and the patches ``held``
     (None: none); the look-up ``margin`` (pixels); whether it works on the raw heights; the
     priors' sigmas of the drift planes (x, y) and of the XY shifts (pixel units); the patches
-    the start ``measured`` in XY along both axes (None: not known, as if none)."""
+    the start ``measured`` in XY along both axes (None: not known, as if none); the level's
+    border ``band`` (:attr:`Level.band`)."""
 
     bank: SurfaceBank
     pairs: IntArray

@@ -95,7 +95,7 @@ def test_only_the_widest_level_keeps_its_rows_clear_of_the_patches_borders(
 ) -> None:
     # from the nominal places every level runs, the widest first; a cap on the iterations
     # keeps its band
-    bands: list[tuple[float, float]] = []  # the level's smoothing, the candidates' band
+    bands: list[tuple[float, float]] = []  # the bank's nodes per pixel, the candidates' band
     candidates = SurfaceBank.candidates
 
     def recorded(bank: SurfaceBank, *args: Any, band: float = 0.0) -> Any:
