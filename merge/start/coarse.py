@@ -139,8 +139,8 @@ def coarse_start(
     if estimate_xy and len(pairs):
         translation[:, :2], complete, weighed = _xy_offsets(lat, corr, max_shift)
         for i, offsets in corr.repeats.items():
-            # a repeat of a clear peak, in a measurement the network kept
-            if offsets and corr.score[i] >= REPEAT_SCORE and np.trace(weighed[i]) > 0:
+            # a repeat of a clear peak (whether the network kept the pair, its information says)
+            if offsets and corr.score[i] >= REPEAT_SCORE:
                 repeat[i] = lat.cell * min(float(np.hypot(*d)) for d in offsets)
     translation[:, 2] = _z_offsets(lat, translation)
     measured = np.zeros(n, dtype=bool)
