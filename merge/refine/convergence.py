@@ -52,9 +52,9 @@ def height_effect(delta: FloatArray, slope: float) -> float:
     return float((z + slope * xy).max())
 
 
-def remaining(effect: float, last: float) -> float:
+def remaining(effect: float, last: float, *, at_least: float = 0.0) -> float:
     """How far the steps still to come will move (same units as ``effect``, the last step's
-    effect; ``last`` the one before).
+    effect; ``last`` the one before), their ratio taken as ``at_least`` if it is smaller.
 
     Gauss-Newton near its solution converges linearly: every step the previous one times about
     the same ratio, so what remains is the last step times ``ratio / (1 - ratio)``, counted as
@@ -63,5 +63,5 @@ def remaining(effect: float, last: float) -> float:
     """
     if not (np.isfinite(last) and last > 0):
         return effect
-    ratio = effect / last
+    ratio = max(effect / last, at_least)
     return effect * min(1.0, ratio / (1.0 - ratio)) if ratio < 1.0 else effect

@@ -85,6 +85,9 @@ def test_what_remains_of_a_geometric_convergence_is_its_tail() -> None:
     assert remaining(0.2, np.inf) == 0.2
     assert remaining(1.5, 1.0) == 1.5  # growing: no tail to sum
     assert remaining(np.inf, np.inf) == np.inf  # coarse levels: never by this rule
+    # a ratio known to be at least 0.5 (the last level's): a jump 1 -> 0.2 proves nothing faster
+    assert remaining(0.2, 1.0, at_least=0.5) == 0.2
+    assert remaining(0.2, 1.0, at_least=0.1) == pytest.approx(0.05)  # the step's own ratio
 
 
 def test_patches_still_moving_when_the_iterations_run_out_are_named(

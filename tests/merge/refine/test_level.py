@@ -7,13 +7,14 @@ from typing import Any
 import numpy as np
 import pytest
 
+from hardware.sim.surfaces import FoldedSurface
 from merge import pipeline
 from merge.config import MergeConfig
-from merge.refine import level
+from merge.refine import icp, level
 from merge.refine.bank import SurfaceBank
 from merge.refine.icp import DEFAULT_LEVELS
 from merge.refine.level import FREEZE_MEASURED, FREEZE_MOTION, _cycled, _small
-from tests.conftest import Synthetic
+from tests.conftest import Synthetic, make_synthetic
 
 
 def test_steps_that_cycle_count_as_a_stall_and_a_creep_does_not() -> None:
@@ -87,6 +88,40 @@ def test_the_weights_are_held_sooner_where_only_patches_the_start_measured_still
     assert not _small(motions, np.array([True, False]), tol)  # the one still moving: unmeasured
     assert _small(motions, np.array([False, True]), tol)  # ... measured: it may creep that much
     assert not _small(np.array([0.1 * tol, 2 * FREEZE_MEASURED * tol]), np.ones(2, bool), tol)
+
+
+def test_a_levels_second_step_may_end_it_at_the_last_levels_rate_of_convergence(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    mosaic = make_synthetic(FoldedSurface(seed=7), rows=5, cols=5)
+    raw_steps: list[bool] = []
+    step = level._step
+
+    def counted(fit: Any, lv: Any, cand: Any, **kwargs: Any) -> Any:
+        raw_steps.append(lv.raw)
+        return step(fit, lv, cand, **kwargs)
+
+    monkeypatch.setattr(level, "_step", counted)
+    carried = pipeline.run(mosaic.patch_set)
+    n_carried = sum(raw_steps)
+    raw_steps.clear()
+    run_level = icp.run_level
+
+    def unknown_rate(fit: Any, *args: Any, **kwargs: Any) -> Any:
+        fit.ratio = np.inf  # as if the last level had not told how fast it converged
+        return run_level(fit, *args, **kwargs)
+
+    monkeypatch.setattr(icp, "run_level", unknown_rate)
+    alone = pipeline.run(mosaic.patch_set)
+    # the raw level's first step jumps from the smoothed optimum; the second's ratio to it,
+    # held no smaller than the one-pixel level's, says the third is not needed
+    assert n_carried == 2 and sum(raw_steps) == 3
+    assert carried.iterations == alone.iterations - 1
+    # what the third step buys is far below the noise (1 nm)
+    e_carried = mosaic.registration_error(carried.transforms)
+    e_alone = mosaic.registration_error(alone.transforms)
+    assert abs(e_carried[0] - e_alone[0]) < 0.02e-9
+    assert abs(e_carried[1] - e_alone[1]) < 0.02e-9
 
 
 @pytest.mark.parametrize("max_iter", [None, 3])
