@@ -3,6 +3,7 @@ percent sign in one made the variations' script raise instead of printing its us
 
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
 from pathlib import Path
@@ -45,3 +46,25 @@ def test_the_bound_names_a_case_it_does_not_know() -> None:
     assert done.returncode == 2
     assert "unknown cases nope" in done.stderr
     assert "paper-r200-p3-s0.6" in done.stderr.split("use", 1)[1]
+
+
+def test_the_scaling_table_writes_json_without_a_400_patch_size(tmp_path: Path) -> None:
+    """Without 400 patches to compare with, a size's time ratio is null, not NaN (which no
+    strict JSON reader takes)."""
+    out = tmp_path / "scale.json"
+    done = subprocess.run(
+        [sys.executable, str(BENCHMARKS / "merge_scale.py"), "--sides", "2", "--json", str(out)],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        check=False,
+    )
+    assert done.returncode == 0, done.stderr
+
+    def strict(constant: str) -> None:
+        raise ValueError(f"not JSON: {constant}")
+
+    sizes = json.loads(out.read_text(), parse_constant=strict)["sizes"]
+    assert [s["patches"] for s in sizes] == [4]
+    assert sizes[0]["time_ratio_400"] is None and sizes[0]["patch_ratio_400"] == 0.01
+    assert sizes[0]["converged"]
