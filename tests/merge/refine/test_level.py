@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from typing import Any
+from collections.abc import Callable
+from typing import Any, TypeVar
 
 import numpy as np
 import pytest
@@ -15,6 +16,8 @@ from merge.refine.bank import SurfaceBank
 from merge.refine.icp import DEFAULT_LEVELS
 from merge.refine.level import FREEZE_MEASURED, FREEZE_MOTION, _cycled, _small
 from tests.conftest import Synthetic, make_synthetic
+
+T = TypeVar("T")
 
 
 def test_steps_that_cycle_count_as_a_stall_and_a_creep_does_not() -> None:
@@ -50,33 +53,29 @@ def test_the_raw_level_stops_once_steps_move_no_height_by_a_tenth_of_the_noise(
 def test_the_raw_level_holds_its_robust_weights_once_its_steps_are_small(
     small_mosaic: Synthetic, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    steps: list[tuple[bool, bool, bool]] = []  # raw level, weights held, weights kept
-    measured = []
-    step = level._step
-
-    def recorded(fit: Any, lv: Any, cand: Any, **kwargs: Any) -> Any:
-        steps.append((lv.raw, kwargs["weights"] is not None, kwargs["freeze"]))
-        measured.append(lv.measured)
-        return step(fit, lv, cand, **kwargs)
-
-    monkeypatch.setattr(level, "_step", recorded)
+    # raw level, weights held, weights kept; and the patches the start measured
+    seen = _steps_recorded(
+        monkeypatch,
+        lambda lv, kw: ((lv.raw, kw["weights"] is not None, kw["freeze"]), lv.measured),
+    )
     # as soon as the first raw step is done
     monkeypatch.setattr(level, "FREEZE_MOTION", 1e6)
     monkeypatch.setattr(level, "FREEZE_MEASURED", 1e6)
     monkeypatch.setattr(level, "HEIGHT_TOL", 0.0)  # steps until no patch moves 1e-3 px
     pipeline.run(small_mosaic.patch_set)
+    steps = [s for s, _ in seen]
     raw = [s for s in steps if s[0]]
     assert not any(held or freeze for r, held, freeze in steps if not r)
     assert len(raw) >= 3 and raw[0] == (True, False, False)
     assert raw[1] == (True, False, True)  # the weights of the second step are kept ...
     assert all(s == (True, True, False) for s in raw[2:])  # ... and held after
     # the pipeline tells the levels which patches its start measured (here all of them)
-    assert all(m is not None and m.all() for m in measured)
-    steps.clear()
+    assert all(m is not None and m.all() for _, m in seen)
+    seen.clear()
     monkeypatch.setattr(level, "FREEZE_MOTION", 0.0)  # never
     monkeypatch.setattr(level, "FREEZE_MEASURED", 0.0)
     pipeline.run(small_mosaic.patch_set)
-    assert not any(held or freeze for _, held, freeze in steps)
+    assert seen and not any(held or freeze for (_, held, freeze), _ in seen)
 
 
 def test_the_weights_are_held_sooner_where_only_patches_the_start_measured_still_move() -> None:
@@ -90,22 +89,28 @@ def test_the_weights_are_held_sooner_where_only_patches_the_start_measured_still
     assert not _small(np.array([0.1 * tol, 2 * FREEZE_MEASURED * tol]), np.ones(2, bool), tol)
 
 
+def _steps_recorded(monkeypatch: pytest.MonkeyPatch, what: Callable[[Any, Any], T]) -> list[T]:
+    """What ``what(level_setup, step_kwargs)`` says of every refinement step from now on."""
+    seen: list[T] = []
+    step = level._step
+
+    def recorded(fit: Any, lv: Any, cand: Any, **kwargs: Any) -> Any:
+        seen.append(what(lv, kwargs))
+        return step(fit, lv, cand, **kwargs)
+
+    monkeypatch.setattr(level, "_step", recorded)
+    return seen
+
+
 def test_a_levels_second_step_may_end_it_at_the_last_levels_rate_of_convergence(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     mosaic = make_synthetic(FoldedSurface(seed=7), rows=5, cols=5)
-    raw_steps: list[bool] = []
-    step = level._step
-
-    def counted(fit: Any, lv: Any, cand: Any, **kwargs: Any) -> Any:
-        raw_steps.append(lv.raw)
-        return step(fit, lv, cand, **kwargs)
-
-    monkeypatch.setattr(level, "_step", counted)
+    raw_steps = _steps_recorded(monkeypatch, lambda lv, _: bool(lv.raw))
     carried = pipeline.run(mosaic.patch_set)
     n_carried = sum(raw_steps)
     raw_steps.clear()
-    run_level = icp.run_level
+    run_level = level.run_level  # what the schedule (icp) calls
 
     def unknown_rate(fit: Any, *args: Any, **kwargs: Any) -> Any:
         fit.ratio = np.inf  # as if the last level had not told how fast it converged
@@ -138,14 +143,7 @@ def test_only_the_widest_level_keeps_its_rows_clear_of_the_patches_borders(
         return candidates(bank, *args, band=band)
 
     monkeypatch.setattr(SurfaceBank, "candidates", recorded)
-    steps: list[float] = []
-    step = level._step
-
-    def stepped(fit: Any, lv: Any, cand: Any, **kwargs: Any) -> Any:
-        steps.append(lv.band)
-        return step(fit, lv, cand, **kwargs)
-
-    monkeypatch.setattr(level, "_step", stepped)
+    steps = _steps_recorded(monkeypatch, lambda lv, _: float(lv.band))
     pipeline.run(small_mosaic.patch_set, MergeConfig(init="nominal", max_iter=max_iter))
     assert DEFAULT_LEVELS[0].band == 4.0 and all(lv.band == 0.0 for lv in DEFAULT_LEVELS[1:])
     # the widest level's steps come first, then the others'
