@@ -190,7 +190,6 @@ def run_level(
         trusted = step > 1 or (step == 1 and np.isfinite(carried))
         at_least = carried if step == 1 else 0.0
         last_motion = motion if trusted else np.inf
-        before = motion
         motions = np.abs(delta[:, :3]).max(axis=1) + np.abs(delta[:, 3:]).max(axis=1)
         motion = float(motions.max(initial=0))
         moved += motion
@@ -215,7 +214,7 @@ def run_level(
         # of 0.69, 0.087 and 0.023 px, where the second's tail was 0.012 px, within the 0.05
         # of the level's tolerance; the largest motion of many patches grows with their number)
         if remaining(motion, last_motion, at_least=at_least) < level.tol or settled:
-            fit.ratio = motion / before if step > 1 and before > 0 else np.inf
+            fit.ratio = motion / last_motion if step > 1 and last_motion > 0 else np.inf
             return True  # the report's system (if kept) is this step's
         if stalls >= STALLS:
             fit.system = None  # the last step may have moved patches along a flat overlap
