@@ -39,7 +39,7 @@ from merge.core.parallel import one_blas_thread
 from merge.core.patchset import Patch, PatchSet
 from merge.core.transforms import PatchTransform
 from merge.live.canvas import LiveCanvas
-from merge.live.neighbourhood import frame_offset, within
+from merge.live.neighbourhood import frame_offset, nominal_neighbours, to_place, within
 from merge.pipeline import (
     SHIFT_PRIOR_FRACTION,
     default_cell,
@@ -293,27 +293,12 @@ class LiveMerge:
 
     # -- the steps of an addition -----------------------------------------------------------
 
-    def _neighbours(self, c: int, max_shift: float) -> IntArray:
-        """The other stored patches ``c``'s nominal footprint can overlap within
-        ``max_shift``."""
-        boxes = np.array([p.footprint for p in self.patches])
-        grown = boxes[c] + np.array([-max_shift, -max_shift, max_shift, max_shift])
-        hit = (
-            (boxes[:, 0] < grown[2])
-            & (boxes[:, 2] > grown[0])
-            & (boxes[:, 1] < grown[3])
-            & (boxes[:, 3] > grown[1])
-        )
-        hit[c] = False
-        out: IntArray = np.flatnonzero(hit)
-        return out
-
     def _start(self, c: int) -> tuple[IntArray, bool, bool]:
         """Steps 1 and 2: ``c``'s neighbours and its coarse start among them, placed where
         they now are; whether its XY was measured, and whether it could have been."""
         cell = self.config.cell or default_cell(self.patches)
         max_shift = self.config.max_shift or default_max_shift(self.patches)
-        neighbours = self._neighbours(c, max_shift)
+        neighbours = nominal_neighbours(np.array([p.footprint for p in self.patches]), c, max_shift)
         if not len(neighbours):
             return neighbours, False, False
         members = np.concatenate([neighbours, [c]])
@@ -327,16 +312,10 @@ class LiveMerge:
             max_shift=max_shift,
         )
         self.repeats.append((start.repeat, start.pair_information))
-        # the patches to place: c, and neighbours the start now measured both ways that their
-        # own starts had not (an edge alone holds XY across it only); the others hold the frame
+        # the patches to place (c, and neighbours first measured both ways now) and the frame
         complete = start.xy_complete
         known = np.array([self.complete[int(j)] for j in neighbours] + [False])
-        moving = np.zeros(len(members), dtype=bool)
-        moving[-1] = True
-        moving[:-1] = ~known[:-1] & complete[:-1]
-        if not (~moving & known).any():  # no neighbour measured both ways holds the frame
-            moving[:-1] = False
-        reference = ~moving & known if (~moving & known).any() else ~moving
+        moving, reference = to_place(complete, known)
         shift = frame_offset(
             [local[k] for k in np.flatnonzero(reference)],
             start.translation[reference],

@@ -1,5 +1,6 @@
-"""A patch's neighbourhood in the live merge: its pairs renumbered to a local list, and the
-frame its coarse start is in against the mosaic's."""
+"""A patch's neighbourhood in the live merge: the stored patches it can overlap, its pairs
+renumbered to a local list, which patches its coarse start places and which hold the frame,
+and the frame that start is in against the mosaic's."""
 
 from __future__ import annotations
 
@@ -13,6 +14,50 @@ from merge.core.transforms import PatchTransform
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
+
+
+def nominal_neighbours(boxes: FloatArray, c: int, max_shift: float) -> IntArray:
+    """The patches whose nominal ``boxes`` (n, 4: x0, y0, x1, y1, metres) patch ``c``'s can
+    overlap when the two lie up to ``max_shift`` (metres, along either axis) off their nominal
+    places against each other; ``c`` itself not."""
+    grown = boxes[c] + np.array([-max_shift, -max_shift, max_shift, max_shift])
+    hit = (
+        (boxes[:, 0] < grown[2])
+        & (boxes[:, 2] > grown[0])
+        & (boxes[:, 1] < grown[3])
+        & (boxes[:, 3] > grown[1])
+    )
+    hit[c] = False
+    out: IntArray = np.flatnonzero(hit)
+    return out
+
+
+def to_place(
+    complete: NDArray[np.bool_], known: NDArray[np.bool_]
+) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
+    """Which members of a coarse start's neighbourhood it places, and which hold the frame.
+
+    The members are the neighbours, then the new patch (last). ``complete`` (m,): whether this
+    start measured each one's XY along both axes; ``known`` (m,): whether an earlier start had
+    (the new patch's is ignored). The new patch is placed, and so is every neighbour this start
+    measured both ways that no earlier one had (an edge alone holds XY across it only), unless
+    that would leave no neighbour measured both ways to hold the frame. Returns ``moving`` and
+    the ``reference`` that holds the frame: the neighbours not moving that are known both ways,
+    or, where there is none, all those not moving.
+    """
+    complete, known = np.asarray(complete, dtype=bool), np.asarray(known, dtype=bool).copy()
+    if complete.shape != known.shape or complete.ndim != 1 or not len(complete):
+        raise ValueError(
+            f"complete and known must be two (m,) arrays, got {complete.shape}, {known.shape}"
+        )
+    known[-1] = False
+    moving = np.zeros(len(complete), dtype=bool)
+    moving[-1] = True
+    moving[:-1] = ~known[:-1] & complete[:-1]
+    if not (~moving & known).any():
+        moving[:-1] = False
+    reference = ~moving & known if (~moving & known).any() else ~moving
+    return moving, reference
 
 
 def within(members: IntArray, pairs: IntArray) -> IntArray:
