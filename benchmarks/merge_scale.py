@@ -33,13 +33,17 @@ time between two of its looks is timed (start to the first look and the last loo
 included).
 
 Prints a table and writes JSON (``--json``, default ``benchmarks/results/merge_scale.json``).
-Run: ``python benchmarks/merge_scale.py [--sides 10,20,30,40] [--large] [--big] [--bound]``
-(``--large``: also 2,500 and 10,000 patches of 64 x 64 px).
+Run: ``python benchmarks/merge_scale.py [--sides 10,20,30,40] [--pixels 64] [--large] [--big]
+[--bound] [--line-noise NM]`` (``--large``: also 2,500 and 10,000 patches of 64 x 64 px;
+``--pixels``: the ``--sides`` mosaics' patches that many pixels a side; ``--line-noise``: the
+scan lines' offsets, RMS nm, instead of the typical 0.3: at 0 what is left of a large mosaic's
+bend is the white noise's and the drift's).
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import subprocess
 import sys
@@ -181,9 +185,12 @@ def row_error(z: Any, synth: Any) -> float:
     return float(np.sqrt(np.mean(means[rows] ** 2)))
 
 
-def one_size(side: int, pixels: int, work: Path, *, bound: bool = False) -> dict[str, Any]:
+def one_size(
+    side: int, pixels: int, work: Path, *, bound: bool = False, line_noise: float | None = None
+) -> dict[str, Any]:
     """Synthesise, merge (in a fresh process) and score a ``side`` x ``side`` mosaic; with
-    ``bound``, also its Cramér-Rao bound (:func:`bound_of`)."""
+    ``bound``, also its Cramér-Rao bound (:func:`bound_of`). ``line_noise``: the scan lines'
+    offsets (RMS, metres) instead of the typical drift's."""
     from backend.synthetic import patch_set_from_synth, scored, sigma_calibration
     from hardware.sim.drift import DriftModel
     from hardware.sim.surfaces import FoldedSurface
@@ -192,6 +199,9 @@ def one_size(side: int, pixels: int, work: Path, *, bound: bool = False) -> dict
     from merge.io.manifest import write_patch_set
 
     surface = FoldedSurface(seed=3)
+    drift = DriftModel.typical()
+    if line_noise is not None:
+        drift = dataclasses.replace(drift, line_noise=line_noise)
     synth = synthesize(
         surface,
         rows=side,
@@ -199,7 +209,7 @@ def one_size(side: int, pixels: int, work: Path, *, bound: bool = False) -> dict
         patch_size=(PATCH_SIDE, PATCH_SIDE),
         pixels=(pixels, pixels),
         overlap=(OVERLAP, OVERLAP),
-        drift=DriftModel.typical(),
+        drift=drift,
         seed=1,
     )
     folder = work / f"{side}x{side}-{pixels}"
@@ -240,10 +250,11 @@ def one_size(side: int, pixels: int, work: Path, *, bound: bool = False) -> dict
         stride=stride,
     )
     input_pixels = n * pixels * pixels
-    extra = bound_of(synth, surface, DriftModel.typical()) if bound else {}
+    extra = bound_of(synth, surface, drift) if bound else {}
     return extra | {
         "patches": n,
         "pixels": pixels,
+        "line_noise_nm": drift.line_noise * 1e9,
         "wall_s": ran["wall_s"],
         "iterations": doc["iterations"],
         "converged": doc["converged"],
@@ -267,6 +278,16 @@ def one_size(side: int, pixels: int, work: Path, *, bound: bool = False) -> dict
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sides", default="10,20,30,40", help="mosaic sides (patches per row)")
+    parser.add_argument(
+        "--pixels", type=int, default=64, help="pixels a side of the --sides patches (default 64)"
+    )
+    parser.add_argument(
+        "--line-noise",
+        type=float,
+        metavar="NM",
+        help="the scan lines' offsets, RMS nm (default the typical drift's 0.3; 0 shows what a "
+        "large mosaic's bend owes them)",
+    )
     parser.add_argument("--large", action="store_true", help="also 50 x 50 and 100 x 100")
     parser.add_argument("--big", action="store_true", help="also 50 x 50 patches of 256 x 256")
     parser.add_argument(
@@ -282,9 +303,14 @@ def main(argv: list[str] | None = None) -> int:
     if args.child:
         return child(*args.child)
     try:
-        sizes = [(int(s), 64) for s in args.sides.split(",") if s.strip()]
+        sizes = [(int(s), args.pixels) for s in args.sides.split(",") if s.strip()]
     except ValueError:
         parser.error(f"--sides must be integers separated by commas, got {args.sides!r}")
+    if any(side < 1 for side, _ in sizes) or args.pixels < 8:
+        parser.error(f"need sides >= 1 and --pixels >= 8, got {args.sides!r} and {args.pixels}")
+    if args.line_noise is not None and not args.line_noise >= 0:
+        parser.error(f"--line-noise must be >= 0 nm, got {args.line_noise}")
+    line_noise = None if args.line_noise is None else args.line_noise * 1e-9
     if args.large:
         sizes += [(50, 64), (100, 64)]
     if args.big:
@@ -298,7 +324,13 @@ def main(argv: list[str] | None = None) -> int:
     )
     with tempfile.TemporaryDirectory() as tmp:
         for side, pixels in sizes:
-            r = one_size(side, pixels, Path(tmp), bound=args.bound and side * side <= BOUND_MAX)
+            r = one_size(
+                side,
+                pixels,
+                Path(tmp),
+                bound=args.bound and side * side <= BOUND_MAX,
+                line_noise=line_noise,
+            )
             rows.append(r)
             ref = next((x for x in rows if x["patches"] == 400 and x["pixels"] == 64), None)
             ratio = r["wall_s"] / ref["wall_s"] if ref else float("nan")

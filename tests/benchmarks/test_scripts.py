@@ -50,10 +50,11 @@ def test_the_bound_names_a_case_it_does_not_know() -> None:
 
 def test_the_scaling_table_writes_json_without_a_400_patch_size(tmp_path: Path) -> None:
     """Without 400 patches to compare with, a size's time ratio is null, not NaN (which no
-    strict JSON reader takes)."""
+    strict JSON reader takes); the patches' pixels and scan lines' offsets are as asked."""
     out = tmp_path / "scale.json"
+    args = ["--sides", "2", "--pixels", "32", "--line-noise", "0", "--json", str(out)]
     done = subprocess.run(
-        [sys.executable, str(BENCHMARKS / "merge_scale.py"), "--sides", "2", "--json", str(out)],
+        [sys.executable, str(BENCHMARKS / "merge_scale.py"), *args],
         capture_output=True,
         text=True,
         timeout=300,
@@ -65,6 +66,26 @@ def test_the_scaling_table_writes_json_without_a_400_patch_size(tmp_path: Path) 
         raise ValueError(f"not JSON: {constant}")
 
     sizes = json.loads(out.read_text(), parse_constant=strict)["sizes"]
-    assert [s["patches"] for s in sizes] == [4]
+    assert [(s["patches"], s["pixels"], s["line_noise_nm"]) for s in sizes] == [(4, 32, 0.0)]
     assert sizes[0]["time_ratio_400"] is None and sizes[0]["patch_ratio_400"] == 0.01
     assert sizes[0]["converged"]
+
+
+@pytest.mark.parametrize(
+    ("args", "said"),
+    [
+        (["--line-noise", "-0.1"], "--line-noise must be >= 0"),
+        (["--pixels", "4"], "--pixels >= 8"),
+        (["--sides", "0"], "sides >= 1"),
+    ],
+)
+def test_the_scaling_table_refuses_sizes_it_cannot_draw(args: list[str], said: str) -> None:
+    done = subprocess.run(
+        [sys.executable, str(BENCHMARKS / "merge_scale.py"), *args],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+    )
+    assert done.returncode == 2
+    assert said in done.stderr
