@@ -306,8 +306,9 @@ def main(argv: list[str] | None = None) -> int:
         sizes = [(int(s), args.pixels) for s in args.sides.split(",") if s.strip()]
     except ValueError:
         parser.error(f"--sides must be integers separated by commas, got {args.sides!r}")
-    if any(side < 1 for side, _ in sizes) or args.pixels < 8:
-        parser.error(f"need sides >= 1 and --pixels >= 8, got {args.sides!r} and {args.pixels}")
+    if any(side < 2 for side, _ in sizes) or args.pixels < 8:
+        # a mosaic of one patch has nothing to merge
+        parser.error(f"need sides >= 2 and --pixels >= 8, got {args.sides!r} and {args.pixels}")
     if args.line_noise is not None and not args.line_noise >= 0:
         parser.error(f"--line-noise must be >= 0 nm, got {args.line_noise}")
     line_noise = None if args.line_noise is None else args.line_noise * 1e-9

@@ -76,7 +76,7 @@ def test_the_scaling_table_writes_json_without_a_400_patch_size(tmp_path: Path) 
     [
         (["--line-noise", "-0.1"], "--line-noise must be >= 0"),
         (["--pixels", "4"], "--pixels >= 8"),
-        (["--sides", "0"], "sides >= 1"),
+        (["--sides", "1"], "sides >= 2"),
     ],
 )
 def test_the_scaling_table_refuses_sizes_it_cannot_draw(args: list[str], said: str) -> None:
