@@ -16,19 +16,24 @@ SCRIPTS = sorted(
 )
 
 
+def _run(script: str, *args: str, timeout: float = 120) -> subprocess.CompletedProcess[str]:
+    """A benchmark script run with ``args``, its output captured."""
+    return subprocess.run(
+        [sys.executable, str(BENCHMARKS / script), *args],
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        check=False,
+    )
+
+
 def test_the_scripts_are_found() -> None:
     assert "merge_variations.py" in SCRIPTS and "merge_scale.py" in SCRIPTS
 
 
 @pytest.mark.parametrize("script", SCRIPTS)
 def test_a_benchmark_prints_its_usage(script: str) -> None:
-    done = subprocess.run(
-        [sys.executable, str(BENCHMARKS / script), "--help"],
-        capture_output=True,
-        text=True,
-        timeout=120,
-        check=False,
-    )
+    done = _run(script, "--help")
     assert done.returncode == 0, done.stderr
     assert done.stdout.startswith("usage:")
 
@@ -36,13 +41,7 @@ def test_a_benchmark_prints_its_usage(script: str) -> None:
 def test_the_bound_names_a_case_it_does_not_know() -> None:
     """``crb.py`` takes the bench's and the grating sweep's cases by name; another is a usage
     error that lists them, before any bound is computed."""
-    done = subprocess.run(
-        [sys.executable, str(BENCHMARKS / "crb.py"), "--cases", "paper-r200-p3-s0.6,nope"],
-        capture_output=True,
-        text=True,
-        timeout=120,
-        check=False,
-    )
+    done = _run("crb.py", "--cases", "paper-r200-p3-s0.6,nope")
     assert done.returncode == 2
     assert "unknown cases nope" in done.stderr
     assert "paper-r200-p3-s0.6" in done.stderr.split("use", 1)[1]
@@ -53,13 +52,7 @@ def test_the_scaling_table_writes_json_without_a_400_patch_size(tmp_path: Path) 
     strict JSON reader takes); the patches' pixels and scan lines' offsets are as asked."""
     out = tmp_path / "scale.json"
     args = ["--sides", "2", "--pixels", "32", "--line-noise", "0", "--json", str(out)]
-    done = subprocess.run(
-        [sys.executable, str(BENCHMARKS / "merge_scale.py"), *args],
-        capture_output=True,
-        text=True,
-        timeout=300,
-        check=False,
-    )
+    done = _run("merge_scale.py", *args, timeout=300)
     assert done.returncode == 0, done.stderr
 
     def strict(constant: str) -> None:
@@ -80,12 +73,6 @@ def test_the_scaling_table_writes_json_without_a_400_patch_size(tmp_path: Path) 
     ],
 )
 def test_the_scaling_table_refuses_sizes_it_cannot_draw(args: list[str], said: str) -> None:
-    done = subprocess.run(
-        [sys.executable, str(BENCHMARKS / "merge_scale.py"), *args],
-        capture_output=True,
-        text=True,
-        timeout=120,
-        check=False,
-    )
+    done = _run("merge_scale.py", *args)
     assert done.returncode == 2
     assert said in done.stderr
