@@ -45,6 +45,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import math
 import subprocess
 import sys
 import tempfile
@@ -309,8 +310,8 @@ def main(argv: list[str] | None = None) -> int:
     if any(side < 2 for side, _ in sizes) or args.pixels < 8:
         # a mosaic of one patch has nothing to merge
         parser.error(f"need sides >= 2 and --pixels >= 8, got {args.sides!r} and {args.pixels}")
-    if args.line_noise is not None and not args.line_noise >= 0:
-        parser.error(f"--line-noise must be >= 0 nm, got {args.line_noise}")
+    if args.line_noise is not None and not 0 <= args.line_noise < math.inf:
+        parser.error(f"--line-noise must be >= 0 nm and finite, got {args.line_noise}")
     line_noise = None if args.line_noise is None else args.line_noise * 1e-9
     if args.large:
         sizes += [(50, 64), (100, 64)]

@@ -68,6 +68,7 @@ def test_the_scaling_table_writes_json_without_a_400_patch_size(tmp_path: Path) 
     ("args", "said"),
     [
         (["--line-noise", "-0.1"], "--line-noise must be >= 0"),
+        (["--line-noise", "inf"], "finite"),
         (["--pixels", "4"], "--pixels >= 8"),
         (["--sides", "1"], "sides >= 2"),
     ],
