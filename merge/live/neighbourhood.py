@@ -51,13 +51,12 @@ def to_place(
             f"complete and known must be two (m,) arrays, got {complete.shape}, {known.shape}"
         )
     known[-1] = False
-    moving = np.zeros(len(complete), dtype=bool)
-    moving[-1] = True
-    moving[:-1] = ~known[:-1] & complete[:-1]
-    if not (~moving & known).any():
-        moving[:-1] = False
-    reference = ~moving & known if (~moving & known).any() else ~moving
-    return moving, reference
+    if not known.any():  # no neighbour known both ways to hold the frame: all of them hold it
+        moving = np.zeros(len(complete), dtype=bool)
+        moving[-1] = True
+        return moving, ~moving
+    # a neighbour known both ways never moves: those hold the frame
+    return np.append(~known[:-1] & complete[:-1], True), known
 
 
 def within(members: IntArray, pairs: IntArray) -> IntArray:
