@@ -276,6 +276,11 @@ def one_size(
     }
 
 
+def _reference(rows: list[dict[str, Any]]) -> dict[str, Any] | None:
+    """The size every time is compared with: 400 patches of 64 x 64 px, if it ran."""
+    return next((r for r in rows if r["patches"] == 400 and r["pixels"] == 64), None)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sides", default="10,20,30,40", help="mosaic sides (patches per row)")
@@ -334,9 +339,8 @@ def main(argv: list[str] | None = None) -> int:
                 line_noise=line_noise,
             )
             rows.append(r)
-            ref = next((x for x in rows if x["patches"] == 400 and x["pixels"] == 64), None)
+            ref = _reference(rows)
             ratio = r["wall_s"] / ref["wall_s"] if ref else float("nan")
-            r["time_ratio_400"] = ratio
             r["patch_ratio_400"] = r["patches"] / 400
             print(
                 f"{r['patches']:>8}{pixels:>5}{r['wall_s']:>9.1f}{r['iterations']:>6}"
@@ -358,7 +362,7 @@ def main(argv: list[str] | None = None) -> int:
             for stage, seconds in r["timings"].items():
                 print(f"{'':>13}{stage}: {seconds:.1f} s", flush=True)
     # the sizes run before 400 patches' learn their ratio now (JSON has no NaN: null without it)
-    ref = next((x for x in rows if x["patches"] == 400 and x["pixels"] == 64), None)
+    ref = _reference(rows)
     for r in rows:
         r["time_ratio_400"] = r["wall_s"] / ref["wall_s"] if ref else None
     if ref and any(r["patches"] < 400 for r in rows):
