@@ -55,6 +55,7 @@ from merge.core.patchset import Patch
 from merge.core.progress import checkpoint
 from merge.core.transforms import PatchTransform
 from merge.refine.bank import SurfaceBank
+from merge.refine.heights import solve_heights
 from merge.refine.level import (
     Fit,
     Level,
@@ -233,8 +234,16 @@ def refine(
             converged = level_converged
             if not converged and fit.last_step is not None:
                 unsettled = fit.last_step > level.tol
+    transforms = state.to_transforms(base, scale)
+    if held is None and levels[-1].smooth == 0 and levels[-1].stride == 1:
+        checkpoint(0, "the heights with every scan line's offset")
+        lines = float(np.median([p.heights.shape[0] for p in patches]))
+        prior = heights_prior(plane_sigma, drift_prior / scale, lines) * scale
+        solved = solve_heights(patches, transforms, pairs, plane_sigma=(prior[0], prior[1]))
+        if solved is not None:
+            transforms = solved.transforms
     return RefineResult(
-        transforms=state.to_transforms(base, scale),
+        transforms=transforms,
         iterations=fit.iteration,
         converged=converged,
         history=fit.history,
@@ -269,6 +278,24 @@ def _level_setup(
         hold = ~first_free if held is None else held | ~first_free
     level_pairs = pairs if hold is None else pairs[(~hold)[pairs].any(axis=1)]
     return LevelSetup(bank, level_pairs, hold, margin, raw, np.zeros(2), band=level.band)
+
+
+def heights_prior(plane_sigma: FloatArray, drift_prior: float, lines: float) -> FloatArray:
+    """The drift planes' prior sigmas (x, y; units of ``plane_sigma``) for the heights' last
+    solve (:func:`merge.refine.heights.solve_heights`), which counts every overlap once: the
+    last level's (``plane_sigma``, :func:`_plane_sigma`) per side of the data, times
+    sqrt(:data:`SIDES`), where they hold a drift; along the lines one line's share of the
+    drift across them (``lines`` per patch: the plane a drift in time leaves along a line),
+    no looser than the level's. Where the planes followed the patches' own spread (wider than
+    ``drift_prior``: each levelled before export) that spread stays.
+    """
+    sigma = np.asarray(plane_sigma, dtype=np.float64)
+    spread = sigma > drift_prior
+    once = np.where(spread, sigma, sigma * np.sqrt(SIDES))
+    if not spread[0]:
+        once[0] = min(once[0], once[1] / max(lines, 1.0))
+    out: FloatArray = once
+    return out
 
 
 def _plane_sigma(plane: FloatArray, drift_prior: float) -> FloatArray:

@@ -119,7 +119,7 @@ def ratio_of_sums(sums: FloatArray) -> float:
     sw, sr = sums[0, use], sums[1, use]
     # the groups' means: m² / (τ² + σ² / Σw) is χ²(1), whose median is MEDIAN_CHI2_1; a median
     # is not moved by the few groups a misfit or a defect puts far out
-    tau2 = _chi2_variance((sr / sw) ** 2, within / sw, within)
+    tau2 = chi2_variance((sr / sw) ** 2, within / sw, within)
     return within / tau2 if tau2 > 0 else float("inf")
 
 
@@ -155,7 +155,7 @@ def shared_ratios(sums: FloatArray, lines: IntArray, spans: IntArray) -> OffsetR
         return OffsetRatios(float("inf"), float("inf"))
     sw, sr = sums[0, use], sums[1, use]
     mean, var = sr / sw, within / sw
-    tau2 = _chi2_variance(mean**2, var, within)
+    tau2 = chi2_variance(mean**2, var, within)
     if tau2 <= 0:
         return OffsetRatios(float("inf"), float("inf"))
     checkpoint()  # the pairs of a large mosaic's groups take a few tenths of a second
@@ -164,7 +164,7 @@ def shared_ratios(sums: FloatArray, lines: IntArray, spans: IntArray) -> OffsetR
     if len(i) < 2:
         return OffsetRatios(within / tau2, float("inf"))
     d2, v = 0.5 * (mean[i] - mean[j]) ** 2, 0.5 * (var[i] + var[j])
-    own = min(_chi2_variance(d2, v, within), tau2)
+    own = min(chi2_variance(d2, v, within), tau2)
     shared = tau2 - own
     return OffsetRatios(
         within / own if own > 0 else float("inf"),
@@ -206,7 +206,7 @@ def _within(sums: FloatArray) -> tuple[NDArray[np.bool_], float]:
     return use, within if within > 0 else float("inf")
 
 
-def _chi2_variance(m2: FloatArray, v: FloatArray, scale: float) -> float:
+def chi2_variance(m2: FloatArray, v: FloatArray, scale: float) -> float:
     """``τ²`` that makes the median of ``m2 / (τ² + v)`` that of χ²(1) (0 where ``v`` alone
     explains ``m2``): squared means ``m2`` of noise ``v`` (g,) each and of a common spread,
     sought from ``1e-12 scale`` on."""
