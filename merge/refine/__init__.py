@@ -9,7 +9,9 @@ builds one sparse normal system (:mod:`~merge.refine.normal_system`, with the sc
 offsets marginalised, :mod:`~merge.refine.lines`) from the surfaces
 (:mod:`~merge.refine.bank`), solves it with its priors (:mod:`~merge.refine.solve`) and moves
 every patch, its gauge held (:mod:`~merge.refine.state`), level by level until each stops
-(:mod:`~merge.refine.level`). The scanner's self-calibration
+(:mod:`~merge.refine.level`); a whole mosaic's heights are then solved once more with every
+scan line's offset an unknown of its own (:mod:`~merge.refine.heights`), where those offsets
+stand out of their means' noise. The scanner's self-calibration
 (:mod:`~merge.refine.scanner`) measures the bend every patch shares from a refined merge.
 """
 

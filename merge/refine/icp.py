@@ -38,7 +38,8 @@ Pieces: :mod:`merge.refine.bank` holds the patches as surfaces,
 :mod:`merge.refine.normal_system` builds the Gauss-Newton system and :mod:`merge.refine.solve`
 solves it, :mod:`merge.refine.state` holds the placement of every patch and its gauge,
 :mod:`merge.report.quality` the per-patch quality report, :mod:`merge.refine.level` one level's
-steps and when they stop; this module holds the schedule.
+steps and when they stop, :mod:`merge.refine.heights` the heights' last solve with every scan
+line's offset (a whole mosaic's, after the last level); this module holds the schedule.
 """
 
 from __future__ import annotations
@@ -202,7 +203,9 @@ def refine(
     held : (n,) bool, keyword-only
         Patches held at their start in every level (they hold the gauge; only pairs with a
         patch not held enter the system): a neighbourhood refined against the mosaic around it
-        (:mod:`merge.live`). Default none.
+        (:mod:`merge.live`). Default none. With none held, and a last level on the raw heights,
+        the heights are solved once more with every scan line's offset
+        (:func:`merge.refine.heights.solve_heights`).
     report : bool, keyword-only
         Keep, for the report (:func:`merge.report.quality.assess`), the system of the last step
         (``RefineResult.system``, built with its signal share) when that step settled the fit:

@@ -182,3 +182,27 @@ def test_a_lines_offset_does_not_change_the_weights(shift: float, line: int, see
     w0, w1 = line_weights(rows, 1e-9), line_weights(moved, 1e-9)
     np.testing.assert_allclose(w1, w0, rtol=1e-6, atol=1e-9)
     assert w0[5] < 0.05
+
+
+def test_the_refinement_of_a_whole_mosaic_ends_with_it(monkeypatch: pytest.MonkeyPatch) -> None:
+    # refine() hands the whole mosaic's placement to the heights' solve and returns its
+    # transforms; with patches held (a live merge's neighbourhood) it does not run
+    from merge.refine import icp
+
+    patches, truth, _, _ = _mosaic()
+    calls: list[int] = []
+
+    def spy(*args: object, **kwargs: object) -> object:
+        out = solve_heights(*args, **kwargs)  # type: ignore[arg-type]
+        calls.append(1)
+        return out
+
+    monkeypatch.setattr(icp, "solve_heights", spy)
+    pairs = _pairs(patches)
+    result = icp.refine(patches, pairs, _disturbed(truth))
+    assert calls == [1]
+    assert np.sqrt(np.mean(_height_errors(patches, result.transforms, truth) ** 2)) < 0.3e-9
+    held = np.zeros(len(patches), dtype=bool)
+    held[0] = True
+    icp.refine(patches, pairs, _disturbed(truth), held=held)
+    assert calls == [1]

@@ -14,7 +14,7 @@ from merge.core.overlap import overlapping_pairs
 from merge.core.transforms import PatchTransform
 from merge.refine import icp
 from merge.refine.convergence import height_effect, remaining
-from merge.refine.icp import FAST_DRIFT_SHARE, SIDES, _plane_sigma
+from merge.refine.icp import FAST_DRIFT_SHARE, SIDES, _plane_sigma, heights_prior
 from tests.conftest import SHARED_DATA, Synthetic, narrow_paper_grid
 
 GRID = SHARED_DATA / "grid.npy"
@@ -162,3 +162,19 @@ def test_a_mosaic_of_narrow_overlaps_settles_instead_of_cycling() -> None:
     assert not [w for w in result.warnings if "ran out of iterations" in w]
     exy, _, _ = registration_error(synth, [p.transform for p in result.patches])
     assert exy < 1e-9
+
+
+def test_the_heights_solve_takes_one_lines_share_of_the_drift_along_the_lines() -> None:
+    # counted once, the level's sigmas per side of the data grow by sqrt(SIDES); along the
+    # lines a drift in time moves by one line's share of what it moves across them
+    drift = 5.0
+    held = heights_prior(np.array([0.3, 2.0]), drift, 200.0)
+    assert held[1] == pytest.approx(2.0 * np.sqrt(SIDES))
+    assert held[0] == pytest.approx(2.0 * np.sqrt(SIDES) / 200.0)
+    # never looser along the lines than the level's own
+    assert heights_prior(np.array([0.001, 2.0]), drift, 200.0)[0] == pytest.approx(
+        0.001 * np.sqrt(SIDES)
+    )
+    # patches levelled one by one: the spread the level followed stays, along either axis
+    levelled = heights_prior(np.array([40.0, 30.0]), drift, 200.0)
+    np.testing.assert_allclose(levelled, [40.0, 30.0])
