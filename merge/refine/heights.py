@@ -19,17 +19,29 @@ pair once),
     r = z_a + dz_a + s_a · (p_a - c_a) - c_a[line] - (z_b + dz_b + s_b · (p_b - c_b)
         - (1 - f) c_b[j] - f c_b[j + 1]),
 
-with Cauchy weights at the residuals' robust scale, a prior of ``1 / τ²`` on every line's
-offset and the refinement's prior on the drift planes (along the lines one line's share of the
-drift across them, as physics says, unless the patches' tilts showed otherwise). The system
-is sparse (a line meets the lines of the patches it overlaps) and is factorised once.
+with Cauchy weights on every row's deviation from its line's mean, a variance that grows
+with the slope beneath it (the places' XY blur, :func:`slope_blur`), a prior of ``1 / τ²`` on
+every line's offset and the refinement's prior on the drift planes (along the lines one line's
+share of the drift across them, as physics says, unless the patches' tilts showed otherwise).
+The system is sparse (a line meets the lines of the patches it overlaps) and is factorised
+once.
 
 The white noise of the residuals and the lines' variance ``τ²`` are measured on the residuals
 at the start (:func:`line_statistics`): the means of one source line's rows in one pair scatter
 by two lines' offsets and their own noise once a straight line across the pair's lines is taken
 out (the places' misfit, which this solve corrects); ``τ²`` is what makes the median of their
-squares over their variance that of χ²(1). Scans without line offsets (``τ² = 0``) are left as
-the refinement placed them.
+squares over their variance that of χ²(1). Where the offsets do not stand out of that noise
+(``τ`` below a line's mean's white noise: patches of 64 x 64 px, whose overlaps are 16 px wide,
+and the paper grid's of 60 x 30 px), the refinement's random effects told as much, and its
+heights stand.
+
+Measured (folded surface, 1 µm patches of 256 x 256 px, 25 % overlap, seed 1): 100 patches Z
+0.27 -> 0.10 nm, map/floor 1.079 -> 1.011; 400 patches Z 0.59 -> 0.40 nm, 1.358 -> 1.175 (the
+bound's 0.31 nm and 1.082); 2,500 patches Z 0.96 -> 0.67 nm, 1.768 -> 1.433, the merge 207 ->
+273 s. The bench's cases as before or better (1 µm TGX1 Z median 0.13 -> 0.10 nm), the grating
+sweep's 1 µm chessboards' medians within 1 % and most worsts lower; on two draws of ten of one
+(3 µm period, 0.6 µm steps, 100 nm ramps: 4 x 4 patches) the rows bowled by 0.3 nm where they
+had not (worst map/floor 1.24 -> 1.30), the lines' model's honest doubt about four rows' tilts.
 """
 
 from __future__ import annotations
@@ -65,6 +77,9 @@ GROW = 2
 #: Triplets gathered before they are summed into the system built so far (a mosaic of 2,500
 #: patches of 256 x 256 px gathers some sixty million).
 COMPACT_EVERY = 4_000_000
+#: White noise (metres) below which the scans count as free of it: a femtometre, far below
+#: any instrument's and far above the rounding of heights held to the nanometre.
+NOISE_FLOOR = 1e-15
 #: Ridge on the Z offsets (a fraction of one point's weight): only the common offset, which no
 #: data see, is held by it.
 RIDGE = 1e-6
@@ -314,8 +329,9 @@ def solve_heights(
 
     Returns
     -------
-    Heights, or None where the lines carry no offsets (or no pair overlaps): the
-    refinement's heights then stand.
+    Heights, or None where the lines' offsets do not stand out of their means' noise (or
+    none at all, or no pair overlaps, or the scans are free of noise, which leaves nothing to
+    weigh the rows by): the refinement's heights then stand.
     """
     n = len(patches)
     if len(transforms) != n:
@@ -337,7 +353,7 @@ def solve_heights(
             break
     stats = line_statistics(sampled, white)
     del sampled
-    if not stats.lines_dominate:
+    if not (stats.lines_dominate and stats.noise > NOISE_FLOOR):
         return None
     lines = np.array([np.asarray(p.heights).shape[0] for p in patches])
     first = np.concatenate([[0], np.cumsum(lines)])

@@ -206,3 +206,17 @@ def test_the_refinement_of_a_whole_mosaic_ends_with_it(monkeypatch: pytest.Monke
     held[0] = True
     icp.refine(patches, pairs, _disturbed(truth), held=held)
     assert calls == [1]
+
+
+def test_noise_free_scans_and_missing_pixels_are_handled() -> None:
+    # nothing to weigh the rows by without noise: left as they are, not divided by zero
+    patches, truth, _, _ = _mosaic()
+    clean = [Patch(p.id, np.zeros_like(p.heights), p.origin, p.pixel_size) for p in patches]
+    assert solve_heights(clean, truth, _pairs(clean), plane_sigma=(2e-9, 2e-9)) is None
+    # a scan with missing pixels (NaN) is read where it was measured
+    holed = [Patch(p.id, p.heights.copy(), p.origin, p.pixel_size) for p in patches]
+    for p in holed:
+        p.heights[10:20, 5:40] = np.nan
+    solved = solve_heights(holed, _disturbed(truth), _pairs(holed), plane_sigma=(2e-9, 2e-9))
+    assert solved is not None
+    assert all(np.all(np.isfinite(T.t)) and np.all(np.isfinite(T.slope)) for T in solved.transforms)
