@@ -37,7 +37,8 @@ heights stand.
 
 Measured (folded surface, 1 µm patches of 256 x 256 px, 25 % overlap, seed 1): 100 patches Z
 0.27 -> 0.10 nm, map/floor 1.079 -> 1.011; 400 patches Z 0.59 -> 0.40 nm, 1.358 -> 1.175 (the
-bound's 0.31 nm and 1.082); 2,500 patches Z 0.96 -> 0.67 nm, 1.768 -> 1.433, the merge 207 ->
+bound's 0.31 nm and 1.082; seeds 2-4 1.156 -> 1.128, 1.027 -> 1.041, 1.173 -> 1.199, Z RMS
+over the four 0.42 -> 0.36 nm); 2,500 patches Z 0.96 -> 0.67 nm, 1.768 -> 1.433, the merge 207 ->
 273 s. The bench's cases as before or better (1 µm TGX1 Z median 0.13 -> 0.10 nm); the grating
 sweep's 1 µm chessboards (4 x 4 patches of 200 x 200 px, 10 draws): worsts 1.15 -> 1.10, 1.15
 -> 1.08, 1.18 -> 1.10, 1.20 -> 1.18, 1.16 -> 1.13, medians within 1.5 %, but on two draws of
