@@ -20,17 +20,15 @@ pair once),
         - (1 - f) c_b[j] - f c_b[j + 1]),
 
 with Cauchy weights on every row's deviation from its line's mean, a variance that grows
-with the slope beneath it (the places' XY blur, :func:`slope_blur`), a prior of ``1 / τ²`` on
-every line's offset and the refinement's prior on the drift planes (along the lines one line's
-share of the drift across them, as physics says, unless the patches' tilts showed otherwise).
-The system is sparse (a line meets the lines of the patches it overlaps) and is factorised
-once.
+with the slope beneath it (the places' XY blur,
+:func:`merge.refine.line_statistics.slope_blur`), a prior of ``1 / τ²`` on every line's offset
+and the refinement's prior on the drift planes (along the lines one line's share of the drift
+across them, as physics says, unless the patches' tilts showed otherwise). The system is sparse
+(a line meets the lines of the patches it overlaps) and is factorised once.
 
 The white noise of the residuals and the lines' variance ``τ²`` are measured on the residuals
-at the start (:func:`line_statistics`): the means of one source line's rows in one pair scatter
-by two lines' offsets and their own noise once a straight line across the pair's lines is taken
-out (the places' misfit, which this solve corrects); ``τ²`` is what makes the median of their
-squares over their variance that of χ²(1). Where the offsets do not stand out of that noise
+at the start, on some pairs (:mod:`merge.refine.line_statistics`; the rows of a pair,
+:mod:`merge.refine.pair_rows`). Where the offsets do not stand out of that noise
 (``τ`` below a line's mean's white noise: patches of 64 x 64 px, whose overlaps are 16 px wide,
 and the paper grid's of 60 x 30 px), the refinement's random effects told as much, and its
 heights stand.
@@ -61,7 +59,8 @@ from merge.core.patchset import Patch
 from merge.core.progress import checkpoint
 from merge.core.sparse import solve_symmetric
 from merge.core.transforms import PatchTransform
-from merge.refine.lines import MEDIAN_CHI2_1, MIN_GROUP, chi2_variance
+from merge.refine.line_statistics import LineStatistics, line_statistics, line_weights
+from merge.refine.pair_rows import PairRows, pair_rows
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
@@ -73,10 +72,6 @@ IntArray = NDArray[np.intp]
 #: once, 256 pairs of 256 x 256 px took 9 bytes per pixel of 400 such patches.
 SAMPLE_PAIRS = 96
 SAMPLE_ROWS = 1 << 20
-#: Cauchy scale in robust sigmas, as the refinement's (:func:`merge.refine.normal_system.cauchy`).
-CAUCHY = 3.0
-#: Pixels added around the part of a patch that can lie over another.
-GROW = 2
 #: Triplets gathered before they are summed into the system built so far (a mosaic of 2,500
 #: patches of 256 x 256 px gathers some sixty million).
 COMPACT_EVERY = 4_000_000
@@ -89,51 +84,6 @@ RIDGE = 1e-6
 
 
 @dataclass(frozen=True)
-class PairRows:
-    """The points of one patch ``a`` of a pair read in the other, ``b``: ``r`` (m,) the
-    residual (metres), ``line`` (m,) the scan line of ``a`` each lies on, ``j`` and ``f`` (m,)
-    the line of ``b`` below it and how far towards the next, ``da`` and ``db`` (m, 2) its XY
-    from either patch's drift-plane centre (nominal frames, metres), ``slope2`` (m,) the
-    squared slope of ``b`` there (None: flat)."""
-
-    r: FloatArray
-    line: IntArray
-    j: IntArray
-    f: FloatArray
-    da: FloatArray
-    db: FloatArray
-    slope2: FloatArray | None = None
-
-    def blurred(self, xy: float) -> FloatArray:
-        """(m,) the variance an XY blur of ``xy`` (metres) adds to every row: its slope's."""
-        if self.slope2 is None or xy <= 0:
-            return np.zeros_like(self.r)
-        out: FloatArray = xy**2 * self.slope2
-        return out
-
-
-@dataclass(frozen=True)
-class LineStatistics:
-    """The residuals' robust scale and white sigma (metres), one scan line's offset sigma
-    ``tau`` (metres; 0 where the lines carry none) and the white noise of a line's mean in a
-    pair (``mean_noise``, metres: the median over the lines measured); ``xy``, the blur
-    (metres) by which the rows' spread grows with the slope beneath them (:func:`slope_blur`).
-    """
-
-    scale: float
-    noise: float
-    tau: float
-    mean_noise: float = np.inf
-    xy: float = 0.0
-
-    @property
-    def lines_dominate(self) -> bool:
-        """Whether the lines' offsets are the larger part of their means' scatter: only then
-        does solving for them tell more than the refinement's random effects did."""
-        return bool(self.tau > self.mean_noise)
-
-
-@dataclass(frozen=True)
 class Heights:
     """The solve's outcome: the ``transforms`` with their Z offsets and drift planes moved,
     every patch's scan lines' offsets (metres, patch by patch, first line first), and the
@@ -142,171 +92,6 @@ class Heights:
     transforms: list[PatchTransform]
     line_offsets: list[FloatArray]
     statistics: LineStatistics
-
-
-def pair_rows(a: Patch, b: Patch, T_a: PatchTransform, T_b: PatchTransform) -> PairRows | None:
-    """:class:`PairRows` of ``a``'s pixels that fall inside ``b`` (all four of ``b``'s
-    pixels around them measured), None if fewer than :data:`MIN_GROUP`. Both transforms turn
-    about z only (the refinement's)."""
-    ha, hb = np.asarray(a.heights), np.asarray(b.heights)
-    nya, nxa = ha.shape
-    nyb, nxb = hb.shape
-    dxa, dya = a.pixel_size
-    # b's corners in a's pixels: the window of a that can lie over b
-    corners = np.array(
-        [
-            [
-                b.origin[0] + u * (nxb - 1) * b.pixel_size[0],
-                b.origin[1] + v * (nyb - 1) * b.pixel_size[1],
-            ]
-            for u in (0, 1)
-            for v in (0, 1)
-        ]
-    )
-    in_a = ((corners @ T_b.R[:2, :2].T + T_b.t[:2]) - T_a.t[:2]) @ T_a.R[:2, :2]
-    cols = (in_a[:, 0] - a.origin[0]) / dxa
-    rows = (in_a[:, 1] - a.origin[1]) / dya
-    c0, c1 = max(0, int(np.floor(cols.min())) - GROW), min(nxa, int(np.ceil(cols.max())) + GROW + 1)
-    r0, r1 = max(0, int(np.floor(rows.min())) - GROW), min(nya, int(np.ceil(rows.max())) + GROW + 1)
-    if c1 - c0 < 1 or r1 - r0 < 1:
-        return None
-    yy, xx = np.mgrid[r0:r1, c0:c1]
-    line, x = yy.ravel(), xx.ravel()
-    pa = np.column_stack([a.origin[0] + x * dxa, a.origin[1] + line * dya])
-    q = pa @ T_a.R[:2, :2].T + T_a.t[:2]
-    pb = (q - T_b.t[:2]) @ T_b.R[:2, :2]
-    u = (pb[:, 0] - b.origin[0]) / b.pixel_size[0]
-    v = (pb[:, 1] - b.origin[1]) / b.pixel_size[1]
-    inside = (u >= 0) & (u <= nxb - 1) & (v >= 0) & (v <= nyb - 1)
-    i0 = np.clip(np.floor(u).astype(np.intp), 0, nxb - 2)
-    j0 = np.clip(np.floor(v).astype(np.intp), 0, nyb - 2)
-    fu, fv = u - i0, v - j0
-    zb = (
-        hb[j0, i0] * (1 - fu) * (1 - fv)
-        + hb[j0, i0 + 1] * fu * (1 - fv)
-        + hb[j0 + 1, i0] * (1 - fu) * fv
-        + hb[j0 + 1, i0 + 1] * fu * fv
-    )
-    za = ha[line, x]
-    ok = inside & np.isfinite(zb) & np.isfinite(za)
-    if ok.sum() < MIN_GROUP:
-        return None
-    i0, j0, fu, fv = i0[ok], j0[ok], fu[ok], fv[ok]
-    # the bilinear cell's slopes
-    gx = (hb[j0, i0 + 1] - hb[j0, i0]) * (1 - fv) + (hb[j0 + 1, i0 + 1] - hb[j0 + 1, i0]) * fv
-    gy = (hb[j0 + 1, i0] - hb[j0, i0]) * (1 - fu) + (hb[j0 + 1, i0 + 1] - hb[j0, i0 + 1]) * fu
-    slope2 = (gx / b.pixel_size[0]) ** 2 + (gy / b.pixel_size[1]) ** 2
-    da, db = pa[ok] - T_a.centre, pb[ok] - T_b.centre
-    r = (za[ok] + T_a.t[2] + da @ T_a.slope) - (zb[ok] + T_b.t[2] + db @ T_b.slope)
-    return PairRows(r, line[ok], j0, fv, da, db, slope2)
-
-
-def line_weights(p: PairRows, scale: float, xy: float = 0.0) -> FloatArray:
-    """(m,) Cauchy weights of a pair's rows on their deviations from their source line's mean
-    (robust scale ``scale``, metres, widened on slopes by an XY blur ``xy``): a line's offset
-    and the pair's misplacement move every row of a line alike, and weighed on the residuals
-    themselves they would take weight from the lines whose offsets are large, shrinking what
-    is measured of them (400 patches of 256 x 256 px: the lines' sigma 0.25 nm for 0.3, Z
-    0.38 nm against 0.34). Two rounds: the plain mean, then the mean the first weights give."""
-    at = p.line - p.line.min()
-    w = np.ones_like(p.r)
-    width = CAUCHY * np.sqrt(scale**2 + p.blurred(xy))
-    for _ in range(2):
-        mean = np.bincount(at, weights=w * p.r) / np.maximum(np.bincount(at, weights=w), 1e-300)
-        w = 1.0 / (1.0 + ((p.r - mean[at]) / width) ** 2)
-    return w
-
-
-def slope_blur(deviations: FloatArray, slope2: FloatArray) -> float:
-    """The XY blur (metres) by which rows' deviations from their line's mean (m,) spread more
-    on steeper slopes (``slope2`` (m,), squared): ``d² = a + s² |slope|²`` through the robust
-    variances of eight bins of rows by slope, ``s`` no less than 0. Heights are read at the
-    places the refinement left, whose XY errors (and the look-ups' misfit on ramps) a slope
-    turns into height: a grating's flank, 600 nm high over 100 nm, reads a tenth of a
-    nanometre off as well as most of one."""
-    if len(deviations) < 8 * MIN_GROUP:
-        return 0.0
-    bins = np.array_split(np.argsort(slope2), 8)
-    v = np.array([(1.4826 * float(np.median(np.abs(deviations[k])))) ** 2 for k in bins])
-    g = np.array([float(np.median(slope2[k])) for k in bins])
-    if not np.ptp(g) > 0:
-        return 0.0
-    rise = float(np.polyfit(g, v, 1)[0])
-    return float(np.sqrt(rise)) if rise > 0 else 0.0
-
-
-def line_statistics(
-    rows: Sequence[PairRows], white: Sequence[tuple[float, float]] | None = None
-) -> LineStatistics:
-    """:class:`LineStatistics` from the rows of some pairs: the robust scale of the rows'
-    deviations from their source line's mean in the pair, and their white sigma once weighted
-    (:func:`line_weights`); and the offset sigma one line has, from those lines' means, each
-    pair's straight line across its lines taken out (:func:`chi2_variance`), shared between
-    the two lines a mean holds (the source's and the destination's, interpolated). ``white``
-    (one per pair of ``rows``): either scan's white noise (metres), which the means' noise is
-    counted from (the source's, and the destination's as interpolated between two of its
-    lines); default the rows' white sigma for both."""
-    deviations, slopes = [], []
-    for p in rows:
-        at = p.line - p.line.min()
-        n = np.bincount(at)
-        mean = np.bincount(at, weights=p.r) / np.maximum(n, 1)
-        keep = n[at] >= MIN_GROUP
-        deviations.append((p.r - mean[at])[keep])
-        slopes.append(p.blurred(1.0)[keep])  # the squared slopes
-    spread = np.abs(np.concatenate(deviations)) if deviations else np.zeros(0)
-    if len(spread) < 2 * MIN_GROUP:
-        return LineStatistics(0.0, 0.0, 0.0)
-    scale = 1.4826 * float(np.median(spread))
-    if not scale > 0:
-        return LineStatistics(0.0, 0.0, 0.0)
-    xy = slope_blur(spread, np.concatenate(slopes))
-    means, variances, share, within = [], [], [], []
-    for i, p in enumerate(rows):
-        w = line_weights(p, scale, xy)
-        at = p.line - p.line.min()
-        n = np.bincount(at)
-        sw = np.bincount(at, weights=w)
-        sr = np.bincount(at, weights=w * p.r)
-        sw2 = np.bincount(at, weights=w * w)
-        mix = np.bincount(at, weights=(1 - p.f) ** 2 + p.f**2) / np.maximum(n, 1)
-        use = n >= MIN_GROUP
-        if use.sum() < 3:
-            continue
-        inner = use[at]
-        # one row's share of its line's mean taken back: the spread about the others' mean
-        lift = 1.0 / (1.0 - (w / sw[at])[inner])
-        within.append(np.abs(p.r - (sr / np.maximum(sw, 1e-300))[at])[inner] * np.sqrt(lift))
-        m, y = sr[use] / sw[use], np.flatnonzero(use).astype(np.float64)
-        # the pair's own misplacement: an offset and a tilt across its lines
-        X = np.column_stack([np.ones_like(y), y - y.mean()]) * np.sqrt(sw[use])[:, None]
-        coef = np.linalg.lstsq(X, m * np.sqrt(sw[use]), rcond=None)[0]
-        d = m - coef[0] - coef[1] * (y - y.mean())
-        # the fit took two of the means' degrees of freedom
-        k = len(d)
-        means.append(d * np.sqrt(k / (k - 2)) if k > 2 else d)
-        of_a, of_b = (np.nan, np.nan) if white is None else white[i]
-        # a mean's white variance, its rows' blur on slopes included
-        blur = np.bincount(at, weights=w * w * p.blurred(xy)) / sw**2
-        variances.append(
-            np.column_stack([sw2[use] / sw[use] ** 2, of_a**2 + mix[use] * of_b**2, blur[use]])
-        )
-        share.append(1.0 + mix[use])
-        checkpoint()
-    if not means:
-        return LineStatistics(scale, scale, 0.0)
-    noise2 = (1.4826 * float(np.median(np.concatenate(within)))) ** 2
-    m2 = np.concatenate(means) ** 2
-    parts = np.concatenate(variances)
-    # each mean's white variance: its scans' own where known, else the rows' spread's
-    known = np.isfinite(parts[:, 1]) & (parts[:, 1] > 0)
-    v = parts[:, 0] * np.where(known, parts[:, 1], noise2) + parts[:, 2]
-    mean_noise = float(np.sqrt(np.median(v)))
-    noise = float(np.sqrt(noise2))
-    if np.median(m2 / v) <= MEDIAN_CHI2_1:
-        return LineStatistics(scale, noise, 0.0, mean_noise, xy)
-    tau2 = chi2_variance(m2, v, noise2) / float(np.mean(np.concatenate(share)))
-    return LineStatistics(scale, noise, float(np.sqrt(max(tau2, 0.0))), mean_noise, xy)
 
 
 def solve_heights(

@@ -1,0 +1,22 @@
+"""The rows of one overlap read for the heights' last solve."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from merge.refine.pair_rows import pair_rows
+from tests.merge.refine.line_mosaic import NOISE, SIDE, mosaic
+
+
+def test_a_pair_reads_the_other_patch_where_it_lies() -> None:
+    # at the true places the residuals are the two scans' line offsets and noise, nothing else
+    patches, truth, _, lines = mosaic()
+    rows = pair_rows(patches[0], patches[1], truth[0], truth[1])
+    assert rows is not None
+    assert np.all(rows.line >= 0) and np.all(rows.line < SIDE)
+    expected = lines[0][rows.line] - (
+        (1 - rows.f) * lines[1][rows.j] + rows.f * lines[1][rows.j + 1]
+    )
+    assert np.std(rows.r - expected) < 4 * NOISE
+    # patches that do not meet have no rows
+    assert pair_rows(patches[0], patches[8], truth[0], truth[8]) is None
