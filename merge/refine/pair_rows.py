@@ -16,12 +16,11 @@ from numpy.typing import NDArray
 
 from merge.core.patchset import Patch
 from merge.core.transforms import PatchTransform
+from merge.refine.lines import MIN_GROUP
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
 
-#: Rows a pair must have to say anything of its lines (as :data:`merge.refine.lines.MIN_GROUP`).
-MIN_ROWS = 5
 #: Pixels added around the part of a patch that can lie over another.
 GROW = 2
 
@@ -52,8 +51,8 @@ class PairRows:
 
 def pair_rows(a: Patch, b: Patch, T_a: PatchTransform, T_b: PatchTransform) -> PairRows | None:
     """:class:`PairRows` of ``a``'s pixels that fall inside ``b`` (all four of ``b``'s
-    pixels around them measured), None if fewer than :data:`MIN_ROWS`. Both transforms turn
-    about z only (the refinement's)."""
+    pixels around them measured), None if fewer than :data:`merge.refine.lines.MIN_GROUP`
+    (what a line's group needs). Both transforms turn about z only (the refinement's)."""
     ha, hb = np.asarray(a.heights), np.asarray(b.heights)
     nya, nxa = ha.shape
     nyb, nxb = hb.shape
@@ -95,7 +94,7 @@ def pair_rows(a: Patch, b: Patch, T_a: PatchTransform, T_b: PatchTransform) -> P
     )
     za = ha[line, x]
     ok = inside & np.isfinite(zb) & np.isfinite(za)
-    if ok.sum() < MIN_ROWS:
+    if ok.sum() < MIN_GROUP:
         return None
     i0, j0, fu, fv = i0[ok], j0[ok], fu[ok], fv[ok]
     # the bilinear cell's slopes
