@@ -53,7 +53,7 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.sparse import coo_matrix, csc_matrix, csr_matrix
+from scipy.sparse import coo_matrix, csr_matrix, diags
 
 from merge.core.patchset import Patch
 from merge.core.progress import checkpoint
@@ -132,18 +132,20 @@ def solve_heights(
         return None
     sampled: list[PairRows] = []
     white = []
+    held = 0
     for a, b in _sample(pairs).tolist():
         kept = _rows_of(patches, transforms, (a, b))
         if kept is not None:
             sampled.append(kept)
             white.append((_white(patches[a]), _white(patches[b])))
-        if sum(len(p.r) for p in sampled) >= SAMPLE_ROWS:
+            held += len(kept.r)
+        if held >= SAMPLE_ROWS:
             break
     stats = line_statistics(sampled, white)
     del sampled
     if not (stats.lines_dominate and stats.noise > NOISE_FLOOR):
         return None
-    lines = np.array([np.asarray(p.heights).shape[0] for p in patches])
+    lines = np.array([p.shape[0] for p in patches])
     first = np.concatenate([[0], np.cumsum(lines)])
     size = 3 * n + int(first[-1])
     system = _System(size)
@@ -177,9 +179,8 @@ def solve_heights(
     for k in (0, 1):
         prior[1 + k : 3 * n : 3] = (radius / sigma[k]) ** 2
         g[1 + k : 3 * n : 3] -= prior[1 + k : 3 * n : 3] * slope[:, k]
-    A = (A + coo_matrix((prior, (np.arange(size), np.arange(size))), shape=(size, size))).tocsc()
     checkpoint()
-    x = solve_symmetric(csc_matrix(A), g)
+    x = solve_symmetric((A + diags(prior)).tocsc(), g)
     out = []
     for k, T in enumerate(transforms):
         t = T.t.copy()
@@ -248,7 +249,7 @@ class _System:
         block = V.T @ wV
         self._put(np.repeat(P, 6), np.tile(P, 6), block.ravel())
         wr = w * p.r
-        np.add.at(self.g, P, -(V.T @ wr))
+        self.g[P] -= V.T @ wr  # a and b differ: no index twice
         # the three lines of every row: a's own, b's below and the next, with their coefficients
         slots = (
             (la, p.line, -np.ones_like(p.f), na),
@@ -306,8 +307,7 @@ class _System:
         self._sum = part if self._sum is None else (self._sum + part)
         self._parts, self._pending = [], 0
 
-    def matrix(self) -> coo_matrix:
+    def matrix(self) -> csr_matrix:
+        """The summed system (``size`` x ``size``)."""
         self._compact()
-        if self._sum is None:
-            return coo_matrix((self.size, self.size))
-        return coo_matrix(self._sum)
+        return csr_matrix((self.size, self.size)) if self._sum is None else self._sum

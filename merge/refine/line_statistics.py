@@ -19,7 +19,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from merge.core.progress import checkpoint
-from merge.refine.lines import MEDIAN_CHI2_1, MIN_GROUP, chi2_variance
+from merge.refine.lines import MIN_GROUP, chi2_variance
 from merge.refine.pair_rows import PairRows
 
 FloatArray = NDArray[np.float64]
@@ -151,7 +151,6 @@ def line_statistics(
     v = parts[:, 0] * np.where(known, parts[:, 1], noise2) + parts[:, 2]
     mean_noise = float(np.sqrt(np.median(v)))
     noise = float(np.sqrt(noise2))
-    if np.median(m2 / v) <= MEDIAN_CHI2_1:
-        return LineStatistics(scale, noise, 0.0, mean_noise, xy)
+    # none where the means' own noise explains them (chi2_variance says 0)
     tau2 = chi2_variance(m2, v, noise2) / float(np.mean(np.concatenate(share)))
     return LineStatistics(scale, noise, float(np.sqrt(max(tau2, 0.0))), mean_noise, xy)
