@@ -162,16 +162,9 @@ def solve_heights(
     A, g = system.matrix(), system.g
     # priors: every line's offset; the drift planes' total (now plus the step) towards none; a
     # ridge on the Z offsets for the common one
-    radius = np.array(
-        [
-            0.5
-            * np.hypot(
-                np.asarray(p.heights).shape[1] * p.pixel_size[0],
-                np.asarray(p.heights).shape[0] * p.pixel_size[1],
-            )
-            for p in patches
-        ]
-    )
+    # the radius the refinement's planes are counted at (SurfaceBank.radius: half the extent's
+    # diagonal, first to last pixel centre), which the prior's sigmas are rises at
+    radius = np.array([0.5 * np.hypot(*p.extent) for p in patches])
     slope = np.array([T.slope for T in transforms])
     prior = np.zeros(size)
     prior[3 * n :] = 1.0 / stats.tau**2
