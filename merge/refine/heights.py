@@ -136,7 +136,7 @@ def solve_heights(
     for a, b in _sample(pairs).tolist():
         kept = _rows_of(patches, transforms, (a, b))
         if kept is not None:
-            sampled.append(kept)
+            sampled.append(kept.for_statistics())
             white.append((_white(patches[a]), _white(patches[b])))
             held += len(kept.r)
         if held >= SAMPLE_ROWS:

@@ -103,12 +103,15 @@ def line_statistics(
         deviations.append((p.r - mean[at])[keep])
         slopes.append(p.blurred(1.0)[keep])  # the squared slopes
     spread = np.abs(np.concatenate(deviations)) if deviations else np.zeros(0)
+    slope2 = np.concatenate(slopes) if slopes else np.zeros(0)
+    del deviations, slopes  # a row's worth each, beside the rows themselves
     if len(spread) < 2 * MIN_GROUP:
         return LineStatistics(0.0, 0.0, 0.0)
     scale = 1.4826 * float(np.median(spread))
     if not scale > 0:
         return LineStatistics(0.0, 0.0, 0.0)
-    xy = slope_blur(spread, np.concatenate(slopes))
+    xy = slope_blur(spread, slope2)
+    del spread, slope2
     means, variances, share, within = [], [], [], []
     for i, p in enumerate(rows):
         w = line_weights(p, scale, xy)
