@@ -25,7 +25,7 @@ from typing import TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.sparse import csc_matrix, csr_array
+from scipy.sparse import csc_matrix, csr_array, diags
 from scipy.sparse.linalg import SuperLU, splu
 
 from merge.core.progress import checkpoint
@@ -41,13 +41,62 @@ ORDERING = "MMD_AT_PLUS_A"
 LISTEN_FROM = 12_000
 #: Seconds between two looks for a cancel while a helper factorises.
 POLL = 0.05
+#: SuperLU's options for a symmetric positive definite system: pivots on the diagonal.
+SYMMETRIC_MODE = {"SymmetricMode": True}
 
 
-def solve_symmetric(A: csc_matrix, b: FloatArray) -> FloatArray:
-    """``A x = b`` for a sparse symmetric positive definite ``A``; ``b`` (m,) or (m, k)."""
-    x = _listening(lambda: _factor(A).solve(np.asarray(b, dtype=np.float64)), A.shape[0])
+def solve_symmetric(
+    A: csc_matrix, b: FloatArray, *, groups: NDArray[np.intp] | None = None
+) -> FloatArray:
+    """``A x = b`` for a sparse symmetric positive definite ``A``; ``b`` (m,) or (m, k).
+
+    ``groups`` (m,), keyword-only: a label per unknown; the fill-reducing ordering is then the
+    minimum degree ordering of the groups' graph, each group's unknowns kept together in their
+    own order (:func:`grouped_order`), and every step of the solve listens for a cancel.
+    SuperLU's own ordering holds the GIL: 0.37 s for a system of 100,000 unknowns (400 patches
+    of 256 lines each with their lines' offsets), seconds for 650,000, while no cancel is
+    heard; on the graph of pairs of lines 0.06 s of it, for a factor 11 % fuller."""
+    rhs = np.asarray(b, dtype=np.float64)
+    if groups is None:
+        x = _listening(lambda: _factor(A).solve(rhs), A.shape[0])
+    else:
+        order = grouped_order(A, groups)
+
+        def solved() -> FloatArray:
+            permuted = csc_matrix(A[order][:, order])
+            lu = splu(permuted, permc_spec="NATURAL", diag_pivot_thresh=0.0, options=SYMMETRIC_MODE)
+            y = np.empty_like(rhs)
+            y[order] = lu.solve(rhs[order])
+            return y
+
+        x = listened(solved)
     out: FloatArray = np.asarray(x, dtype=np.float64)
     return out
+
+
+def grouped_order(A: csc_matrix, groups: NDArray[np.intp]) -> NDArray[np.intp]:
+    """(m,) an elimination order of the symmetric ``A`` (m x m): the minimum degree ordering
+    of the graph of ``groups`` (m,) (two groups adjacent where any of their unknowns are), each
+    group's unknowns together in their own order. Computed on a helper thread, listened to."""
+    m = A.shape[0]
+    groups = np.asarray(groups, dtype=np.intp)
+    if groups.shape != (m,) or (m and groups.min() < 0):
+        raise ValueError(f"groups must be {m} labels >= 0, got shape {groups.shape}")
+    count = int(groups.max()) + 1 if m else 0
+
+    def order() -> NDArray[np.intp]:
+        member = csr_array((np.ones(m), (np.arange(m), groups)), shape=(m, count))
+        pattern = csc_matrix((np.ones(A.nnz), A.indices, A.indptr), shape=A.shape)
+        graph = csc_matrix(member.T @ pattern @ member)
+        # a diagonally dominant matrix of that graph: factorised, its ordering is the graph's
+        graph.data[:] = -1.0
+        degree = -np.asarray(graph.sum(axis=0)).ravel()
+        dominant = csc_matrix(graph + diags(degree + 1.0))
+        place = _factor(dominant).perm_c  # each group's place in the elimination
+        out: NDArray[np.intp] = np.lexsort((np.arange(m), place[groups]))
+        return out
+
+    return listened(order)
 
 
 def factor_symmetric(A: csc_matrix) -> SuperLU:
@@ -57,14 +106,19 @@ def factor_symmetric(A: csc_matrix) -> SuperLU:
 
 
 def _factor(A: csc_matrix) -> SuperLU:
-    return splu(A, permc_spec=ORDERING, diag_pivot_thresh=0.0, options={"SymmetricMode": True})
+    return splu(A, permc_spec=ORDERING, diag_pivot_thresh=0.0, options=SYMMETRIC_MODE)
 
 
 def _listening(work: Callable[[], T], size: int) -> T:
-    """``work()``; from :data:`LISTEN_FROM` unknowns (``size``) on a helper thread, while this
-    one listens for a cancel (:class:`~merge.core.errors.MergeCancelled` raised here at once)."""
-    if size < LISTEN_FROM:
-        return work()
+    """``work()``; from :data:`LISTEN_FROM` unknowns (``size``) :func:`listened` to."""
+    return work() if size < LISTEN_FROM else listened(work)
+
+
+def listened(work: Callable[[], T]) -> T:
+    """``work()`` on a helper thread, while this one listens for a cancel
+    (:class:`~merge.core.errors.MergeCancelled` raised here at once): for work that releases
+    the GIL and takes long, as SuperLU's factorisations and scipy's sparse sums and
+    conversions of tens of millions of nonzeros (a second or more each)."""
     done = threading.Event()
     outcome: list[T] = []
     failure: list[BaseException] = []

@@ -102,6 +102,7 @@ def line_statistics(
         keep = n[at] >= MIN_GROUP
         deviations.append((p.r - mean[at])[keep])
         slopes.append(p.blurred(1.0)[keep])  # the squared slopes
+        checkpoint()
     spread = np.abs(np.concatenate(deviations)) if deviations else np.zeros(0)
     slope2 = np.concatenate(slopes) if slopes else np.zeros(0)
     del deviations, slopes  # a row's worth each, beside the rows themselves

@@ -15,6 +15,8 @@ from merge.core.sparse import (
     LISTEN_FROM,
     _listening,
     factor_symmetric,
+    grouped_order,
+    listened,
     solve_symmetric,
     sum_at,
 )
@@ -101,3 +103,41 @@ def test_sums_at_equal_numpy_add_at() -> None:
     assert sum_at(np.empty(0, dtype=np.intp), np.empty((0, 6)), 3).shape == (3, 6)
     with pytest.raises(ValueError, match="one per value"):
         sum_at(index[:-1], values, 9)
+
+
+def _grid(n: int) -> csc_matrix:
+    """A grid of n x n unknowns, each tied to its four neighbours (positive definite)."""
+    line = diags([-np.ones(n - 1), 4.1 * np.ones(n), -np.ones(n - 1)], [-1, 0, 1])
+    return csc_matrix(kron(eye(n), line) - kron(diags([np.ones(n - 1)] * 2, [-1, 1]), eye(n)))
+
+
+def test_grouped_orders_keep_each_group_together_and_solve_alike() -> None:
+    A = _grid(30)
+    groups = np.arange(A.shape[0]) // 3  # three neighbours along a grid line
+    order = grouped_order(A, groups)
+    assert sorted(order.tolist()) == list(range(A.shape[0]))
+    # a group's unknowns follow one another, in their own order
+    in_order = groups[order]
+    starts = np.flatnonzero(np.r_[True, in_order[1:] != in_order[:-1]])
+    assert len(starts) == groups.max() + 1
+    assert np.all(np.diff(order)[in_order[1:] == in_order[:-1]] == 1)
+    b = np.random.default_rng(5).normal(size=A.shape[0])
+    np.testing.assert_allclose(solve_symmetric(A, b, groups=groups), solve_symmetric(A, b))
+
+
+def test_grouped_orders_refuse_labels_that_are_not_one_per_unknown() -> None:
+    A = _grid(4)
+    with pytest.raises(ValueError, match="16 labels"):
+        grouped_order(A, np.zeros(15, dtype=np.intp))
+    with pytest.raises(ValueError, match="16 labels"):
+        grouped_order(A, -np.ones(16, dtype=np.intp))
+
+
+def test_listened_work_is_cancelled_at_once() -> None:
+    release, began = threading.Event(), threading.Event()
+    cancel = threading.Event()
+    threading.Timer(0.2, cancel.set).start()
+    with tracking(None, cancel.is_set), pytest.raises(MergeCancelled):
+        listened(_slow_work(release, began))
+    assert began.is_set() and not release.is_set()
+    release.set()
