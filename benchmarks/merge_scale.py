@@ -160,22 +160,66 @@ def _merge_in_child(manifest: Path, out: Path, warm: Path) -> dict[str, Any]:
     return said
 
 
-def bound_of(synth: Any, surface: Any, drift: Any, *, samples: int = 8) -> dict[str, float]:
-    """What an efficient merge could reach on this patch set (:mod:`cramer_rao`): the
-    Cramér-Rao bound with the simulator's own drift as the drift planes' prior (slow axis: the
-    drift over a patch; fast axis: a line's share of it), its expected XY and Z errors and the
-    spread of its map error over the floor (``samples`` draws of corrections from it)."""
-    import cramer_rao  # a module beside this script
-
+def drift_planes_prior(synth: Any, drift: Any) -> tuple[float, float]:
+    """The simulator's own drift as the drift planes' prior (x, y; metres, the planes' rise
+    from a patch's centre to its corner): a drift in time over the patch, across the lines
+    all of it, along a line one line's share."""
     s = synth[0]
     ny, nx = s.heights.shape
     side = np.array([nx, ny]) * s.pixel_size  # metres
     radius = 0.5 * float(np.hypot(*side))
-    # a drift in time over the patch: across the lines all of it, along a line one line's share
-    rise = drift.z_drift_sigma * radius / side  # the planes' rise, centre to corner
-    prior = (float(rise[0]) / ny, float(rise[1]))
+    rise = drift.z_drift_sigma * radius / side
+    return float(rise[0]) / ny, float(rise[1])
+
+
+def bound_of(synth: Any, surface: Any, drift: Any, *, samples: int = 8) -> dict[str, float]:
+    """What an efficient merge could reach on this patch set (:mod:`cramer_rao`): the
+    Cramér-Rao bound with the simulator's own drift as the drift planes' prior
+    (:func:`drift_planes_prior`), its expected XY and Z errors and the spread of its map error
+    over the floor (``samples`` draws of corrections from it)."""
+    import cramer_rao  # a module beside this script
+
+    prior = drift_planes_prior(synth, drift)
     r = cramer_rao.efficient_errors(synth, surface, drift, samples=samples, plane_prior=prior)
     return {f"bound_{k}": v for k, v in r.items()}
+
+
+def oracle_of(synth: Any, surface: Any, drift: Any, *, stride: int, floor: float) -> dict[str, Any]:
+    """The heights an oracle would merge to, on sizes beyond the bound's reach: the heights'
+    last solve (:func:`merge.refine.heights.solve_heights`, every patch's Z offset and drift
+    plane with every scan line's offset) at the TRUE places, with the simulator's own noise,
+    line offsets and drift as its statistics and prior, every row weighed alike. Its Z error
+    is one draw of what the data tell of the heights once every XY is known (the posterior
+    mean of a linear Gaussian model: no merge does better on average); its map over the floor
+    says how far above the floor the line offsets alone leave a mosaic."""
+    from backend.synthetic import patch_set_from_synth, scored
+    from merge import render_mosaic
+    from merge.core.overlap import overlapping_pairs
+    from merge.core.transforms import PatchTransform
+    from merge.refine.heights import solve_heights
+    from merge.refine.line_statistics import LineStatistics
+
+    patches = patch_set_from_synth(synth).patches
+    truth = [PatchTransform(s.rotation, s.translation) for s in synth]
+    # the nominal footprints, grown by the stage's errors: a pair that does not meet has no rows
+    pairs = overlapping_pairs(
+        np.array([p.footprint for p in patches]), margin=4 * drift.stage_sigma
+    )
+    known = LineStatistics(math.inf, drift.noise, drift.line_noise, 0.0)
+    solved = solve_heights(
+        patches, truth, pairs, plane_sigma=drift_planes_prior(synth, drift), statistics=known
+    )
+    if solved is None:  # no line offsets: the true places are the oracle
+        return {}
+    score = scored(synth, solved.transforms, stride=stride)
+    G, g = score.gauge
+    mosaic = render_mosaic(patches, solved.transforms)
+    merr = map_error(mosaic.heights, mosaic.origin, mosaic.pixel_size, surface, G, g, stride=stride)
+    return {
+        "oracle_reg_z_nm": score.z * 1e9,
+        "oracle_reg_z_rows_nm": row_error(score.patches[:, 2], synth) * 1e9,
+        "oracle_map_over_floor": merr / floor,
+    }
 
 
 def row_error(z: Any, synth: Any) -> float:
@@ -187,11 +231,18 @@ def row_error(z: Any, synth: Any) -> float:
 
 
 def one_size(
-    side: int, pixels: int, work: Path, *, bound: bool = False, line_noise: float | None = None
+    side: int,
+    pixels: int,
+    work: Path,
+    *,
+    bound: bool = False,
+    oracle: bool = False,
+    line_noise: float | None = None,
 ) -> dict[str, Any]:
     """Synthesise, merge (in a fresh process) and score a ``side`` x ``side`` mosaic; with
-    ``bound``, also its Cramér-Rao bound (:func:`bound_of`). ``line_noise``: the scan lines'
-    offsets (RMS, metres) instead of the typical drift's."""
+    ``bound``, also its Cramér-Rao bound (:func:`bound_of`), with ``oracle`` the heights' solve
+    at the true places (:func:`oracle_of`). ``line_noise``: the scan lines' offsets (RMS,
+    metres) instead of the typical drift's."""
     from backend.synthetic import patch_set_from_synth, scored, sigma_calibration
     from hardware.sim.drift import DriftModel
     from hardware.sim.surfaces import FoldedSurface
@@ -252,6 +303,8 @@ def one_size(
     )
     input_pixels = n * pixels * pixels
     extra = bound_of(synth, surface, drift) if bound else {}
+    if oracle:
+        extra |= oracle_of(synth, surface, drift, stride=stride, floor=floor)
     return extra | {
         "patches": n,
         "pixels": pixels,
@@ -302,6 +355,12 @@ def main(argv: list[str] | None = None) -> int:
         help=f"also the Cramér-Rao bound of the sizes up to {BOUND_MAX} patches (minutes each)",
     )
     parser.add_argument(
+        "--oracle",
+        action="store_true",
+        help="also the heights' solve at the true places with the simulator's statistics, at "
+        "every size (what the line offsets alone leave above the floor)",
+    )
+    parser.add_argument(
         "--child", nargs=3, metavar=("MANIFEST", "OUT", "WARM"), help=argparse.SUPPRESS
     )
     parser.add_argument("--json", default=str(ROOT / "benchmarks" / "results" / "merge_scale.json"))
@@ -336,6 +395,7 @@ def main(argv: list[str] | None = None) -> int:
                 pixels,
                 Path(tmp),
                 bound=args.bound and side * side <= BOUND_MAX,
+                oracle=args.oracle,
                 line_noise=line_noise,
             )
             rows.append(r)
@@ -357,6 +417,12 @@ def main(argv: list[str] | None = None) -> int:
                     f"{'':>13}bound: XY {r['bound_reg_xy_nm']:.2f} nm, Z {r['bound_reg_z_nm']:.2f} "
                     f"nm, map/floor median {r['bound_map_over_floor_median']:.3f} (90th "
                     f"percentile {r['bound_map_over_floor_p90']:.3f})",
+                    flush=True,
+                )
+            if "oracle_reg_z_nm" in r:
+                print(
+                    f"{'':>13}oracle: Z {r['oracle_reg_z_nm']:.2f} nm, rows "
+                    f"{r['oracle_reg_z_rows_nm']:.2f}, map/floor {r['oracle_map_over_floor']:.3f}",
                     flush=True,
                 )
             for stage, seconds in r["timings"].items():
