@@ -18,7 +18,8 @@ scored the same way; ``map/floor`` their ratio: 1 is a merge that found every tr
 exactly). The time of each size against that of 400 patches, beside the ratio of patches, says
 whether the time is linear (equal ratios). ``--bound``: beside the merge, the Cramér-Rao bound
 of each size up to :data:`BOUND_MAX` patches (``crb.py``, the simulator's drift as the drift
-planes' prior): the XY and Z errors and map/floor an efficient merge would have. A large
+planes' prior): the XY and Z errors and map/floor an efficient merge would have;
+``--oracle``, at every size, the heights an oracle would merge to (:func:`oracle_of`). A large
 mosaic's map/floor is above 1 by physics too: the scan lines' offsets leave the patch rows'
 relative tilts weakly measured, and that mosaic-wide bend grows with the mosaic. ``Z rows`` is
 the part of the Z error the mosaic's rows of patches hold in common (RMS over the patches of
@@ -34,7 +35,7 @@ included).
 
 Prints a table and writes JSON (``--json``, default ``benchmarks/results/merge_scale.json``).
 Run: ``python benchmarks/merge_scale.py [--sides 10,20,30,40] [--pixels 64] [--large] [--big]
-[--bound] [--line-noise NM]`` (``--large``: also 2,500 and 10,000 patches of 64 x 64 px;
+[--bound] [--oracle] [--line-noise NM]`` (``--large``: also 2,500 and 10,000 patches of 64 x 64 px;
 ``--pixels``: the ``--sides`` mosaics' patches that many pixels a side; ``--line-noise``: the
 scan lines' offsets, RMS nm, instead of the typical 0.3: at 0 what is left of a large mosaic's
 bend is the white noise's and the drift's).

@@ -64,6 +64,17 @@ def test_the_scaling_table_writes_json_without_a_400_patch_size(tmp_path: Path) 
     assert sizes[0]["converged"]
 
 
+def test_the_scaling_table_prints_the_oracle_beside_the_merge(tmp_path: Path) -> None:
+    """``--oracle``: the heights' solve at the true places, scored like the merge."""
+    out = tmp_path / "scale.json"
+    done = _run("merge_scale.py", "--sides", "2", "--pixels", "32", "--oracle", "--json", str(out))
+    assert done.returncode == 0, done.stderr
+    assert "oracle: Z" in done.stdout
+    size = json.loads(out.read_text())["sizes"][0]
+    assert size["oracle_reg_z_nm"] >= 0 and size["oracle_reg_z_rows_nm"] >= 0
+    assert 0.5 < size["oracle_map_over_floor"] < 2.0
+
+
 @pytest.mark.parametrize(
     ("args", "said"),
     [
