@@ -63,7 +63,13 @@ def solve_symmetric(
         order = grouped_order(A, groups)
 
         def solved() -> FloatArray:
-            permuted = csc_matrix(A[order][:, order])
+            # P A P': its columns in order (one copy), their rows renamed in place
+            permuted = csc_matrix(A[:, order])
+            place = np.empty_like(order)
+            place[order] = np.arange(len(order))
+            permuted.indices = place[permuted.indices].astype(permuted.indices.dtype)
+            permuted.has_sorted_indices = False
+            permuted.sort_indices()
             lu = splu(permuted, permc_spec="NATURAL", diag_pivot_thresh=0.0, options=SYMMETRIC_MODE)
             y = np.empty_like(rhs)
             y[order] = lu.solve(rhs[order])

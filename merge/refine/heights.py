@@ -49,6 +49,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from functools import partial
 from typing import Any
 
 import numpy as np
@@ -158,6 +159,7 @@ def solve_heights(
             system.add(rows, a, b, la, lb, lab, stats, variance if variance > 0 else stats.noise**2)
         checkpoint()
     A, g = system.matrix(), system.g
+    del system  # its sum is A: held once
     # priors: every line's offset; the drift planes' total (now plus the step) towards none; a
     # ridge on the Z offsets for the common one
     # the radius the refinement's planes are counted at (SurfaceBank.radius: half the extent's
@@ -172,7 +174,8 @@ def solve_heights(
         g[1 + k : 3 * n : 3] -= prior[1 + k : 3 * n : 3] * slope[:, k]
     checkpoint()
     # symmetric: its CSR arrays are its CSC ones, no conversion
-    posterior = listened(lambda: A + diags(prior, format="csr"))
+    posterior = listened(partial(_plus_diagonal, A, prior))
+    del A  # the system is held once while it is factorised
     arrays = (posterior.data, posterior.indices, posterior.indptr)
     x = solve_symmetric(csc_matrix(arrays, shape=posterior.shape), g, groups=_groups(lines))
     out = []
@@ -193,6 +196,11 @@ def _sample(pairs: IntArray) -> IntArray:
     bits = max(1, int(np.ceil(np.log2(len(pick)))))
     order = np.argsort([int(f"{i:0{bits}b}"[::-1], 2) for i in range(len(pick))], kind="stable")
     out: IntArray = pairs[pick[order]]
+    return out
+
+
+def _plus_diagonal(A: csr_matrix, diagonal: FloatArray) -> csr_matrix:
+    out: csr_matrix = A + diags(diagonal, format="csr")
     return out
 
 
