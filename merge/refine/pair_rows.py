@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from merge.core.heightfield import bilinear
 from merge.core.patchset import Patch
 from merge.core.transforms import PatchTransform
 from merge.refine.lines import MIN_GROUP
@@ -91,22 +92,15 @@ def pair_rows(a: Patch, b: Patch, T_a: PatchTransform, T_b: PatchTransform) -> P
     pb = (q - T_b.t[:2]) @ T_b.R[:2, :2]
     u = (pb[:, 0] - b.origin[0]) / b.pixel_size[0]
     v = (pb[:, 1] - b.origin[1]) / b.pixel_size[1]
-    inside = (u >= 0) & (u <= nxb - 1) & (v >= 0) & (v <= nyb - 1)
-    i0 = np.clip(np.floor(u).astype(np.intp), 0, nxb - 2)
-    j0 = np.clip(np.floor(v).astype(np.intp), 0, nyb - 2)
-    fu, fv = u - i0, v - j0
-    zb = (
-        hb[j0, i0] * (1 - fu) * (1 - fv)
-        + hb[j0, i0 + 1] * fu * (1 - fv)
-        + hb[j0 + 1, i0] * (1 - fu) * fv
-        + hb[j0 + 1, i0 + 1] * fu * fv
-    )
+    (zb,), inside = bilinear([hb], v, u)  # inside: b's four pixels around it measured
     za = ha[line, x]
-    ok = inside & np.isfinite(zb) & np.isfinite(za)
+    ok = inside & np.isfinite(za)
     if ok.sum() < MIN_GROUP:
         return None
-    i0, j0, fu, fv = i0[ok], j0[ok], fu[ok], fv[ok]
-    # the bilinear cell's slopes
+    # the cell each row lies in: b's line below it and how far towards the next; its slopes
+    i0 = np.clip(np.floor(u[ok]).astype(np.intp), 0, nxb - 2)
+    j0 = np.clip(np.floor(v[ok]).astype(np.intp), 0, nyb - 2)
+    fu, fv = u[ok] - i0, v[ok] - j0
     gx = (hb[j0, i0 + 1] - hb[j0, i0]) * (1 - fv) + (hb[j0 + 1, i0 + 1] - hb[j0 + 1, i0]) * fv
     gy = (hb[j0 + 1, i0] - hb[j0, i0]) * (1 - fu) + (hb[j0 + 1, i0 + 1] - hb[j0, i0 + 1]) * fu
     slope2 = (gx / b.pixel_size[0]) ** 2 + (gy / b.pixel_size[1]) ** 2
