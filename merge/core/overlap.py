@@ -42,6 +42,21 @@ def moved_boxes(boxes: FloatArray, transforms: Sequence[PatchTransform]) -> Floa
     return out
 
 
+def span_in_patches(boxes: FloatArray) -> float:
+    """How many patches the mosaic spans along its longer axis: the extent of the footprints
+    ``(n, 4)`` ``(xmin, ymin, xmax, ymax)`` along x and y over their median width and height
+    (a grid of ``rows x cols`` patches overlapping by a quarter spans about ``0.75 cols``); 0
+    for no patches."""
+    b = np.asarray(boxes, dtype=np.float64).reshape(-1, 4)
+    if not len(b):
+        return 0.0
+    size = np.median(b[:, 2:] - b[:, :2], axis=0)
+    if np.any(size <= 0):
+        raise ValueError(f"footprints must have a positive width and height, got median {size}")
+    extent = b[:, 2:].max(axis=0) - b[:, :2].min(axis=0)
+    return float(np.max(extent / size))
+
+
 def overlapping_pairs(boxes: FloatArray, *, margin: float = 0.0) -> IntArray:
     """Pairs ``(a, b)``, ``a < b``, whose boxes grown by ``margin`` intersect with positive area.
 

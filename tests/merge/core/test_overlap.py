@@ -8,7 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from merge.core import overlap as overlap_module
-from merge.core.overlap import moved_boxes, overlap_groups, overlapping_pairs
+from merge.core.overlap import moved_boxes, overlap_groups, overlapping_pairs, span_in_patches
 from merge.core.transforms import PatchTransform
 
 
@@ -89,3 +89,21 @@ def test_a_box_moves_where_its_transform_takes_its_corners_not_by_the_translatio
     assert overlapping_pairs(moved).tolist() == [[0, 1]]
     shifted = boxes + np.array([tr.t[:2] for tr in transforms]).repeat(2, axis=0).reshape(2, 4)
     assert overlapping_pairs(shifted).tolist() == []  # the old rule lost it
+
+
+@pytest.mark.parametrize(
+    ("rows", "cols", "overlap", "span"), [(4, 10, 0.25, 7.75), (12, 3, 0.5, 6.5)]
+)
+def test_a_grid_spans_its_pitches_along_its_longer_side(
+    rows: int, cols: int, overlap: float, span: float
+) -> None:
+    pitch = 1.0 - overlap
+    lo = np.array([[c * pitch, r * pitch] for r in range(rows) for c in range(cols)])
+    boxes = np.column_stack([lo, lo + 1.0]) * 2e-6  # any unit: the span is in patches
+    assert span_in_patches(boxes) == pytest.approx(span)
+
+
+def test_no_patches_span_nothing_and_a_flat_footprint_is_refused() -> None:
+    assert span_in_patches(np.zeros((0, 4))) == 0.0
+    with pytest.raises(ValueError, match="positive width"):
+        span_in_patches(np.array([[0.0, 0.0, 1.0, 0.0], [1.0, 0.0, 2.0, 0.0]]))

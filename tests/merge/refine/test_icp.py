@@ -15,7 +15,7 @@ from merge.core.transforms import PatchTransform
 from merge.refine import icp
 from merge.refine.convergence import height_effect, remaining
 from merge.refine.icp import FAST_DRIFT_SHARE, SIDES, _plane_sigma, heights_prior
-from tests.conftest import SHARED_DATA, Synthetic, narrow_paper_grid
+from tests.conftest import SHARED_DATA, Synthetic, narrow_paper_grid, still
 
 GRID = SHARED_DATA / "grid.npy"
 
@@ -178,3 +178,33 @@ def test_the_heights_solve_takes_one_lines_share_of_the_drift_along_the_lines() 
     # patches levelled one by one: the spread the level followed stays, along either axis
     levelled = heights_prior(np.array([40.0, 30.0]), drift, 200.0)
     np.testing.assert_allclose(levelled, [40.0, 30.0])
+
+
+def test_a_wide_mosaics_smoothed_level_leaves_out_the_borders_its_continuation_bends(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # two noise-free folded patches at their true places: the one-pixel level's point-symmetric
+    # continuation bends both near their borders, and moves the pair; its border band does not
+    synth = synthesize(
+        FoldedSurface(seed=2),
+        rows=1,
+        cols=2,
+        patch_size=(1e-6, 1e-6),
+        pixels=(64, 64),
+        overlap=(0.25, 0.25),
+        drift=still(0.0),
+        seed=2,
+    )
+    patches = patch_set_from_synth(synth).patches
+    pairs = overlapping_pairs(np.array([p.footprint for p in patches]), margin=1e-7)
+    start = [PatchTransform() for _ in patches]
+    one_pixel = (icp.DEFAULT_LEVELS[1],)
+    assert one_pixel[0].smooth > 0 and one_pixel[0].band == 0
+
+    def moved() -> float:
+        fit = icp.refine(patches, pairs, start, levels=one_pixel)
+        return float(np.abs(fit.transforms[1].t[:2] - fit.transforms[0].t[:2]).max())
+
+    assert moved() > 0.5e-9  # two patches span 1.75: no band
+    monkeypatch.setattr(icp, "WIDE_SPAN", 1.5)
+    assert moved() < 0.1e-9
