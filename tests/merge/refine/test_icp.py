@@ -15,7 +15,7 @@ from merge.core.transforms import PatchTransform
 from merge.refine import icp
 from merge.refine.convergence import height_effect, remaining
 from merge.refine.icp import FAST_DRIFT_SHARE, SIDES, _plane_sigma, heights_prior
-from tests.conftest import SHARED_DATA, Synthetic, narrow_paper_grid, still
+from tests.conftest import SHARED_DATA, Synthetic, make_synthetic, narrow_paper_grid, still
 
 GRID = SHARED_DATA / "grid.npy"
 
@@ -185,17 +185,17 @@ def test_a_wide_mosaics_smoothed_level_leaves_out_the_borders_its_continuation_b
 ) -> None:
     # two noise-free folded patches at their true places: the one-pixel level's point-symmetric
     # continuation bends both near their borders, and moves the pair; its border band does not
-    synth = synthesize(
+    pair = make_synthetic(
         FoldedSurface(seed=2),
         rows=1,
         cols=2,
+        seed=2,
+        drift=still(0.0),
         patch_size=(1e-6, 1e-6),
         pixels=(64, 64),
         overlap=(0.25, 0.25),
-        drift=still(0.0),
-        seed=2,
     )
-    patches = patch_set_from_synth(synth).patches
+    patches = pair.patch_set.patches
     pairs = overlapping_pairs(np.array([p.footprint for p in patches]), margin=1e-7)
     start = [PatchTransform() for _ in patches]
     one_pixel = (icp.DEFAULT_LEVELS[1],)
