@@ -225,10 +225,15 @@ def map_error(
     return float(np.sqrt(total / max(count, 1)))
 
 
+def true_places(synth: list[SynthPatch]) -> list[PatchTransform]:
+    """Every patch's true rigid transform, ``(R, t)`` without its in-patch drift."""
+    return [PatchTransform(s.rotation, s.translation) for s in synth]
+
+
 def true_mosaic(synth: list[SynthPatch]) -> Mosaic:
     """The drift-free heights through the true transforms and the merge's own renderer: what
     a merge that found every transform exactly would draw."""
-    true_tr = [PatchTransform(s.rotation, s.translation) for s in synth]
+    true_tr = true_places(synth)
     # the true rotations have no tilt, so the drift-free heights go through (R, t) exactly
     fixed = [
         Patch(

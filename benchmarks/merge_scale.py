@@ -57,7 +57,7 @@ from typing import Any
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_cases import map_error, true_mosaic  # a module beside this script
+from bench_cases import map_error, true_mosaic, true_places  # a module beside this script
 
 ROOT = Path(__file__).resolve().parents[1]
 #: Patch side, metres, and overlap of every case (the issue's measurements).
@@ -196,12 +196,11 @@ def oracle_of(synth: Any, surface: Any, drift: Any, *, stride: int, floor: float
     from backend.synthetic import patch_set_from_synth, scored
     from merge import render_mosaic
     from merge.core.overlap import overlapping_pairs
-    from merge.core.transforms import PatchTransform
     from merge.refine.heights import solve_heights
     from merge.refine.line_statistics import LineStatistics
 
     patches = patch_set_from_synth(synth).patches
-    truth = [PatchTransform(s.rotation, s.translation) for s in synth]
+    truth = true_places(synth)
     # the nominal footprints, grown by the stage's errors: a pair that does not meet has no rows
     pairs = overlapping_pairs(
         np.array([p.footprint for p in patches]), margin=4 * drift.stage_sigma
