@@ -163,7 +163,9 @@ def unconfirmed(
     bank, state = placement(patches, transforms, bank)
     out = {}
     for c in which:
-        rise = moved_misfit_rise(bank, state, pairs, int(c))
+        # a rise of CONFIRMS answers the question: the longer moves are not tried (a patch
+        # left unconfirmed tries them all, so its rise is the same)
+        rise = moved_misfit_rise(bank, state, pairs, int(c), enough=CONFIRMS)
         if not rise >= CONFIRMS:
             out[int(c)] = rise
     return out

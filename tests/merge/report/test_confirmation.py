@@ -11,6 +11,7 @@ from hardware.sim.drift import DriftModel
 from hardware.sim.surfaces import Chessboard
 from merge import PatchTransform, run
 from merge.core.overlap import overlapping_pairs
+from merge.core.patchset import Patch
 from merge.refine.bank import SurfaceBank
 from merge.refine.rows import residuals
 from merge.refine.state import MosaicState
@@ -22,7 +23,7 @@ from tests.conftest import make_synthetic, still
 STILL = still(0.5e-9)
 
 
-def _rise(transforms: list[PatchTransform], c: int, *, enough: float = np.inf) -> float:
+def _flat_pair() -> list[Patch]:
     syn = make_synthetic(
         Chessboard(step=0.0, seed=3),
         rows=1,
@@ -31,7 +32,11 @@ def _rise(transforms: list[PatchTransform], c: int, *, enough: float = np.inf) -
         pixels=(30, 30),
         overlap=(0.6, 0.4),
     )
-    patches = list(syn.patch_set)
+    return list(syn.patch_set)
+
+
+def _rise(transforms: list[PatchTransform], c: int, *, enough: float = np.inf) -> float:
+    patches = _flat_pair()
     scale = float(min(patches[0].pixel_size))
     bank = SurfaceBank(patches, scale, 0.0, 1)
     state = MosaicState.from_transforms(transforms, bank, scale)
@@ -81,6 +86,24 @@ def test_a_rise_that_is_enough_ends_the_search_with_the_same_answer(
     assert sum(looks) - tries == 1 + len(COMPASS) < tries
     off = [PatchTransform(), PatchTransform(t=np.array([1.3e-7, 1e-8, 0.0]))]
     assert _rise(off, 1, enough=CONFIRMS) == _rise(off, 1)  # not enough anywhere: all tried
+
+
+def test_the_report_stops_at_a_rise_that_confirms_and_keeps_the_full_rise_of_one_that_does_not(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    looks: list[int] = []
+    look = confirmation._moved_residuals
+
+    def counted(*args: Any) -> Any:
+        looks.append(len(args[-1]))
+        return look(*args)
+
+    monkeypatch.setattr(confirmation, "_moved_residuals", counted)
+    patches, pairs = _flat_pair(), np.array([[0, 1]])
+    assert unconfirmed(patches, [PatchTransform(), PatchTransform()], pairs, [1]) == {}
+    assert looks == [1, len(COMPASS)]  # the fit, then the first distance's directions only
+    off = [PatchTransform(), PatchTransform(t=np.array([1.3e-7, 1e-8, 0.0]))]
+    assert unconfirmed(patches, off, pairs, [1]) == {1: _rise(off, 1)}
 
 
 @pytest.mark.parametrize("dx", [1.3e-7, -1.6e-7])
