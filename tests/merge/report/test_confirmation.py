@@ -67,17 +67,21 @@ def test_registered_roughness_confirms_its_place() -> None:
     assert _rise([PatchTransform(), PatchTransform()], 1) > 3 * CONFIRMS
 
 
-def test_a_rise_that_is_enough_ends_the_search_with_the_same_answer(
-    monkeypatch: pytest.MonkeyPatch,
-) -> None:
-    looks: list[int] = []
+@pytest.fixture
+def looks(monkeypatch: pytest.MonkeyPatch) -> list[int]:
+    """The number of moves of every look-up of the moved residuals, as they happen."""
+    counts: list[int] = []
     look = confirmation._moved_residuals
 
     def counted(*args: Any) -> Any:
-        looks.append(len(args[-1]))
+        counts.append(len(args[-1]))
         return look(*args)
 
     monkeypatch.setattr(confirmation, "_moved_residuals", counted)
+    return counts
+
+
+def test_a_rise_that_is_enough_ends_the_search_with_the_same_answer(looks: list[int]) -> None:
     placed = [PatchTransform(), PatchTransform()]
     full, tries = _rise(placed, 1), sum(looks)
     early = _rise(placed, 1, enough=CONFIRMS)
@@ -89,16 +93,8 @@ def test_a_rise_that_is_enough_ends_the_search_with_the_same_answer(
 
 
 def test_the_report_stops_at_a_rise_that_confirms_and_keeps_the_full_rise_of_one_that_does_not(
-    monkeypatch: pytest.MonkeyPatch,
+    looks: list[int],
 ) -> None:
-    looks: list[int] = []
-    look = confirmation._moved_residuals
-
-    def counted(*args: Any) -> Any:
-        looks.append(len(args[-1]))
-        return look(*args)
-
-    monkeypatch.setattr(confirmation, "_moved_residuals", counted)
     patches, pairs = _flat_pair(), np.array([[0, 1]])
     assert unconfirmed(patches, [PatchTransform(), PatchTransform()], pairs, [1]) == {}
     assert looks == [1, len(COMPASS)]  # the fit, then the first distance's directions only
