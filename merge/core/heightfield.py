@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import functools
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
@@ -213,6 +214,42 @@ def _either(mask: NDArray[np.bool_], *, axis: int) -> NDArray[np.bool_]:
     return out
 
 
+@dataclass(frozen=True)
+class Cells:
+    """The bilinear cell of every point at fractional (row ``v``, column ``u``) indices of a
+    grid: its lower-left node (``row``, ``col``), how far towards the next row and column
+    (``fv``, ``fu``, in [0, 1]) and whether the point lies on the grid (``inside``).
+    """
+
+    row: NDArray[np.intp]
+    col: NDArray[np.intp]
+    fv: FloatArray
+    fu: FloatArray
+    inside: NDArray[np.bool_]
+
+    @classmethod
+    def of(cls, shape: tuple[int, int], v: FloatArray, u: FloatArray) -> Cells:
+        """The cells of points ``(v, u)`` (m,) on a grid of ``shape`` (rows, columns)."""
+        ny, nx = shape
+        eps = 1e-6  # pixels: a node that rounding puts a hair outside the last pixel is inside
+        inside = (u >= -eps) & (u <= nx - 1 + eps) & (v >= -eps) & (v <= ny - 1 + eps)
+        row = np.clip(np.floor(v).astype(np.intp), 0, ny - 2)
+        col = np.clip(np.floor(u).astype(np.intp), 0, nx - 2)
+        return cls(row, col, np.clip(v - row, 0.0, 1.0), np.clip(u - col, 0.0, 1.0), inside)
+
+    def values(self, a: FloatArray) -> FloatArray:
+        """Bilinear values of ``a`` (the grid's shape) at the points."""
+        nx = a.shape[1]
+        f = a.ravel()
+        flat = self.row * nx + self.col
+        fv, fu = self.fv, self.fu
+        w00, w01, w10, w11 = (1 - fv) * (1 - fu), (1 - fv) * fu, fv * (1 - fu), fv * fu
+        out: FloatArray = (
+            w00 * f[flat] + w01 * f[flat + 1] + w10 * f[flat + nx] + w11 * f[flat + nx + 1]
+        )
+        return out
+
+
 def bilinear(
     arrays: Sequence[FloatArray], v: FloatArray, u: FloatArray
 ) -> tuple[list[FloatArray], NDArray[np.bool_]]:
@@ -221,23 +258,9 @@ def bilinear(
     Returns the interpolated values and a mask of points inside the grid whose four neighbours
     are all finite in every array. Values outside the mask are meaningless.
     """
-    ny, nx = arrays[0].shape
-    eps = 1e-6  # pixels: a node that rounding puts a hair outside the last pixel is inside
-    inside = (u >= -eps) & (u <= nx - 1 + eps) & (v >= -eps) & (v <= ny - 1 + eps)
-    i0 = np.clip(np.floor(v).astype(np.intp), 0, ny - 2)
-    j0 = np.clip(np.floor(u).astype(np.intp), 0, nx - 2)
-    fv = np.clip(v - i0, 0.0, 1.0)
-    fu = np.clip(u - j0, 0.0, 1.0)
-    w00 = (1 - fv) * (1 - fu)
-    w01 = (1 - fv) * fu
-    w10 = fv * (1 - fu)
-    w11 = fv * fu
-    flat = i0 * nx + j0
-    out = []
-    valid = inside
-    for a in arrays:
-        f = a.ravel()
-        val = w00 * f[flat] + w01 * f[flat + 1] + w10 * f[flat + nx] + w11 * f[flat + nx + 1]
+    cells = Cells.of(arrays[0].shape, v, u)
+    out = [cells.values(a) for a in arrays]
+    valid = cells.inside
+    for val in out:
         valid = valid & np.isfinite(val)
-        out.append(val)
     return out, valid

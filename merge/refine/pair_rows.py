@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from merge.core.heightfield import bilinear
+from merge.core.heightfield import Cells
 from merge.core.patchset import Patch
 from merge.core.transforms import PatchTransform
 from merge.refine.lines import MIN_GROUP
@@ -92,15 +92,14 @@ def pair_rows(a: Patch, b: Patch, T_a: PatchTransform, T_b: PatchTransform) -> P
     pb = (q - T_b.t[:2]) @ T_b.R[:2, :2]
     u = (pb[:, 0] - b.origin[0]) / b.pixel_size[0]
     v = (pb[:, 1] - b.origin[1]) / b.pixel_size[1]
-    (zb,), inside = bilinear([hb], v, u)  # inside: b's four pixels around it measured
+    cells = Cells.of(hb.shape, v, u)
+    zb = cells.values(hb)
     za = ha[line, x]
-    ok = inside & np.isfinite(za)
+    ok = cells.inside & np.isfinite(zb) & np.isfinite(za)  # b's four pixels around it measured
     if ok.sum() < MIN_GROUP:
         return None
     # the cell each row lies in: b's line below it and how far towards the next; its slopes
-    i0 = np.clip(np.floor(u[ok]).astype(np.intp), 0, nxb - 2)
-    j0 = np.clip(np.floor(v[ok]).astype(np.intp), 0, nyb - 2)
-    fu, fv = u[ok] - i0, v[ok] - j0
+    i0, j0, fu, fv = cells.col[ok], cells.row[ok], cells.fu[ok], cells.fv[ok]
     gx = (hb[j0, i0 + 1] - hb[j0, i0]) * (1 - fv) + (hb[j0 + 1, i0 + 1] - hb[j0 + 1, i0]) * fv
     gy = (hb[j0 + 1, i0] - hb[j0, i0]) * (1 - fu) + (hb[j0 + 1, i0 + 1] - hb[j0, i0 + 1]) * fu
     slope2 = (gx / b.pixel_size[0]) ** 2 + (gy / b.pixel_size[1]) ** 2
