@@ -63,7 +63,6 @@ bench: install
 	$(BIN)/python benchmarks/merge_bench.py --sweep 10 --gratings 10
 	$(BIN)/python benchmarks/merge_scale.py --bound
 	$(BIN)/python benchmarks/merge_variations.py
-	$(BIN)/python benchmarks/merge_variations.py --first 1000 --draws 200 --json benchmarks/results/merge_variations_unseen.json
 	$(BIN)/python benchmarks/crb.py --noise-draws 12
 	$(BIN)/python benchmarks/sim_bench.py
 	$(BIN)/python benchmarks/nanonis_bench.py

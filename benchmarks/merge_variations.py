@@ -20,8 +20,9 @@ Prints a table per draw and a summary per surface, and writes JSON (``--json``, 
 ``benchmarks/results/merge_variations.json``).
 Run: ``python benchmarks/merge_variations.py [--draws N] [--first K] [--narrow]``
 (``--narrow``: overlaps of 15-25 %, where the stage's error is a good share of the overlap).
-The checks of the merge's report were built on draws 0-39; ``make bench`` also runs draws
-1000-1199, which none of them saw (``--first 1000 --draws 200``).
+The checks of the merge's report were built on draws 0-39; draws 1000-1199 (``--first 1000
+--draws 200``, 2.5 minutes) are ones none of them saw: judge a change of the start or the
+report on both.
 """
 
 from __future__ import annotations
