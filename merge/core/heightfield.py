@@ -237,13 +237,19 @@ class Cells:
         col = np.clip(np.floor(u).astype(np.intp), 0, nx - 2)
         return cls(row, col, np.clip(v - row, 0.0, 1.0), np.clip(u - col, 0.0, 1.0), inside)
 
+    @functools.cached_property
+    def weights(self) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+        """The four nodes' weights (m,) each: lower-left, lower-right, upper-left, upper-right;
+        worked out once for every array looked up at the same points."""
+        fv, fu = self.fv, self.fu
+        return (1 - fv) * (1 - fu), (1 - fv) * fu, fv * (1 - fu), fv * fu
+
     def values(self, a: FloatArray) -> FloatArray:
         """Bilinear values of ``a`` (the grid's shape) at the points."""
         nx = a.shape[1]
         f = a.ravel()
         flat = self.row * nx + self.col
-        fv, fu = self.fv, self.fu
-        w00, w01, w10, w11 = (1 - fv) * (1 - fu), (1 - fv) * fu, fv * (1 - fu), fv * fu
+        w00, w01, w10, w11 = self.weights
         out: FloatArray = (
             w00 * f[flat] + w01 * f[flat + 1] + w10 * f[flat + nx] + w11 * f[flat + nx + 1]
         )
