@@ -60,7 +60,7 @@ browser:
 test: lint types unit
 
 bench: install
-	$(BIN)/python benchmarks/merge_bench.py --sweep 10 --gratings 10
+	$(BIN)/python benchmarks/merge_bench.py --quick --sweep 10 --gratings 10
 	$(BIN)/python benchmarks/merge_scale.py --bound
 	$(BIN)/python benchmarks/merge_variations.py
 	$(BIN)/python benchmarks/crb.py --noise-draws 12

@@ -27,6 +27,11 @@ method on N draws of each, map error over the floor (median and worst) and the X
 against the Cramér-Rao bound of ``crb.py`` (the RMS over the draws of the merge's and of the
 bound's on each draw). ``--cases none --draws 1 --no-scaling --gratings 10`` runs the sweep alone.
 
+``make bench`` runs it with ``--quick``: the published method (``--method paper``) takes some
+65 s a case over its 200 iterations, 5 of the 32 minutes ``make bench`` took with it on 2 cores,
+past the 30 it should keep, and nothing in it changes from one commit of the default method to
+the next; ``--cases tgx1,folded --draws 1 --no-scaling`` without ``--quick`` compares the two.
+
 Prints a table and writes JSON (``--json``, default ``benchmarks/results/merge_bench.json``).
 Run: ``make bench`` or
 ``python benchmarks/merge_bench.py [--quick] [--cases a,b] [--draws N] [--sweep N]``.
