@@ -38,13 +38,13 @@ from merge.core.overlap import moved_boxes, overlapping_pairs
 from merge.core.parallel import one_blas_thread
 from merge.core.patchset import Patch, PatchSet
 from merge.core.transforms import PatchTransform
+from merge.finish import finish
 from merge.live.canvas import LiveCanvas
 from merge.live.neighbourhood import frame_offset, nominal_neighbours, to_place, within
 from merge.pipeline import (
     SHIFT_PRIOR_FRACTION,
     default_cell,
     default_max_shift,
-    finish,
     layout_of,
     periodic_warnings,
 )
