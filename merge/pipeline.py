@@ -212,12 +212,14 @@ def second_opinion(
     patches unconfirmed (no chain of measured overlaps ties them). The stage's placement does
     not depend on those pairs; both minima are of the same data, so the lower misfit is the
     likelier placement (of five such TGX1 draws, the fit from the true places left 4-22 %
-    less residual RMS than the start's every time). Over the variation draws
-    (``benchmarks/merge_variations.py``) no draw came out worse: at 25-50 % overlaps (draws
-    0-39, 500-559, 1000-1199) TGX1's 510, 535 and 540 went from 16.6, 20.6 and 13.6 x the
-    floor to 1.6, 1.1 and 1.5 (1030 and 1105 stay gross: the stage's placement leads to a
-    minimum as wrong, with more misfit); at 15-25 % (draws 0-39, 1000-1199) MoS2's four
-    silent patches went (draw 1012, 2.8 -> 1.0 x), TGX1's 1060 and 1195 13 -> 1.5 and 2.5 x.
+    less residual RMS than the start's every time). Over 460 variation draws
+    (``benchmarks/merge_variations.py``), at 25-50 % overlaps (draws 0-39, 500-559,
+    1000-1199) TGX1's 510, 535 and 540 went from 16.6, 20.6 and 13.6 x the floor to 1.6, 1.1
+    and 1.5, no draw worse (1030 and 1105 stay gross: the stage's placement leads to a
+    minimum as wrong, with more misfit); at 15-25 % (draws 0-39, 500-539, 1000-1199) MoS2's
+    silent patches 9 -> 2 (draw 1012 2.8 -> 1.0 x, 537 1.7 -> 1.25), TGX1's 1060 and 1195
+    13 -> 1.5 and 2.5 x, and one draw worse, TGX1's 520, gross either way (17.8 -> 37 x, 8
+    patches unconfirmed instead of 4).
     Restarting only the unconfirmed patches from the stage mended two of the five and left
     four silent patches on the real grating, so every patch restarts. A merge whose patches
     the report holds costs nothing more; one in doubt, a second refinement and report.
