@@ -170,6 +170,9 @@ def merge_once(
     with watch.step("solve"), stage("refine", TYPICAL_ITERATIONS, "refining"):
         solution = _solve(patches, layout, placed, cfg, progress=progress, cancel=cancel)
     judged = judge(patches, layout, solution, cfg, watch)
+    # the report is done with the refinement's surfaces and system: a second opinion (or the
+    # render) need not hold them beside its own
+    solution = replace(solution, bank=None, system=None)
     # on a periodic sample a placement a whole repeat off fits about as well: no misfit can
     # choose between the start's and the stage's, and the start's already holds each pair to
     # the repeat nearest the stage
