@@ -249,7 +249,7 @@ def second_opinion(
             progress(done + iteration, residual)
 
     detail = "refining again from the stage's placement"
-    with watch.step("second opinion"), stage("refine", TYPICAL_ITERATIONS, detail):
+    with watch.step("second_opinion"), stage("refine", TYPICAL_ITERATIONS, detail):
         other = _solve(patches, layout, stage_placed, cfg, progress=counted_on, cancel=cancel)
     if not other.history or other.history[-1] >= (1.0 - BETTER_FIT) * solution.history[-1]:
         return first
