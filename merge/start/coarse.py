@@ -39,6 +39,7 @@ from merge.core.progress import checkpoint
 from merge.start.averaging import Lattice, averaged_on_lattice
 from merge.start.lattice import overlap_z_difference
 from merge.start.measure import (
+    ALONG_EDGE,
     AMBIGUITY,
     CHANNEL_WEIGHTS,
     MIN_SCORE,
@@ -55,6 +56,7 @@ from merge.start.peaks import find_peak
 from merge.start.placement import PairMap, place_patch
 from merge.start.trust import (
     DOUBT,
+    TRUSTED,
     drop_odd_scores,
     drop_unconstrained,
     patches_in_doubt,
@@ -204,7 +206,11 @@ def _xy_offsets(
             measure(lat, corr, j, centre, 2.0, radius=radius)
         sol = solve_pair_differences(n, pairs, corr.xy_m, corr.xy_w, prior=xy_prior)
     weighed = corr.xy_w * sol.robust[:, None, None]
-    return (*drop_unconstrained(sol.x, pairs, weighed), weighed)
+    # a direction held by the texture beside edges: a textured pair the network trusts
+    held = np.any(corr.xy_w, axis=(1, 2)) * sol.robust  # a dropped odd score holds nothing
+    textured = corr.along_w * held[:, None, None]
+    least = TRUSTED * ALONG_EDGE / lat.cell**2
+    return (*drop_unconstrained(sol.x, pairs, weighed, texture=textured, least=least), weighed)
 
 
 def spare_corners(lat: Lattice) -> NDArray[np.bool_]:

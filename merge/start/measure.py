@@ -64,6 +64,8 @@ class Correlations:
 
     xy_m : (k, 2) each pair's XY shift off nominal, metres (x, y).
     xy_w : (k, 2, 2) its information, 1 / m² (zero: not measured).
+    along_w : (k, 2, 2) the part of ``xy_w`` that the texture beside a straight edge measured
+        along it (:func:`merge.start.texture.along_edge`; zero elsewhere).
     score : (k,) its peak's NCC (NaN: none accepted).
     excess : (k,) how far that peak stands above the best chance gives in its window
         (:attr:`merge.start.peaks.CorrelationPeak.excess`; NaN: none accepted).
@@ -76,6 +78,7 @@ class Correlations:
 
     xy_m: FloatArray
     xy_w: FloatArray
+    along_w: FloatArray
     score: FloatArray
     excess: FloatArray
     maps: dict[int, tuple[FloatArray, FloatArray, tuple[int, int]]]
@@ -100,7 +103,12 @@ class Correlations:
     def empty(cls, k: int) -> Correlations:
         """Nothing measured yet, for ``k`` pairs."""
         return cls(
-            np.zeros((k, 2)), np.zeros((k, 2, 2)), np.full(k, np.nan), np.full(k, np.nan), {}
+            np.zeros((k, 2)),
+            np.zeros((k, 2, 2)),
+            np.zeros((k, 2, 2)),
+            np.full(k, np.nan),
+            np.full(k, np.nan),
+            {},
         )
 
     def keep(self, i: int, m: tuple[FloatArray, FloatArray, tuple[int, int]]) -> None:
@@ -164,6 +172,7 @@ def accept(
     own, searched within ``radius`` cells (:mod:`merge.start.texture`), or not measured."""
     a, b = lat.pairs[i]
     corr.xy_w[i] = 0.0
+    corr.along_w[i] = 0.0
     if peak is None or peak.at_border:
         return
     if peak.score < MIN_SCORE and peak.excess < SIGNIFICANCE:
@@ -212,4 +221,7 @@ def accept(
     corr.ridges[i] = known or peak.ridge
     # and so its repeats, which lie beyond that window too
     corr.repeats[i] = corr.repeats.get(i, ()) or peak.repeats
-    corr.xy_w[i] = along_ridge_removed(info, known + peak.ridge) / cell**2
+    ridge = known + peak.ridge
+    corr.xy_w[i] = along_ridge_removed(info, ridge) / cell**2
+    if edge is not None:  # what of it the texture measured, if anything
+        corr.along_w[i] = along_ridge_removed(along * np.outer(edge, edge), ridge) / cell**2

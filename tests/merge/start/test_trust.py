@@ -5,6 +5,7 @@ import numpy as np
 from merge.start.trust import (
     along_ridge_removed,
     drop_odd_scores,
+    drop_unconstrained,
     patches_in_doubt,
     periodic_repeat,
 )
@@ -25,6 +26,31 @@ def test_a_ridge_takes_away_the_information_along_it() -> None:
     assert across @ out @ across > 0.9 * (across @ info @ across)
     # alike peaks all around: a plateau, nothing measured
     np.testing.assert_array_equal(along_ridge_removed(info, [(0, 3), (3, 0)]), np.zeros((2, 2)))
+
+
+def test_a_direction_the_texture_measures_is_held_whatever_the_edges_measure_across() -> None:
+    # patch 0's pairs: four along an edge (y to a tenth of a cell, information 100 per cell²),
+    # two of them with the texture beside it measuring x to a cell (information 1)
+    across = np.array([[0.0, 0.0], [0.0, 100.0]])
+    textured = np.array([[1.0, 0.0], [0.0, 0.0]])
+    W = np.array([across + textured, across + textured, across, across])
+    pairs = np.array([[0, 1], [0, 2], [0, 3], [0, 4]])
+    x = np.zeros((5, 2))
+    x[0] = (40.0, 3.0)
+    # x holds 2 of the 400 the patch has across: under the aperture, taken for a leak
+    out, complete = drop_unconstrained(x, pairs, W)
+    np.testing.assert_allclose(out[0], (0.0, 3.0), atol=1e-12)
+    assert not complete[0]
+    texture = np.array([textured, textured, np.zeros((2, 2)), np.zeros((2, 2))])
+    out, complete = drop_unconstrained(x, pairs, W, texture=texture, least=0.5)
+    np.testing.assert_allclose(out[0], (40.0, 3.0))
+    assert not complete[0]  # to a cell, not to a peak's precision: the refinement frees it
+    # the same x information from the edges' angles, no texture: not held
+    leak = np.array([[0.5, 0.0], [0.0, 0.0]])
+    W = np.array([across + leak] * 4)
+    out, complete = drop_unconstrained(x, pairs, W, texture=np.zeros((4, 2, 2)), least=0.5)
+    np.testing.assert_allclose(out[0], (0.0, 3.0), atol=1e-12)
+    assert not complete[0]
 
 
 def test_a_peak_far_below_the_usual_score_is_not_a_measurement() -> None:
