@@ -117,6 +117,13 @@ def test_a_sample_is_periodic_where_a_third_of_its_pairs_repeat_at_one_distance(
     assert np.isnan(periodic_repeat(scattered, info))
     # two of nine: too few; and pairs not measured do not count
     assert np.isnan(periodic_repeat(np.where(np.arange(9) < 2, 300e-9, np.inf), info))
+    # two of a 2 x 2 mosaic's four at one distance (bumps along a chessboard's edges): too few
+    # however small the mosaic; three of its six (a grating's stripes): periodic
+    four = np.repeat(np.eye(2)[None], 4, axis=0)
+    assert np.isnan(periodic_repeat(np.array([136e-9, 194e-9, 136e-9, np.inf]), four))
+    six = np.repeat(np.eye(2)[None], 6, axis=0)
+    stripes = np.array([313e-9, 322e-9, np.inf, 313e-9, np.inf, np.inf])
+    assert periodic_repeat(stripes, six) == 313e-9
     unmeasured = info.copy()
     unmeasured[[1, 4]] = 0.0
     assert np.isnan(periodic_repeat(three, unmeasured))
