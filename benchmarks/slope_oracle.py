@@ -101,12 +101,12 @@ def oracle_slopes(synth: Sequence[SynthPatch], surface: Surface) -> Iterator[Non
         names["residuals"] = own
 
 
-def merged(synth: Sequence[SynthPatch], surface: Surface) -> tuple[float, float]:
+def merged(synth: list[SynthPatch], surface: Surface) -> tuple[float, float]:
     """The default merge of ``synth``: map error over the floor, XY registration error (nm)."""
-    result = run(patch_set_from_synth(list(synth)))
+    result = run(patch_set_from_synth(synth))
     by_id = {p.id: p.transform for p in result.patches}
-    score, error = scored_merge(list(synth), [by_id[s.id] for s in synth], result.mosaic, surface)
-    return error / floor_of(list(synth), surface), score.xy * 1e9
+    score, error = scored_merge(synth, [by_id[s.id] for s in synth], result.mosaic, surface)
+    return error / floor_of(synth, surface), score.xy * 1e9
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -120,16 +120,16 @@ def main(argv: list[str] | None = None) -> int:
     if args.draws < 1:
         parser.error(f"--draws must be at least 1, got {args.draws}")
     try:
-        chosen_cases(args.cases, 0)
+        cases = chosen_cases(args.cases, 0)
     except ValueError as e:
         parser.error(str(e))
     print(f"{'case':<22}{'':>9}{'map/floor median':>18}{'worst':>8}{'XY nm RMS':>11}   per draw")
     rows: list[dict[str, Any]] = []
-    for name in args.cases.split(","):
+    for first in cases:
+        name = first.name
         runs: dict[str, list[tuple[float, float]]] = {"merge": [], "oracle": []}
         for k in range(args.draws):
-            case = chosen_cases(name, k)[0]
-            surface, synth = case.synthesize()
+            surface, synth = first.redrawn(k).synthesize()
             runs["merge"].append(merged(synth, surface))
             with oracle_slopes(synth, surface):
                 runs["oracle"].append(merged(synth, surface))

@@ -11,7 +11,7 @@ import numpy as np
 from backend.synthetic import patch_set_from_synth
 from hardware.sim.drift import DriftModel
 from hardware.sim.surfaces import FoldedSurface
-from hardware.sim.synth import synthesize
+from hardware.sim.synth import SynthPatch, synthesize
 from merge.core.transforms import PatchTransform
 from merge.refine import normal_system
 from merge.refine.bank import SurfaceBank
@@ -22,6 +22,23 @@ from merge.refine.state import MosaicState
 sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
 from slope_oracle import oracle_slopes, true_slopes
 
+#: A surface smooth at the pixel scale of 5 nm pixels.
+SURFACE = FoldedSurface(seed=3)
+
+
+def _two_patches(pixels: int, overlap: float, drift: DriftModel) -> list[SynthPatch]:
+    """Two 1 µm patches side by side of :data:`SURFACE`, ``pixels`` a side."""
+    return synthesize(
+        SURFACE,
+        rows=1,
+        cols=2,
+        patch_size=(1e-6, 1e-6),
+        pixels=(pixels, pixels),
+        overlap=(overlap, overlap),
+        drift=drift,
+        seed=5,
+    )
+
 
 def test_true_slopes_are_what_the_look_ups_see_of_a_smooth_noise_free_surface() -> None:
     # two turned patches of a surface smooth at the pixel scale (5 nm pixels), no noise and no
@@ -29,16 +46,7 @@ def test_true_slopes_are_what_the_look_ups_see_of_a_smooth_noise_free_surface() 
     # so the oracle's, taken from the truth in world coordinates, must agree with them row by
     # row (6 % apart: the folds' finest detail); a frame wrong by the patches' turn would not
     drift = DriftModel(rotation_sigma_deg=20.0, z_drift_sigma=0.0, noise=0.0, line_noise=0.0)
-    synth = synthesize(
-        FoldedSurface(seed=3),
-        rows=1,
-        cols=2,
-        patch_size=(1e-6, 1e-6),
-        pixels=(200, 200),
-        overlap=(0.5, 0.5),
-        drift=drift,
-        seed=5,
-    )
+    synth = _two_patches(200, 0.5, drift)
     spins = [np.degrees(np.arctan2(s.rotation[1, 0], s.rotation[0, 0])) for s in synth]
     assert min(abs(a) for a in spins) > 10.0  # the draw turns both patches well
     patches = patch_set_from_synth(synth).patches
@@ -49,7 +57,7 @@ def test_true_slopes_are_what_the_look_ups_see_of_a_smooth_noise_free_surface() 
     runs = bank.candidates(np.array([[0, 1]]), state.R, state.s, 0.0)
     rows = bank.rows(runs)
     _, ok, seen, _ = residuals(bank, rows, state)
-    exact = true_slopes(bank, rows, state, synth, FoldedSurface(seed=3))
+    exact = true_slopes(bank, rows, state, synth, SURFACE)
     assert ok.sum() > 500
     d = exact[ok] - seen[ok]
     assert np.sqrt(np.mean(d**2)) < 0.1 * np.sqrt(np.mean(exact[ok] ** 2))
@@ -57,15 +65,7 @@ def test_true_slopes_are_what_the_look_ups_see_of_a_smooth_noise_free_surface() 
 
 def test_the_oracle_gives_the_build_its_own_rows_back_when_it_ends() -> None:
     own = vars(normal_system)["residuals"]
-    synth = synthesize(
-        FoldedSurface(seed=3),
-        rows=1,
-        cols=2,
-        patch_size=(1e-6, 1e-6),
-        pixels=(20, 20),
-        overlap=(0.3, 0.3),
-        seed=5,
-    )
-    with oracle_slopes(synth, FoldedSurface(seed=3)):
+    synth = _two_patches(20, 0.3, DriftModel.typical())
+    with oracle_slopes(synth, SURFACE):
         assert vars(normal_system)["residuals"] is not own
     assert vars(normal_system)["residuals"] is own
