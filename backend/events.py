@@ -15,7 +15,7 @@ from collections.abc import Callable
 from datetime import UTC, datetime
 from typing import Any
 
-from sqlalchemy import select
+from sqlalchemy import func, select
 from sqlalchemy.exc import SQLAlchemyError
 from sqlalchemy.orm import Session, sessionmaker
 
@@ -111,6 +111,7 @@ class EventBus:
         else:  # the last slot is kept for this: the stream ends, the client replays
             self.unsubscribe(queue)
             queue.put_nowait(None)
+            log.warning("an event stream fell %d events behind (not reading): dropped", QUEUE_SIZE)
 
     def subscribe(self) -> asyncio.Queue[dict[str, Any] | None]:
         queue: asyncio.Queue[dict[str, Any] | None] = asyncio.Queue(maxsize=QUEUE_SIZE + 1)
@@ -144,6 +145,24 @@ class EventBus:
                 query = query.where(Event.run_id == run_id)
             rows = session.scalars(query.order_by(Event.id).limit(limit)).all()
             return [event_dict(r) for r in rows]
+
+    def newest(
+        self, after: int, *, run_id: int | None = None, limit: int = 1000
+    ) -> tuple[list[dict[str, Any]], int]:
+        """The newest ``limit`` stored events with id greater than ``after`` (oldest first),
+        and how many older ones after ``after`` were left out."""
+        with self._sessions() as session:
+            query = select(Event).where(Event.id > after)
+            if run_id is not None:
+                query = query.where(Event.run_id == run_id)
+            rows = session.scalars(query.order_by(Event.id.desc()).limit(limit)).all()
+            page = [event_dict(r) for r in reversed(rows)]
+            if len(rows) < limit:
+                return page, 0
+            count = select(func.count()).select_from(
+                query.where(Event.id < rows[-1].id).subquery()
+            )
+            return page, int(session.scalar(count) or 0)
 
     def latest(self) -> int:
         """The id of the newest stored event, 0 if there is none."""

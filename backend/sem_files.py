@@ -10,9 +10,17 @@ import numpy as np
 import tifffile
 from numpy.typing import NDArray
 
+from backend.formats.image import FormatError
+from backend.formats.tiff import check_declared
+
 FloatArray = NDArray[np.float64]
 
 _UNITS = {"m": 1.0, "mm": 1e-3, "µm": 1e-6, "um": 1e-6, "nm": 1e-9, "pm": 1e-12}
+
+
+#: Values an SEM TIFF may declare (RGB counts three a pixel): 32 Mi, an SEM's largest usual
+#: grey frame (8192 x 4096); a larger image is binned before upload.
+MAX_SEM_VALUES = 1 << 25
 
 
 class TiffError(ValueError):
@@ -40,23 +48,28 @@ def _zeiss(meta: dict[str, Any]) -> tuple[float, float] | None:
 
 def read_sem_tiff(data: bytes) -> tuple[FloatArray, tuple[float, float] | None, str]:
     """Grey levels (ny, nx) and the vendor's pixel size (metres) if the TIFF carries one,
-    with the name of the source of that size."""
+    with the name of the source of that size. A page declaring more than
+    :data:`MAX_SEM_VALUES` values is refused from its header, before anything is decoded."""
     try:
         with tifffile.TiffFile(io.BytesIO(data)) as tif:
-            pixels = np.asarray(tif.pages.first.asarray(), dtype=np.float64)
+            page = tif.pages.first
+            check_declared(page, "the TIFF", limit=MAX_SEM_VALUES)
+            pixels = np.asarray(page.asarray(), dtype=np.float32)
             size: tuple[float, float] | None = None
             source = "request"
             if tif.is_fei and tif.fei_metadata:
                 size, source = _fei(tif.fei_metadata), "FEI/Thermo TIFF tags"
             elif tif.is_sem and tif.sem_metadata:
                 size, source = _zeiss(tif.sem_metadata), "Zeiss TIFF tags"
+    except FormatError as exc:
+        raise TiffError(str(exc)) from None
     except Exception as exc:  # tifffile raises many kinds on a bad file
         raise TiffError(f"not a readable TIFF image ({type(exc).__name__}: {exc})") from None
     if pixels.ndim == 3 and pixels.shape[-1] in (3, 4):
-        pixels = pixels[..., :3].mean(axis=-1)  # RGB(A) export: grey levels
+        pixels = pixels[..., :3].mean(axis=-1, dtype=np.float32)  # RGB(A) export: grey levels
     if pixels.ndim != 2 or min(pixels.shape) < 8:
         raise TiffError(f"need a 2-D grey image of at least 8 x 8 pixels, got {pixels.shape}")
-    return pixels, size, source if size is not None else "request"
+    return pixels.astype(np.float64), size, source if size is not None else "request"
 
 
 def sem_path(data_dir: Path, sem_id: int) -> Path:

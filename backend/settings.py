@@ -30,7 +30,17 @@ class Settings(BaseSettings):
     cors_origins: list[str] = Field(
         default_factory=list, description="origins allowed cross-site (none: CORS closed)"
     )
-    max_upload_bytes: int = Field(default=256 * 1024 * 1024, gt=0)
+    max_upload_bytes: int = Field(
+        default=256 * 1024 * 1024, gt=0, description="largest upload (files), bytes"
+    )
+    max_json_bytes: int = Field(
+        default=1024 * 1024, gt=0, description="largest body of any other request, bytes"
+    )
+    hosts: list[str] | None = Field(
+        default=None,
+        description="Host names the server answers for (default: its own, and the loopback "
+        "names when it listens on loopback; any when it listens on every interface)",
+    )
     disk_reserve: int = Field(
         default=50 * 1024 * 1024,
         ge=0,

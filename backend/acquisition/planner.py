@@ -107,6 +107,14 @@ def plan_mosaic(
     for value, field in ((roi.x, "roi.x"), (roi.y, "roi.y")):
         if not math.isfinite(value):
             raise PlanError(field, f"must be a finite number of metres, got {value!r}")
+    for value, field, (lo, hi) in (
+        (roi.width, "roi.width", lim.travel[0]),
+        (roi.height, "roi.height", lim.travel[1]),
+    ):
+        if value > hi - lo:
+            raise PlanError(
+                field, f"{value:.3g} m is more than the stage's travel of {(hi - lo) * 1e3:g} mm"
+            )
     for value, field, fine in (
         (patch.width, "patch.width", lim.fine_range[0]),
         (patch.height, "patch.height", lim.fine_range[1]),

@@ -10,19 +10,20 @@ from pathlib import Path
 
 from fastapi import FastAPI, Request
 from fastapi.dependencies.models import Dependant
+from fastapi.exceptions import RequestValidationError
 from fastapi.middleware.cors import CORSMiddleware
 from fastapi.responses import JSONResponse
 from fastapi.routing import APIRoute
 from fastapi.staticfiles import StaticFiles
 from sqlalchemy.exc import OperationalError
 from starlette.routing import Match
-from starlette.types import ASGIApp, Receive, Scope, Send
 
 from backend.acquisition.control import Conflict, NotFound
 from backend.acquisition.planner import PlanError
 from backend.acquisition.state import TransitionError
 from backend.api import events, instrument, merges, runs, sem, uploads
 from backend.api.deps import UNAUTHORISED, bearer_matches, require_operator
+from backend.api.guard import CHANGES, Gate, content_security_policy, loopback_names, safe_errors
 from backend.db.space import StorageFull, full_message, is_full
 from backend.merge_jobs import JobError
 from backend.services import Services
@@ -31,9 +32,6 @@ from hardware.errors import ProcedureError
 from hardware.microscope import ConfigurationError
 
 log = logging.getLogger("mosaic_afm.server")
-
-#: Methods that may change something: their routes that ask for the operator need the token.
-CHANGES = frozenset({"POST", "PUT", "PATCH", "DELETE"})
 
 
 def _needs_token(dependant: Dependant) -> bool:
@@ -82,12 +80,8 @@ def create_app(settings: Settings | None = None, *, services: Services | None = 
             allow_headers=["Authorization", "Content-Type", "X-Operator", "Last-Event-ID"],
         )
 
-    limit = cfg.max_upload_bytes
-
-    def refusal(scope: Scope) -> JSONResponse | None:
-        """What a request is refused with before its body is read: no token for a change,
-        a body over the limit."""
-        request = Request(scope)
+    def refuse(request: Request) -> JSONResponse | None:
+        """A change without the token, refused before its body is read."""
         if request.method in CHANGES and _guarded(request):
             services = getattr(app.state, "services", None)
             header = request.headers.get("authorization")
@@ -95,29 +89,16 @@ def create_app(settings: Settings | None = None, *, services: Services | None = 
                 return JSONResponse(
                     {"detail": UNAUTHORISED}, 401, headers={"WWW-Authenticate": "Bearer"}
                 )
-        length = request.headers.get("content-length")
-        if length is not None:
-            if not length.isdigit():
-                return JSONResponse({"detail": "Content-Length must be a number"}, 400)
-            if int(length) > limit:
-                return JSONResponse(
-                    {"detail": f"the body is larger than the {limit} byte limit"}, 413
-                )
         return None
 
-    class Gate:
-        """Plain ASGI (no per-request task or stream wrapping, as a status poll is cheap)."""
-
-        def __init__(self, inner: ASGIApp) -> None:
-            self.inner = inner
-
-        async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
-            if scope["type"] == "http" and (refused := refusal(scope)) is not None:
-                await refused(scope, receive, send)
-                return
-            await self.inner(scope, receive, send)
-
-    app.add_middleware(Gate)
+    app.add_middleware(
+        Gate,
+        refuse=refuse,
+        hosts=cfg.hosts if cfg.hosts is not None else loopback_names(cfg.host),
+        upload_limit=cfg.max_upload_bytes,
+        json_limit=cfg.max_json_bytes,
+        policy=content_security_policy(cfg.viewer_port if cfg.viewer else None),
+    )
 
     def handler(status: int) -> Callable[[Request, Exception], Awaitable[JSONResponse]]:
         async def handle(_: Request, exc: Exception) -> JSONResponse:
@@ -138,6 +119,11 @@ def create_app(settings: Settings | None = None, *, services: Services | None = 
             detail = f"the server could not use its data directory {cfg.data_dir}: see its log"
         return JSONResponse({"detail": detail}, 507 if is_full(exc) else 500)
 
+    async def invalid(_: Request, exc: Exception) -> JSONResponse:
+        errors = exc.errors() if isinstance(exc, RequestValidationError) else []
+        return JSONResponse({"detail": safe_errors(list(errors))}, 422)
+
+    app.add_exception_handler(RequestValidationError, invalid)
     for storage in (OSError, OperationalError):
         app.add_exception_handler(storage, storage_full)
 

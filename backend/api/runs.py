@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from typing import Annotated, Any
 
 import numpy as np
@@ -15,15 +16,16 @@ from backend.api.deps import OperatorDep, ServicesDep, SessionDep
 from backend.api.responses import NPY, PNG_RESPONSES, height_map, npy_response, png_response
 from backend.api.schemas import (
     AbortIn,
-    PatchIn,
     PatchIndex,
     PatchOut,
+    PatchShapeOut,
     PlanIn,
     PlanOut,
     ProgressOut,
     RescanIn,
     RescanOut,
     RoiIn,
+    RoiOut,
     RunId,
     RunOut,
 )
@@ -81,17 +83,34 @@ def run_out(run: Run, services: Services, session: Session, *, patches: bool) ->
     # a run whose end the disk refused: the state the runner holds, not the stale row
     held = services.runner.unrecorded(run.id)
     state, message = held if held is not None else (run.state, run.message)
+    damage: list[str] = []
+
+    def number(name: str) -> float | None:
+        value = getattr(run, name)
+        if isinstance(value, int | float) and math.isfinite(value):
+            return float(value)
+        damage.append(f"{name} is {value!r}, not a finite number")
+        return None
+
     return RunOut(
         id=run.id,
         state=state,
         created_at=run.created_at,
         updated_at=run.updated_at,
-        roi=RoiIn(x=run.roi_x, y=run.roi_y, width=run.roi_width, height=run.roi_height),
-        patch=PatchIn(
-            width=run.patch_width, height=run.patch_height, pixels=(run.pixels_x, run.pixels_y)
+        roi=RoiOut(
+            x=number("roi_x"),
+            y=number("roi_y"),
+            width=number("roi_width"),
+            height=number("roi_height"),
         ),
-        overlap=(run.overlap_x, run.overlap_y),
-        line_rate=run.line_rate,
+        patch=PatchShapeOut(
+            width=number("patch_width"),
+            height=number("patch_height"),
+            pixels=(run.pixels_x, run.pixels_y),
+        ),
+        overlap=(number("overlap_x"), number("overlap_y")),
+        line_rate=number("line_rate"),
+        damage=damage,
         rows=run.rows,
         cols=run.cols,
         instrument=run.instrument,

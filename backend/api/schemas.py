@@ -192,15 +192,39 @@ class PlanOut(BaseModel):
     patches: list[PatchOut]
 
 
+#: A stored number as an answer gives it: null where the row holds no finite number.
+StoredFloat = float | None
+
+
+class RoiOut(BaseModel):
+    """The region of interest a run covers: lower-left corner and size, metres."""
+
+    x: StoredFloat
+    y: StoredFloat
+    width: StoredFloat
+    height: StoredFloat
+
+
+class PatchShapeOut(BaseModel):
+    width: StoredFloat
+    height: StoredFloat
+    pixels: tuple[int, int] = Field(description="[nx, ny] pixels per patch")
+
+
 class RunOut(BaseModel):
     id: int
     state: str
     created_at: datetime
     updated_at: datetime
-    roi: RoiIn
-    patch: PatchIn
-    overlap: tuple[float, float]
-    line_rate: float
+    roi: RoiOut
+    patch: PatchShapeOut
+    overlap: tuple[StoredFloat, StoredFloat]
+    line_rate: StoredFloat
+    damage: list[str] = Field(
+        default_factory=list,
+        description="what of the stored row is not a usable number (such a run is listed, "
+        "never merged or scanned)",
+    )
     rows: int
     cols: int
     instrument: str

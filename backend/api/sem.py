@@ -7,7 +7,7 @@ from pathlib import Path
 from typing import Annotated
 
 import numpy as np
-from fastapi import APIRouter, File, Form, HTTPException, Request, Response, UploadFile
+from fastapi import APIRouter, File, Form, HTTPException, Response, UploadFile
 
 from backend.api.deps import OperatorDep, ServicesDep, SessionDep
 from backend.api.responses import NPY, PNG_RESPONSES, npy_response
@@ -89,22 +89,27 @@ def acquire(
 
 
 @router.post("/upload", status_code=201, response_model=SemOut)
-async def upload(
-    request: Request,
+def upload(
     services: ServicesDep,
     session: SessionDep,
     operator: OperatorDep,
     file: Annotated[UploadFile, File(description="a TIFF from the SEM")],
     pixel_size: Annotated[
-        float | None, Form(gt=0, description="metres per pixel, if the TIFF has no vendor tags")
+        float | None,
+        Form(gt=0, le=1e-4, description="metres per pixel, if the TIFF has no vendor tags"),
     ] = None,
-    origin_x: Annotated[float, Form(description="stage x of pixel (0, 0), metres")] = 0.0,
-    origin_y: Annotated[float, Form(description="stage y of pixel (0, 0), metres")] = 0.0,
+    origin_x: Annotated[
+        float, Form(ge=-1, le=1, description="stage x of pixel (0, 0), metres")
+    ] = 0.0,
+    origin_y: Annotated[
+        float, Form(ge=-1, le=1, description="stage y of pixel (0, 0), metres")
+    ] = 0.0,
 ) -> SemOut:
     """Upload an SEM TIFF. Its pixel size comes from the vendor's tags (FEI/Thermo, Zeiss)
-    when present, else from ``pixel_size``."""
+    when present, else from ``pixel_size``. A plain route (run in a worker thread): decoding
+    and storing never hold the event loop, so an abort is answered meanwhile."""
     limit = services.settings.max_upload_bytes
-    data = await file.read(limit + 1)
+    data = file.file.read(limit + 1)
     if len(data) > limit:
         raise HTTPException(413, f"the file is larger than the {limit} byte upload limit")
     if not all(math.isfinite(v) for v in (origin_x, origin_y)):

@@ -30,6 +30,9 @@ from backend.services import Services
 router = APIRouter(prefix="/api/runs", tags=["runs"])
 
 MAX_FILES = 2500
+#: Pixel sizes (metres) a scan may have, and how far from the stage's origin it may lie.
+MIN_PIXEL, MAX_PIXEL = 1e-12, 1e-4
+MAX_OFFSET = 1.0
 
 
 def _places(
@@ -53,8 +56,13 @@ def _places(
             for k, (o, r, c) in enumerate(places)]  # fmt: skip
 
 
-@router.post("/offline", status_code=201, response_model=RunOut)
-async def upload_patch_set(
+@router.post(
+    "/offline",
+    status_code=201,
+    response_model=RunOut,
+    form_limits={"max_files": MAX_FILES, "max_fields": 32},
+)
+def upload_patch_set(
     services: ServicesDep,
     session: SessionDep,
     operator: OperatorDep,
@@ -65,7 +73,7 @@ async def upload_patch_set(
     overlap_y: Annotated[float, Form(ge=0, lt=0.9)] = 0.0,
     order: Annotated[Literal["snake", "raster"], Form()] = "snake",
     pixel_size: Annotated[
-        float | None, Form(gt=0, description="metres, if files have none")
+        float | None, Form(gt=0, le=1e-4, description="metres, if files have none")
     ] = None,
     channel: Annotated[str | None, Form(max_length=100)] = None,
 ) -> RunOut:
@@ -79,7 +87,7 @@ async def upload_patch_set(
     folder = services.settings.data_dir / "uploads" / uuid.uuid4().hex
     folder.mkdir(parents=True)
     try:
-        images, names = await _receive(
+        images, names = _receive(
             files, folder, services.settings.max_upload_bytes, channel, pixel_size
         )
         return _store(images, names, folder, services, session, operator,
@@ -89,7 +97,7 @@ async def upload_patch_set(
         raise
 
 
-async def _receive(
+def _receive(
     files: list[UploadFile],
     folder: Path,
     limit: int,
@@ -101,10 +109,10 @@ async def _receive(
     images: list[AfmImage] = []
     names: list[str] = []
     for k, upload in enumerate(files):
-        name = Path(upload.filename or f"scan{k}").name
+        name = _short(Path(upload.filename or f"scan{k}").name)
         if reader_for(name) is None:
             raise HTTPException(422, f"files: {name}: unknown format; readable: {READABLE}")
-        data = await upload.read(limit - used + 1)
+        data = upload.file.read(limit - used + 1)
         used += len(data)
         if used > limit:
             raise HTTPException(413, f"the upload is larger than the {limit} byte limit")
@@ -117,6 +125,30 @@ async def _receive(
             raise HTTPException(422, f"files: {str(exc).replace(str(path), name)}") from None
         names.append(name)
     return images, names
+
+
+def _short(name: str, *, most: int = 120) -> str:
+    """A file name kept to ``most`` characters (its suffix whole): what a file system takes."""
+    if len(name) <= most:
+        return name
+    suffix = "".join(Path(name).suffixes)[-20:]
+    return name[: most - len(suffix) - 1] + "~" + suffix
+
+
+def _check_geometry(images: list[AfmImage], names: list[str]) -> None:
+    """Refuse a file whose pixel size or offset is no place on a sample (422, by name)."""
+    for image, name in zip(images, names, strict=True):
+        if not all(MIN_PIXEL <= s <= MAX_PIXEL for s in image.pixel_size):
+            raise HTTPException(
+                422,
+                f"files: {name}: pixel size {image.pixel_size[0]:.3g} x "
+                f"{image.pixel_size[1]:.3g} m is outside {MIN_PIXEL:g}..{MAX_PIXEL:g} m: give "
+                "pixel_size in metres",
+            )
+        if image.offset is not None and not all(abs(o) <= MAX_OFFSET for o in image.offset):
+            raise HTTPException(
+                422, f"files: {name}: its scan offset {image.offset} m is not on a sample stage"
+            )
 
 
 def _store(
@@ -133,6 +165,7 @@ def _store(
 ) -> RunOut:
     """The uploaded scans as a completed run: its rows, its file, its patches."""
     overlap_x, overlap_y = overlap
+    _check_geometry(images, names)
     places = _places(images, rows, cols, (overlap_x, overlap_y), order)
     ny, nx = images[0].heights.shape
     width, height = nx * images[0].pixel_size[0], ny * images[0].pixel_size[1]

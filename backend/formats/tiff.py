@@ -8,8 +8,10 @@ project's rows-along-+y on the way in and out.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -21,6 +23,9 @@ from backend.formats.park import is_park, read_park
 #: classic TIFF, which every reader opens.
 BIGTIFF_FROM = (1 << 32) - (1 << 26)
 
+
+#: Values a TIFF scan may declare (RGB counts three a pixel): a 4096 x 4096 scan's.
+MAX_DECODED = 3 * 4096 * 4096
 
 #: Bytes of float32 heights per strip: a mosaic is converted and written a strip at a time.
 STRIP_BYTES = 4 << 20
@@ -58,6 +63,18 @@ def write_tiff(path: str | Path, heights: FloatArray, *, pixel_size: tuple[float
     )
 
 
+def check_declared(page: Any, name: str, *, limit: int) -> None:
+    """Refuse a TIFF page whose declared size is past ``limit`` pixels, from its header alone:
+    a compressed page of a few kilobytes may unpack to gigabytes (a decompression bomb)."""
+    shape = tuple(int(n) for n in page.shape)
+    if math.prod(shape) > limit or page.dtype is None:
+        size = " x ".join(map(str, shape))
+        raise FormatError(
+            f"{name}: the TIFF declares {size} values, more than the {limit} this server "
+            "decodes: crop or bin the image first"
+        )
+
+
 def read_tiff(
     path: str | Path, *, channel: str | None = None, pixel_size: tuple[float, float] | None = None
 ) -> AfmImage:
@@ -72,6 +89,7 @@ def read_tiff(
             page = tif.pages.first
             if is_park(page.tags):
                 return read_park(page.tags, p, channel=channel)
+            check_declared(page, str(p), limit=MAX_DECODED)
             data = np.asarray(page.asarray(), dtype=np.float64)
             description = page.description or ""
             tags = page.tags

@@ -84,6 +84,7 @@ def open_server(tmp_path: Path, **settings: Any) -> Iterator[Server]:
         auto_merge=settings.pop("auto_merge", False),
         viewer=settings.pop("viewer", False),
         instrument=settings.pop("instrument", "sim://?speed=max"),
+        hosts=settings.pop("hosts", ["testserver"]),
         **settings,
     )
     services = Services.open(cfg)

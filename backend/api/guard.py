@@ -1,0 +1,184 @@
+"""What every HTTP request meets before a route sees it: the host it names, the token a change
+needs, the size of its body (whatever its encoding) and the security headers of the answer.
+
+Plain ASGI, no per-request task or stream wrapping: a status poll stays cheap, and nothing
+here waits on anything but the request's own bytes.
+"""
+
+from __future__ import annotations
+
+import ipaddress
+import json
+import logging
+from collections.abc import Callable
+
+from starlette.exceptions import HTTPException
+from starlette.requests import Request
+from starlette.responses import JSONResponse
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
+
+log = logging.getLogger("mosaic_afm.server")
+
+#: Methods that may change something: their routes that ask for the operator need the token.
+CHANGES = frozenset({"POST", "PUT", "PATCH", "DELETE"})
+
+#: Routes that take files (multipart); every other body is JSON and small.
+UPLOADS = frozenset({"/api/sem/upload", "/api/runs/offline"})
+
+
+def content_security_policy(viewer_port: int | None) -> str:
+    """The pages' own scripts, styles and images only; the 3D viewer (its own port on the
+    page's host) in a frame; the pages themselves in nobody's frame."""
+    frames = "'self'" if viewer_port is None else f"'self' *:{viewer_port}"
+    return (
+        "default-src 'self'; img-src 'self' data: blob:; style-src 'self' 'unsafe-inline'; "
+        f"script-src 'self'; connect-src 'self'; frame-src {frames}; "
+        "frame-ancestors 'none'; base-uri 'none'; form-action 'self'; object-src 'none'"
+    )
+
+
+def loopback_names(host: str) -> list[str]:
+    """The Host header values a server bound to ``host`` answers by default: its own name
+    and, bound to loopback, the loopback names (a page elsewhere cannot rebind a name to it).
+    An empty list (bound to every interface): no check unless hosts are configured."""
+    if host in ("0.0.0.0", "::", ""):
+        return []
+    names = {host, "localhost", "127.0.0.1", "::1", "[::1]"}
+    try:
+        if not ipaddress.ip_address(host).is_loopback:
+            names = {host}
+    except ValueError:  # a name, not an address
+        if host != "localhost":
+            names = {host}
+    return sorted(names)
+
+
+def _host_of(header: str) -> str:
+    """The host part of a Host header: ``name:port`` -> name, ``[::1]:8000`` -> ``[::1]``."""
+    if header.startswith("["):
+        return header[: header.find("]") + 1] if "]" in header else header
+    return header.rsplit(":", 1)[0] if header.count(":") == 1 else header
+
+
+class BodyTooLarge(HTTPException):
+    """A body past its limit, whatever announced (or did not announce) its length."""
+
+    def __init__(self, limit: int) -> None:
+        super().__init__(413, f"the body is larger than the {limit} byte limit for this route")
+
+
+def counted(receive: Receive, limit: int) -> Receive:
+    """``receive`` that raises :class:`BodyTooLarge` once more than ``limit`` bytes came:
+    a chunked body is cut off as soon as it passes, never read in full."""
+    total = 0
+
+    async def inner() -> Message:
+        nonlocal total
+        message = await receive()
+        if message["type"] == "http.request":
+            total += len(message.get("body", b""))
+            if total > limit:
+                raise BodyTooLarge(limit)
+        return message
+
+    return inner
+
+
+class Gate:
+    """The checks above, as ASGI middleware around the whole app.
+
+    ``refuse(request)`` answers a change without its token (None: let it through);
+    ``hosts`` are the Host names answered (empty: any); ``limits`` are the body limits
+    (bytes) of uploads and of every other route."""
+
+    def __init__(
+        self,
+        inner: ASGIApp,
+        *,
+        refuse: Callable[[Request], JSONResponse | None],
+        hosts: list[str],
+        upload_limit: int,
+        json_limit: int,
+        policy: str,
+    ) -> None:
+        self.inner = inner
+        self.refuse = refuse
+        self.hosts = frozenset(h.lower() for h in hosts)
+        self.upload_limit = upload_limit
+        self.json_limit = json_limit
+        self.headers = [
+            (b"content-security-policy", policy.encode()),
+            (b"x-frame-options", b"DENY"),
+            (b"x-content-type-options", b"nosniff"),
+            (b"referrer-policy", b"same-origin"),
+        ]
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.inner(scope, receive, send)
+            return
+        request = Request(scope)
+        refused = self._refusal(request)
+        if refused is not None:
+            await refused(scope, receive, send)
+            return
+        limit = self.upload_limit if scope["path"] in UPLOADS else self.json_limit
+        started = False
+
+        async def secured(message: Message) -> None:
+            nonlocal started
+            if message["type"] == "http.response.start":
+                started = True
+                message = {**message, "headers": [*message.get("headers", []), *self.headers]}
+            await send(message)
+
+        try:
+            await self.inner(scope, counted(receive, limit), secured)
+        except BodyTooLarge as exc:  # raised where no handler turned it into an answer
+            if started:
+                raise
+            await JSONResponse({"detail": exc.detail}, 413)(scope, receive, secured)
+
+    def _refusal(self, request: Request) -> JSONResponse | None:
+        """What a request is refused with before its body is read."""
+        if self.hosts:
+            host = _host_of(request.headers.get("host", "")).lower()
+            if host not in self.hosts:
+                log.warning("refused a request for host %r", host[:100])
+                return JSONResponse(
+                    {"detail": "this server does not answer for that Host name (MOSAIC_HOSTS)"},
+                    400,
+                )
+        refused = self.refuse(request)
+        if refused is not None:
+            return refused
+        length = request.headers.get("content-length")
+        if length is not None:
+            if not length.isdigit():
+                return JSONResponse({"detail": "Content-Length must be a number"}, 400)
+            limit = self.upload_limit if request.url.path in UPLOADS else self.json_limit
+            if int(length) > limit:
+                return JSONResponse({"detail": BodyTooLarge(limit).detail}, 413)
+        return None
+
+
+def safe_errors(errors: list[dict[str, object]]) -> list[dict[str, object]]:
+    """Validation errors as an answer can carry them: location, message and type, with the
+    offending input only where it is short and plain JSON (never a 50 MB body echoed back,
+    never a NaN that JSON cannot write)."""
+    out: list[dict[str, object]] = []
+    for error in errors[:50]:
+        item: dict[str, object] = {
+            "loc": list(error.get("loc", ()))[:10],  # type: ignore[call-overload]
+            "msg": str(error.get("msg", ""))[:500],
+            "type": str(error.get("type", "")),
+        }
+        value = error.get("input")
+        try:
+            text = json.dumps(value, allow_nan=False)
+        except (TypeError, ValueError):
+            text = None
+        if text is not None and len(text) <= 200:
+            item["input"] = value
+        out.append(item)
+    return out
