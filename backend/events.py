@@ -159,9 +159,7 @@ class EventBus:
             page = [event_dict(r) for r in reversed(rows)]
             if len(rows) < limit:
                 return page, 0
-            count = select(func.count()).select_from(
-                query.where(Event.id < rows[-1].id).subquery()
-            )
+            count = select(func.count()).select_from(query.where(Event.id < rows[-1].id).subquery())
             return page, int(session.scalar(count) or 0)
 
     def latest(self) -> int:

@@ -73,7 +73,10 @@ class Services:
         m = self.microscope
         scanner = m.scanner
         fine = scanner.fine_range if scanner is not None else None
-        return InstrumentLimits(fine_range=fine or (m.robot_x.fine_range, m.robot_y.fine_range))
+        return InstrumentLimits(
+            fine_range=fine or (m.robot_x.fine_range, m.robot_y.fine_range),
+            scan=m.scan_envelope(),
+        )
 
     @classmethod
     def open(cls, settings: Settings) -> Services:

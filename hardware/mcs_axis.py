@@ -4,8 +4,16 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from hardware.errors import ProcedureError
 from hardware.smaract_errors import NoSensorError
 from hardware.smaract_mcs import MAX_LEVEL, AxisStatus, MCSController
+
+#: The sample stage's travel on each axis, metres (its soft limits).
+STAGE_TRAVEL = (-6e-3, 6e-3)
+
+
+class TravelError(ProcedureError):
+    """A move past an axis's travel, refused before anything moves."""
 
 
 @dataclass(frozen=True)
@@ -43,6 +51,9 @@ class MCSAxis:
         This axis's fine-mode gain.
     has_sensor : bool
         Whether the channel has a position sensor.
+    travel : (low, high), optional
+        Soft limits of a closed-loop move, metres: a move past them is refused
+        (:class:`TravelError`) before anything is sent.
     """
 
     def __init__(
@@ -53,12 +64,14 @@ class MCSAxis:
         name: str,
         calibration: FineCalibration | None = None,
         has_sensor: bool = True,
+        travel: tuple[float, float] | None = None,
     ) -> None:
         self.controller = controller
         self.channel = channel
         self.name = name
         self.calibration = calibration or FineCalibration()
         self.has_sensor = has_sensor
+        self.travel = travel
 
     @property
     def fine_range(self) -> float:
@@ -79,6 +92,13 @@ class MCSAxis:
         self.controller.step(self.channel, steps, amplitude=amplitude, frequency=frequency)
 
     def move_to(self, position: float, *, hold: float = 0.0) -> None:
+        if self.travel is not None:
+            lo, hi = self.travel
+            if not lo <= position <= hi:  # NaN too
+                raise TravelError(
+                    f"{self.name}: a move to {position * 1e3:.6g} mm is past its travel "
+                    f"{lo * 1e3:g}..{hi * 1e3:g} mm: refused, nothing moved"
+                )
         self.controller.move_absolute(self.channel, position, hold_ms=round(hold * 1000))
 
     def fine_to(self, extension: float, *, speed: float) -> None:

@@ -19,11 +19,12 @@
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 from urllib.parse import parse_qs, urlsplit
 
-from hardware.mcs_axis import MCSAxis
+from hardware.envelope import ScanEnvelope
+from hardware.mcs_axis import STAGE_TRAVEL, MCSAxis
 from hardware.procedures import LandingReport, land
 from hardware.protocols import SEM, ForceLoop, PatchScanner, PositionerAxis, ProbeSignal
 from hardware.raster import FineRaster
@@ -60,6 +61,8 @@ class Microscope:
     sim: SimulatedAFM | None = None
     #: the controller's own landing (Nanonis auto-approach); None: the woodpecker landing
     approach: Callable[[], LandingReport] | None = None
+    #: the scan envelope of real hardware (:meth:`scan_envelope`)
+    envelope: ScanEnvelope = field(default_factory=ScanEnvelope)
     _closers: tuple[object, ...] = ()
 
     def require_afm(self) -> tuple[ProbeSignal, ForceLoop, PatchScanner]:
@@ -71,6 +74,14 @@ class Microscope:
                 "mcs:URL, or add the controller"
             )
         return self.probe, self.loop, self.scanner
+
+    def scan_envelope(self) -> ScanEnvelope:
+        """What a scan may ask of the instrument on its sample: the simulator measures its
+        own; real hardware takes :attr:`envelope` (defaults for a steep grating on a kHz
+        loop, set from the configuration)."""
+        if self.sim is not None:
+            return self.sim.scan_envelope()
+        return self.envelope
 
     def land(self) -> LandingReport:
         """Bring the tip to the surface: the controller's approach, or the woodpecker landing
@@ -198,8 +209,8 @@ def _open_mcs(config: str, spec: str) -> Microscope:
         raise
     return Microscope(
         description=config,
-        stage_x=MCSAxis(stage, 0, name="stage x"),
-        stage_y=MCSAxis(stage, 1, name="stage y"),
+        stage_x=MCSAxis(stage, 0, name="stage x", travel=STAGE_TRAVEL),
+        stage_y=MCSAxis(stage, 1, name="stage y", travel=STAGE_TRAVEL),
         robot_x=MCSAxis(robot, 0, name="robot x"),
         robot_y=MCSAxis(robot, 1, name="robot y"),
         robot_z=MCSAxis(robot, 2, name="robot z"),

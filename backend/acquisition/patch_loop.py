@@ -56,6 +56,8 @@ class PatchLoop:
     _snapshot: dict[str, Any]
     #: scans in a row of the run under way that their own record failed
     _bad_scans: int = 0
+    #: whether the worker has the tip on the surface (from landing until retracted)
+    tip_down: bool = False
 
     def _checkpoint(self, session: Session, run: Run, control: Control, *, may_pause: bool) -> None:
         """Between steps: honour an abort; a pause where ``may_pause`` (tip off the surface)."""
@@ -174,6 +176,7 @@ class PatchLoop:
         scanner.prepare(size=size, pixels=pixels)
         self._checkpoint(session, run, control, may_pause=True)
         machine.go(PatchStep.LAND)
+        self.tip_down = True
         landing = m.land()
         self._checkpoint(session, run, control, may_pause=False)
         spoil = self.rescans.spoiling(patch.index) if m.sim is not None else None
@@ -185,6 +188,7 @@ class PatchLoop:
         )
         machine.go(PatchStep.RETRACT)
         retract(m.robot_z, loop)
+        self.tip_down = False
         if self.live is None:  # no quality gate to judge clipped lines: as before, stop
             lines.require_unsaturated()
         origin = sample_origin(

@@ -9,7 +9,9 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from dataclasses import field as default
 
+from hardware.envelope import ScanEnvelope
 from hardware.mosaic_plan import PlannedPatch, snake_grid
 from hardware.protocols import SEMImage
 
@@ -24,7 +26,8 @@ class PlanError(ValueError):
 
 @dataclass(frozen=True)
 class InstrumentLimits:
-    """What a plan must respect (metres)."""
+    """What a plan must respect (metres): the ranges, and what a scan may ask of the
+    instrument on its sample (``scan``: speed against the force loop, time against drift)."""
 
     fine_range: tuple[float, float] = (1.6e-6, 1.6e-6)
     travel: tuple[tuple[float, float], tuple[float, float]] = ((-6e-3, 6e-3), (-6e-3, 6e-3))
@@ -32,6 +35,11 @@ class InstrumentLimits:
     max_pixels: int = 4096
     max_patches: int = 2500
     max_overlap: float = 0.9
+    scan: ScanEnvelope = default(default_factory=ScanEnvelope)
+    #: the finest pixel the stage's sensors and the merge make sense of, metres
+    min_pitch: float = 0.5e-9
+    #: pixels an overlap must span for the merge to match two patches
+    min_overlap_pixels: int = 3
 
 
 @dataclass(frozen=True)
@@ -93,14 +101,37 @@ def _finite_positive(value: float, field: str) -> None:
         raise PlanError(field, f"must be a positive number of metres, got {value!r}")
 
 
+def check_scan(patch: PatchSpec, line_rate: float, limits: InstrumentLimits) -> None:
+    """Refuse a scan the instrument cannot make safely: a line rate outside the scanner's
+    range, a tip faster than the force loop follows on the sample's slopes, a patch longer
+    than Z's range lasts against drift (:class:`PlanError` on ``line_rate``), or a pixel
+    finer than :attr:`InstrumentLimits.min_pitch` (on ``patch.pixels``)."""
+    if not (isinstance(line_rate, int | float) and math.isfinite(line_rate)):
+        raise PlanError(
+            "line_rate", f"must be a finite number of lines per second, got {line_rate!r}"
+        )
+    problems = limits.scan.problems(width=patch.width, lines=patch.pixels[1], line_rate=line_rate)
+    if problems:
+        raise PlanError("line_rate", "; ".join(problems))
+    pitch = min(patch.pixel_size)
+    if pitch < limits.min_pitch:
+        raise PlanError(
+            "patch.pixels",
+            f"a pixel of {pitch * 1e9:.3g} nm is finer than the {limits.min_pitch * 1e9:g} nm "
+            "the stage's sensors and the merge resolve: use fewer pixels",
+        )
+
+
 def plan_mosaic(
     roi: Roi,
     patch: PatchSpec,
     overlap: tuple[float, float],
     *,
     limits: InstrumentLimits | None = None,
+    line_rate: float | None = None,
 ) -> Plan:
-    """The snake-ordered grid of ``patch`` covering ``roi`` with ``overlap`` (fractions)."""
+    """The snake-ordered grid of ``patch`` covering ``roi`` with ``overlap`` (fractions),
+    scanned at ``line_rate`` (lines per second; checked by :func:`check_scan` when given)."""
     lim = limits or InstrumentLimits()
     for value, field in ((roi.width, "roi.width"), (roi.height, "roi.height")):
         _finite_positive(value, field)
@@ -141,8 +172,18 @@ def plan_mosaic(
     for o, axis in zip(overlap, "xy", strict=True):
         if not (isinstance(o, int | float) and math.isfinite(o) and 0.0 <= o < lim.max_overlap):
             raise PlanError("overlap", f"{axis}: {o!r}; use a fraction in [0, {lim.max_overlap})")
+    if line_rate is not None:
+        check_scan(patch, line_rate, lim)
     cols = _count(roi.width, patch.width, overlap[0])
     rows = _count(roi.height, patch.height, overlap[1])
+    for count, o, n, axis in ((cols, overlap[0], patch.pixels[0], "x"),
+                              (rows, overlap[1], patch.pixels[1], "y")):  # fmt: skip
+        if count > 1 and o * n < lim.min_overlap_pixels:
+            raise PlanError(
+                "overlap",
+                f"{axis}: an overlap of {o:g} spans {o * n:.3g} of {n} pixels; the merge needs "
+                f"{lim.min_overlap_pixels} at least to match neighbours: raise the overlap",
+            )
     if rows * cols > lim.max_patches:
         raise PlanError(
             "roi",
@@ -155,7 +196,11 @@ def plan_mosaic(
         roi.x + roi.width / 2 - span_x / 2,
         roi.y + roi.height / 2 - span_y / 2,
     )
+    # the stage stands at minus the patch's place, plus where the raster starts in the fine
+    # range: keep a fine range's margin so that no accepted patch asks past its travel
     (tx0, tx1), (ty0, ty1) = lim.travel
+    fx, fy = lim.fine_range
+    tx0, tx1, ty0, ty1 = tx0 + fx, tx1 - fx, ty0 + fy, ty1 - fy
     if start[0] < tx0 or start[0] + span_x > tx1 or start[1] < ty0 or start[1] + span_y > ty1:
         raise PlanError(
             "roi",

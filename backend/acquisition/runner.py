@@ -46,11 +46,17 @@ from backend.db.models import Run
 from backend.db.space import StorageFull, check_space, full_message, is_full
 from backend.events import EventBus
 from backend.live_merge import LiveMergeService
-from hardware.errors import Interrupted, SafeStateError
+from hardware.errors import CrashError, Interrupted, SafeStateError
 from hardware.microscope import Microscope
 from hardware.procedures import safe_state
 
 log = logging.getLogger("mosaic_afm.runner")
+
+#: What a run in fault after a crash asks of the operator.
+TIP_CHECK = (
+    "The tip may be damaged: nothing lands until an operator inspects or changes it and "
+    "resets the run with a note"
+)
 
 
 class Runner(RunEnding, PatchLoop, UnattendedSafety):
@@ -221,8 +227,10 @@ class Runner(RunEnding, PatchLoop, UnattendedSafety):
                 raise Conflict(f"run {run_id} has just started: abort it again")
             self._transition(session, run, RunState.ABORTED, reason or "aborted", actor)
 
-    def reset(self, run_id: int, *, actor: str) -> None:
-        """Leave ``fault`` after an operator's check: confirm the safe state, then ``failed``."""
+    def reset(self, run_id: int, *, actor: str, note: str, tip_changed: bool = False) -> None:
+        """Leave ``fault`` after an operator's check, told in ``note`` (what they looked at:
+        the tip inspected, or changed): confirm the safe state, then ``failed``. A changed
+        tip on the simulated instrument is a new, whole tip."""
         with self._lock, self.sessions() as session:
             run = self._get(session, run_id)
             if RunState(run.state) != RunState.FAULT:
@@ -231,8 +239,15 @@ class Runner(RunEnding, PatchLoop, UnattendedSafety):
                 self._safe_state()
             except SafeStateError as exc:
                 raise Conflict(f"run {run_id} stays in fault: {exc}") from None
+            if tip_changed and self.microscope.sim is not None:
+                self.microscope.sim.change_tip()
+            tip = "tip changed" if tip_changed else "tip not changed"
             self._transition(
-                session, run, RunState.FAILED, "reset by the operator: safe state confirmed", actor
+                session,
+                run,
+                RunState.FAILED,
+                f"reset by the operator ({tip}): {note}; safe state confirmed",
+                actor,
             )
 
     def wait_idle(self, timeout: float) -> bool:
@@ -267,6 +282,13 @@ class Runner(RunEnding, PatchLoop, UnattendedSafety):
                 self._snapshot = {"error": describe(exc)}
             finally:
                 self._io.release()
+        if active is not None:  # the worker drives it: never "safe" while a run may land
+            return {
+                "active_run": active,
+                **self._snapshot,
+                "safe_state": False,
+                "loop_engaged": self.tip_down,
+            }
         return {"active_run": active, **self._snapshot}
 
     # -- the worker -------------------------------------------------------------------------
@@ -300,6 +322,9 @@ class Runner(RunEnding, PatchLoop, UnattendedSafety):
         except (Abort, Interrupted):
             target = RunState.INTERRUPTED if control.shutdown else RunState.ABORTED
             return target, control.reason or "aborted", control.actor, True
+        except CrashError as exc:  # the tip may be damaged: no landing until someone looks
+            log.error("run %s: %s", control.run_id, exc)
+            return RunState.FAULT, f"{exc}. {TIP_CHECK}", "instrument", True
         except Exception as exc:
             log.exception("run %s: step failed", control.run_id)
             if is_full(exc):
@@ -325,6 +350,7 @@ class Runner(RunEnding, PatchLoop, UnattendedSafety):
         safe_state(
             m.loop, m.robot_z, (m.stage_x, m.stage_y, m.robot_x, m.robot_y), scanner=m.scanner
         )
+        self.tip_down = False
         self._snapshot = {**self._snapshot, "safe_state": True, "loop_engaged": False}
 
     # -- helpers ----------------------------------------------------------------------------

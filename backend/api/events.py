@@ -45,9 +45,9 @@ async def events(
     """Live events from now on; with ``after`` (or ``Last-Event-ID``) the stored ones after
     that id first, at most :data:`REPLAY` of them (the newest; a comment says how many older
     were left out). ``follow=false`` sends up to :data:`REPLAY` stored events after ``after``
-    (default 0) and ends: page through history with the last id sent. Each event has an ``id``, ``kind``
-    (run, patch, progress, merge, fault, ...) and JSON data. A client that stops reading is
-    dropped once :data:`~backend.events.QUEUE_SIZE` events wait for it."""
+    (default 0) and ends: page through history with the last id sent. Each event has an
+    ``id``, ``kind`` (run, patch, progress, merge, fault, ...) and JSON data. A client that
+    stops reading is dropped once :data:`~backend.events.QUEUE_SIZE` events wait for it."""
     if last_event_id is not None and last_event_id.strip().isdigit():
         after = min(max(after or 0, int(last_event_id)), 2**53)
     if after is None and not follow:

@@ -47,7 +47,8 @@ def _render_instrument(services: Services) -> bytes:
 def _instrument(services: Services, session: Session) -> InstrumentOut:
     m = services.microscope
     status = services.runner.instrument_status()
-    fault = session.scalars(select(Run.id).where(Run.state == "fault")).first()
+    fault_run = session.scalars(select(Run).where(Run.state == "fault")).first()
+    fault = fault_run.id if fault_run is not None else None
     state: Literal["idle", "running", "fault", "error"] = (
         "fault"
         if fault is not None
@@ -58,8 +59,9 @@ def _instrument(services: Services, session: Session) -> InstrumentOut:
         else "idle"
     )
     message = (
-        f"run {fault} is in fault: check the instrument, then reset the run"
-        if fault is not None
+        f"run {fault} is in fault ({fault_run.message}): nothing lands until an operator "
+        "checks the instrument and resets the run with a note"
+        if fault_run is not None
         else status.get("error")
     )
     return InstrumentOut(

@@ -24,6 +24,7 @@ from backend.api.schemas import (
     ProgressOut,
     RescanIn,
     RescanOut,
+    ResetIn,
     RoiIn,
     RoiOut,
     RunId,
@@ -57,7 +58,7 @@ def _plan(body: PlanIn, services: Services, session: Session) -> Plan:
     else:  # the schema already refuses this
         raise HTTPException(422, "give roi (stage metres) or sem_roi (SEM pixels)")
     patch = PatchSpec(body.patch.width, body.patch.height, body.patch.pixels)
-    return plan_mosaic(roi, patch, body.overlap, limits=services.limits)
+    return plan_mosaic(roi, patch, body.overlap, limits=services.limits, line_rate=body.line_rate)
 
 
 def _patch_out(p: PatchRecord) -> PatchOut:
@@ -278,11 +279,19 @@ def abort_run(
 
 @router.post("/{run_id}/reset", response_model=RunOut)
 def reset_run(
-    run_id: RunId, services: ServicesDep, session: SessionDep, operator: OperatorDep
+    run_id: RunId,
+    body: ResetIn,
+    services: ServicesDep,
+    session: SessionDep,
+    operator: OperatorDep,
 ) -> RunOut:
-    """After a fault: confirm the safe state and release the instrument (run -> failed)."""
+    """After a fault (a crash, or a safe state not confirmed): the operator says what they
+    checked (``note``; ``tip_changed`` when a new tip is mounted); the safe state is confirmed
+    and the instrument released (run -> failed, resumable)."""
     get_run(session, run_id)
-    services.runner.reset(run_id, actor=operator)
+    services.runner.reset(
+        run_id, actor=operator, note=body.note.strip(), tip_changed=body.tip_changed
+    )
     return _current(run_id, services, session)
 
 

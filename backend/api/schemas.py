@@ -75,6 +75,17 @@ class PlanIn(Strict):
         return self
 
 
+class ResetIn(Strict):
+    """What the operator checked before releasing an instrument in fault."""
+
+    note: str = Field(
+        min_length=3,
+        max_length=500,
+        description="what was checked, for the record (e.g. 'tip inspected in the SEM: intact')",
+    )
+    tip_changed: bool = Field(default=False, description="a new tip was mounted")
+
+
 class AbortIn(Strict):
     reason: str = Field(default="", max_length=500, description="why, for the record")
 

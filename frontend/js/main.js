@@ -187,6 +187,13 @@ for (const [id, action] of Object.entries(ACTIONS)) {
         if (!window.confirm(`Abort run ${state.run.id}? The tip is retracted and the run cannot continue.`)) return;
         body = { reason: "aborted from the operator's page" };
       }
+      if (action.url === "reset") {
+        const note = window.prompt(
+          `Run ${state.run.id} is in fault: ${state.run.message}\nWhat did you check? (e.g. "tip inspected in the SEM: intact")`,
+        );
+        if (!note || note.trim().length < 3) return;
+        body = { note: note.trim(), tip_changed: window.confirm("Was a new tip mounted?") };
+      }
       await post(`/api/runs/${state.run.id}/${action.url}`, body);
       await loadRun(state.run.id);
     }),

@@ -21,7 +21,7 @@ from __future__ import annotations
 
 from urllib.parse import parse_qs, urlsplit
 
-from hardware.mcs_axis import MCSAxis
+from hardware.mcs_axis import STAGE_TRAVEL, MCSAxis
 from hardware.microscope import ConfigurationError, Microscope
 from hardware.nanonis.client import NanonisClient
 from hardware.nanonis.errors import NanonisError
@@ -118,7 +118,10 @@ def open_nanonis(config: str) -> Microscope:
         stage_y: PositionerAxis
         if stage_url is not None:
             stage = MCSController.open(stage_url[len("mcs:") :])
-            stage_x, stage_y = MCSAxis(stage, 0, name="stage x"), MCSAxis(stage, 1, name="stage y")
+            stage_x, stage_y = (
+                MCSAxis(stage, 0, name="stage x", travel=STAGE_TRAVEL),
+                MCSAxis(stage, 1, name="stage y", travel=STAGE_TRAVEL),
+            )
         else:
             stage_x = NanonisMotorAxis(client, 0, group=int(group))
             stage_y = NanonisMotorAxis(client, 1, group=int(group))

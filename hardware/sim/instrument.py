@@ -22,19 +22,29 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numpy.typing import NDArray
 
+from hardware.envelope import ScanEnvelope
 from hardware.errors import CrashError, ProcedureError
-from hardware.mcs_axis import FineCalibration, MCSAxis
+from hardware.mcs_axis import STAGE_TRAVEL, FineCalibration, MCSAxis
+from hardware.procedures import LandingConfig
 from hardware.sim.clock import SimClock
 from hardware.sim.faults import BLUNT_TIP, Z_JUMP, ArmedFault
-from hardware.sim.force_loop import MAX_LOOP_STEP, PARACHUTE_STEP, Loop, follow_line
+from hardware.sim.force_loop import PARACHUTE_RATE, SLEW_RATE, Loop, follow_line
 from hardware.sim.mcs_channel import ChannelParams
 from hardware.sim.mcs_device import MCSDevice
 from hardware.sim.mcs_server import MCSServer
 from hardware.sim.probe import ProbeModel
+from hardware.sim.relief import patch_relief, steepest_slope
 from hardware.sim.surfaces import Surface
 from hardware.smaract_mcs import MCSController
 
 FloatArray = NDArray[np.float64]
+
+#: The drift's largest rate, in its typical rates (``WorldParams.thermal_*``): its spec.
+DRIFT_SPREAD = 2.0
+#: The share of the set-point's clearance a scan may spend on the loop's lag.
+ENVELOPE_SHARE = 0.85
+#: Largest spacing of the force loop's knots along a line, metres.
+KNOT_SPACING = 4e-9
 
 
 def _tip_offsets() -> tuple[FloatArray, FloatArray, FloatArray]:
@@ -60,9 +70,9 @@ class WorldParams:
     charging_time: float = 600.0  # s: time constant of the charging
     tip_radius: float = 10e-9
     z_top: float = 5e-6  # tip height (lab) with Z fully retracted
-    loop_bandwidth: float = 300.0  # Hz
+    loop_bandwidth: float = 3000.0  # Hz: an FM-AFM Z loop's
     z_noise: float = 0.3e-9  # noise of the recorded height (Z read-out), m
-    substeps: int = 4  # force-loop updates per pixel
+    substeps: int = 4  # force-loop knots per pixel, at least
 
 
 class SimulatedAFM:
@@ -109,12 +119,13 @@ class SimulatedAFM:
         self.robot_server = MCSServer(self.robot_device, clock=self.clock).start()
         self.stage = MCSController.open(self.stage_server.url)
         self.robot = MCSController.open(self.robot_server.url)
-        self.stage_x = MCSAxis(self.stage, 0, name="stage x")
-        self.stage_y = MCSAxis(self.stage, 1, name="stage y")
+        self.stage_x = MCSAxis(self.stage, 0, name="stage x", travel=STAGE_TRAVEL)
+        self.stage_y = MCSAxis(self.stage, 1, name="stage y", travel=STAGE_TRAVEL)
         self.robot_x = MCSAxis(self.robot, 0, name="robot x", calibration=FineCalibration(1.6e-6))
         self.robot_y = MCSAxis(self.robot, 1, name="robot y", calibration=FineCalibration(1.6e-6))
         self.robot_z = MCSAxis(self.robot, 2, name="robot z", calibration=FineCalibration(1.6e-6))
-        direction = self.rng.normal(size=3)
+        # the drift's rate within the instrument's specification (twice the typical rate)
+        direction = np.clip(self.rng.normal(size=3), -DRIFT_SPREAD, DRIFT_SPREAD)
         self._drift_v = np.array(
             [
                 self.params.thermal_xy * direction[0],
@@ -135,7 +146,8 @@ class SimulatedAFM:
         self.line_positions: list[FloatArray] = []
         #: the fault armed for the next scan (:meth:`spoil_next_scan`), if any
         self._spoiling: ArmedFault | None = None
-        self._max_loop_step = MAX_LOOP_STEP
+        self._slew_rate = SLEW_RATE
+        self._envelope: ScanEnvelope | None = None
 
     # -- lifecycle --------------------------------------------------------------------------
 
@@ -150,6 +162,30 @@ class SimulatedAFM:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+    def scan_envelope(self) -> ScanEnvelope:
+        """What a scan may ask of this instrument on this sample (measured once): the loop's
+        bandwidth, the set-point's clearance, the sample's steepest slope and relief within
+        a fine range, the drift's specified rate and Z's range."""
+        if self._envelope is None:
+            z = self.robot_device.axes[2].params.fine_range
+            clearance = self.probe.distance_at(LandingConfig().setpoint) - (
+                self.probe.crash_distance()
+            )
+            self._envelope = ScanEnvelope(
+                loop_bandwidth=self.params.loop_bandwidth,
+                tracking_margin=ENVELOPE_SHARE * clearance,
+                sample_slope=steepest_slope(self.surface),
+                sample_relief=patch_relief(self.surface, z),
+                z_drift=DRIFT_SPREAD * self.params.thermal_z,
+                z_range=z,
+            )
+        return self._envelope
+
+    def change_tip(self) -> None:
+        """A new probe mounted (after a crash): its tip whole, the loop open, Z retracted."""
+        self.crashed = False
+        self.withdraw()
 
     # -- physics (the simulator's view; the software never calls these) ----------------------
 
@@ -340,15 +376,15 @@ class SimulatedAFM:
         if samples < 1 or not duration > 0:
             raise ValueError("need at least one sample and a positive duration")
         kind, lost = self._spoiled_line()
-        params, step = self.params, self._max_loop_step
+        params, slew = self.params, self._slew_rate
         if kind == "tip_change":
             self.params = replace(params, tip_radius=BLUNT_TIP)
         elif kind == "parachute":
-            self._max_loop_step = PARACHUTE_STEP
+            self._slew_rate = PARACHUTE_RATE
         try:
             line, t0 = self._record(samples, duration)
         finally:
-            self.params, self._max_loop_step = params, step
+            self.params, self._slew_rate = params, slew
         if lost:
             line = np.full(samples, np.nan)
         return line, t0
@@ -361,28 +397,33 @@ class SimulatedAFM:
         t0 = self.clock.now()
         self._settle_loop(t0)
         z = self.robot_device.axes[2]
-        sub = self.params.substeps
+        # the true tip path over the line, from the channels at a few knots (the ramp is
+        # smooth: linear in level, bent slightly by hysteresis and creep)
+        knots = np.linspace(t0, t0 + duration, 9)
+        path = np.array([self.sample_xy(t) for t in knots])
+        length = float(np.hypot(*(path[-1] - path[0])))
+        # the loop's knots a few nanometres apart (at least four a pixel): what it follows
+        # depends on speed and slope, not on the pixels
+        sub = max(self.params.substeps, math.ceil(length / samples / KNOT_SPACING))
         dt = duration / (samples * sub)
         loop = Loop(
-            gain=1.0 - math.exp(-2 * math.pi * self.params.loop_bandwidth * dt),
+            bandwidth=self.params.loop_bandwidth,
+            knot_time=dt,
             substeps=sub,
             zrange=z.params.fine_range,
             branch_end=self.probe.attraction_minimum(),
             crash_depth=self.probe.crash_distance(),
-            max_step=self._max_loop_step,
+            slew_rate=self._slew_rate,
         )
-        # the true tip path over the line, from the channels at a few knots (the ramp is
-        # smooth: linear in level, bent slightly by hysteresis and creep)
         ts = t0 + dt * (np.arange(samples * sub) + 0.5)
-        knots = np.linspace(ts[0], ts[-1], 9)
-        path = np.array([self.sample_xy(t) for t in knots])
         xs = np.interp(ts, knots, path[:, 0])
         ys = np.interp(ts, knots, path[:, 1])
         # a pixel is the mean over its time slice (the controller averages its samples)
         self.line_positions.append(
             np.column_stack([xs.reshape(samples, sub).mean(1), ys.reshape(samples, sub).mean(1)])
         )
-        surf = self.surface_height(xs, ys, t0)
+        # the sample drifts in Z during the line too (a slow line meets more of it)
+        surf = self.surface_height(xs, ys, t0) + self._drift_v[2] * (ts - t0)
         ext = z.extension(t0)
         tip0 = self.params.z_top - (z.true_position(t0) - ext)
         d_set = self.probe.distance_at(setpoint - self.charging_offset(t0))

@@ -39,7 +39,8 @@ def test_the_grid_covers_the_roi_centred(
     except PlanError as exc:
         refused = exc
     if refused is not None:
-        assert refused.field == "roi"  # only too many patches can refuse these inputs
+        # only too many patches, or an overlap of fewer than 3 pixels, can refuse these
+        assert refused.field == "roi" or (refused.field == "overlap" and min(ox, oy) * 32 < 3)
         return
     x0, y0, x1, y1 = plan.extent
     assert x0 <= roi.x + 1e-15 and x1 >= roi.x + roi.width - 1e-15
