@@ -24,6 +24,7 @@ from backend.merge_jobs import MergeService
 from backend.settings import Settings
 from backend.status_cache import StatusCache
 from backend.viewer import MERGED_BUDGET, HeightMap, Viewer
+from backend.viewer_access import admission
 from hardware.microscope import Microscope, open_microscope
 from merge.io.detail import detail_frame
 
@@ -110,7 +111,11 @@ class Services:
             runner.on_completed = lambda run_id: _auto_merge(merges, run_id)
         viewer = None
         if settings.viewer:
-            viewer = Viewer(host=settings.host, port=settings.viewer_port)
+            viewer = Viewer(
+                host=settings.host,
+                port=settings.viewer_port,
+                admit=admission(token=token, api_port=settings.port, origins=settings.cors_origins),
+            )
             events.listen(ViewerFeed(viewer, sessions, runner.live))
         status = StatusCache()
         events.listen(status)

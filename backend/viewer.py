@@ -13,6 +13,7 @@ scan or a merge never waits for the browser.
 from __future__ import annotations
 
 import logging
+import math
 import queue
 import threading
 import time
@@ -77,42 +78,129 @@ def mesh_of(
     return verts.astype(np.float32), faces.astype(np.uint32), colours, origin
 
 
+#: The Z exaggeration a viewer offers, and where it starts.
+EXAGGERATION = (1.0, 200.0)
+SHOW = ("both", "raw", "merged")
+
+
+@dataclass(frozen=True)
+class Shown:
+    """One mesh the scene shows, as every browser gets it."""
+
+    mesh: Any  # trimesh.Trimesh
+    position: tuple[float, float, float]
+
+
+class ClientView:
+    """What one browser sees: its own nodes of the shared meshes, and its own controls (a
+    Z exaggeration, what to show), so that one browser's settings never reach another's."""
+
+    def __init__(self, client: Any, on_reset: Callable[[Any], None]) -> None:
+        self.client = client
+        self.nodes: dict[str, Any] = {}
+        gui = client.gui
+        self.exaggeration = gui.add_slider(
+            "Z exaggeration", min=EXAGGERATION[0], max=EXAGGERATION[1], step=1.0,
+            initial_value=EXAGGERATION[0],
+        )  # fmt: skip
+        self.show = gui.add_dropdown("Show", SHOW, initial_value=SHOW[0])
+        self.reset = gui.add_button("Reset camera")
+        self.scale = EXAGGERATION[0]
+        self.mode = SHOW[0]
+        self.exaggeration.on_update(lambda _: self._changed())
+        self.show.on_update(lambda _: self._changed())
+        self.reset.on_click(lambda _: on_reset(client))
+
+    def _changed(self) -> None:
+        """Take the controls' values where they are sane; put back the last sane ones
+        where they are not (a NaN or 1e308 sent by hand)."""
+        value, mode = self.exaggeration.value, self.show.value
+        lo, hi = EXAGGERATION
+        if isinstance(value, int | float) and math.isfinite(value) and lo <= value <= hi:
+            self.scale = float(value)
+        else:
+            log.warning("viewer: a client sent Z exaggeration %r: ignored", value)
+            self.exaggeration.value = self.scale
+        if mode in SHOW:
+            self.mode = str(mode)
+        else:
+            self.show.value = self.mode
+        for node in self.nodes.values():
+            self.style(node)
+
+    def style(self, node: Any) -> None:
+        merged = node.name.startswith("/merged/")
+        node.visible = self.mode == "both" or self.mode == ("merged" if merged else "raw")
+        node.scale = (1.0, 1.0, self.scale)
+
+    def put(self, name: str, shown: Shown) -> None:
+        node = self.client.scene.add_mesh_trimesh(name, shown.mesh, position=shown.position)
+        self.nodes[name] = node
+        self.style(node)
+
+    def drop(self, name: str) -> None:
+        node = self.nodes.pop(name, None)
+        if node is not None:
+            node.remove()
+
+
 class Viewer:
-    """The viser server and what it shows.
+    """The viser server and what it shows, each browser in its own view (:class:`ClientView`).
 
     Parameters
     ----------
     host, port : where to serve; viser takes the next free port if ``port`` is busy, so read
         :attr:`port` for the one it got.
+    admit : given the websocket handshake's headers, None to let a browser in, else why not
+        (it is closed before anything is sent to it). None: everyone.
     """
 
-    def __init__(self, *, host: str = "127.0.0.1", port: int = 8080) -> None:
+    def __init__(
+        self,
+        *,
+        host: str = "127.0.0.1",
+        port: int = 8080,
+        admit: Callable[[Any], str | None] | None = None,
+    ) -> None:
         import viser
 
         self.server = viser.ViserServer(host=host, port=port, verbose=False)
         self.port: int = self.server.get_port()
         self.host = host
         self.server.scene.set_up_direction("+z")
-        self._lock = threading.Lock()
-        self.raw: dict[tuple[int, int], Any] = {}  # (run, patch index) -> node
-        self.merged: dict[int, Any] = {}  # job id -> node
-        self.live: dict[int, Any] = {}  # run id -> its live mosaic's node
+        self._lock = threading.RLock()
+        self.meshes: dict[str, Shown] = {}  # node name -> what every view shows there
+        self.views: dict[int, ClientView] = {}  # client id -> its view
+        self.raw: dict[tuple[int, int], str] = {}  # (run, patch index) -> node name
+        self.merged: dict[int, str] = {}  # job id -> node name
+        self.live: dict[int, str] = {}  # run id -> its live mosaic's node name
         self.run_id: int | None = None
         self.zero: float | None = None  # heights are shown relative to the first one
         self.shown_at: dict[str, float] = {}  # node name -> monotonic time it was sent
         self._jobs: queue.Queue[Callable[[], None] | None] = queue.Queue()
-        gui = self.server.gui
-        self.exaggeration = gui.add_slider(
-            "Z exaggeration", min=1.0, max=200.0, step=1.0, initial_value=1.0
-        )
-        self.show = gui.add_dropdown("Show", ("both", "raw", "merged"), initial_value="both")
-        self.reset = gui.add_button("Reset camera")
-        self.exaggeration.on_update(lambda _: self._restyle())
-        self.show.on_update(lambda _: self._restyle())
-        self.reset.on_click(lambda _: self.reset_camera())
-        self.server.on_client_connect(self._aim)  # a new browser starts on the mosaic
+        if admit is not None:
+            self._guard(admit)
+        self.server.on_client_connect(self._connect)
+        self.server.on_client_disconnect(self._disconnect)
         self._thread = threading.Thread(target=self._work, name="viewer", daemon=True)
         self._thread.start()
+
+    def _guard(self, admit: Callable[[Any], str | None]) -> None:
+        """Close, at the handshake, every websocket ``admit`` refuses: before viser sends
+        it anything (its connection callbacks run before the scene is streamed)."""
+        sockets = self.server._websock_server
+
+        async def check(client: Any) -> None:
+            connection = sockets._live_connections.get(client.client_id)
+            if connection is None:
+                return
+            request = connection.request
+            refused = admit(request.headers) if request is not None else "no handshake"
+            if refused is not None:
+                log.warning("viewer: a browser was refused: %s", refused)
+                await connection.close(1008, refused[:120])
+
+        sockets._client_connect_cb.insert(0, check)
 
     @property
     def url(self) -> str:
@@ -127,39 +215,35 @@ class Viewer:
         """A raw patch at its nominal place (its Z as scanned: the drift staircase shows)."""
         with self._lock:
             if self.run_id != run_id:
-                self._clear_raw()
+                for name in self.raw.values():
+                    self._drop(name)
+                self.raw.clear()
+                self.zero = None
                 self.run_id = run_id
             if self.zero is None:
                 self.zero = float(np.nanmedian(hmap.heights))
             name = f"/raw/run{run_id}/p{index:04d}"
-            node = self._add(name, hmap, max(64, RAW_BUDGET // max(patches, 1)))
-            old = self.raw.pop((run_id, index), None)
-            if old is not None:
-                old.remove()
-            self.raw[(run_id, index)] = node
-            self._style(node, merged=False)
+            self._put(name, hmap, max(64, RAW_BUDGET // max(patches, 1)))
+            self.raw[(run_id, index)] = name
 
     def show_mosaic(self, job_id: int, hmap: HeightMap) -> None:
         """A merged mosaic, beside the raw patches; it replaces the previous one (and the live
         mosaic it was merged from)."""
         with self._lock:
             for old in [*self.merged.values(), *self.live.values()]:
-                old.remove()
+                self._drop(old)
             self.merged.clear()
             self.live.clear()
-            node = self._add(f"/merged/job{job_id}", self._beside(hmap), MERGED_BUDGET)
-            self.merged[job_id] = node
-            self._style(node, merged=True)
+            name = f"/merged/job{job_id}"
+            self._put(name, self._beside(hmap), MERGED_BUDGET)
+            self.merged[job_id] = name
 
     def show_live(self, run_id: int, hmap: HeightMap) -> None:
         """A run's live mosaic, beside its raw patches, growing as the run stores patches."""
         with self._lock:
-            old = self.live.pop(run_id, None)
-            if old is not None:
-                old.remove()
-            node = self._add(f"/merged/live{run_id}", self._beside(hmap), MERGED_BUDGET)
-            self.live[run_id] = node
-            self._style(node, merged=True)
+            name = f"/merged/live{run_id}"
+            self._put(name, self._beside(hmap), MERGED_BUDGET)
+            self.live[run_id] = name
 
     def _beside(self, hmap: HeightMap) -> HeightMap:
         """``hmap`` moved beside the raw patches (to their right), so "both" compares them."""
@@ -176,9 +260,10 @@ class Viewer:
             self._aim(client)
 
     def _aim(self, client: Any) -> None:
-        nodes = [*self.raw.values(), *self.merged.values(), *self.live.values()]
-        xs = [float(n.position[0]) for n in nodes] or [0.0]
-        ys = [float(n.position[1]) for n in nodes] or [0.0]
+        with self._lock:
+            places = [m.position for m in self.meshes.values()]
+        xs = [p[0] for p in places] or [0.0]
+        ys = [p[1] for p in places] or [0.0]
         centre = np.array([np.mean(xs), np.mean(ys), 0.0])
         span = max(max(xs) - min(xs), max(ys) - min(ys), 2.0)
         # position first: viser moves the look-at point along with a new position
@@ -190,9 +275,9 @@ class Viewer:
         """Names of the nodes shown: ``{"raw": [...], "merged": [...], "live": [...]}``."""
         with self._lock:
             return {
-                "raw": sorted(n.name for n in self.raw.values()),
-                "merged": sorted(n.name for n in self.merged.values()),
-                "live": sorted(n.name for n in self.live.values()),
+                "raw": sorted(self.raw.values()),
+                "merged": sorted(self.merged.values()),
+                "live": sorted(self.live.values()),
             }
 
     def wait_idle(self, timeout: float = 30.0) -> bool:
@@ -208,6 +293,20 @@ class Viewer:
 
     # -- internals --------------------------------------------------------------------------
 
+    def _connect(self, client: Any) -> None:
+        """A new browser: its own controls and its own nodes of every mesh, its camera on
+        the mosaic."""
+        with self._lock:
+            view = ClientView(client, self._aim)
+            self.views[client.client_id] = view
+            for name, shown in self.meshes.items():
+                view.put(name, shown)
+        self._aim(client)
+
+    def _disconnect(self, client: Any) -> None:
+        with self._lock:
+            self.views.pop(client.client_id, None)
+
     def _work(self) -> None:
         while True:
             job = self._jobs.get()
@@ -218,29 +317,18 @@ class Viewer:
             except Exception:  # the viewer must never take the server down
                 log.exception("viewer update failed")
 
-    def _add(self, name: str, hmap: HeightMap, budget: int) -> Any:
+    def _put(self, name: str, hmap: HeightMap, budget: int) -> None:
         import trimesh
 
         verts, faces, colours, origin = mesh_of(hmap, budget=budget, zero=self.zero or 0.0)
         mesh = trimesh.Trimesh(vertices=verts, faces=faces, vertex_colors=colours, process=False)
-        node = self.server.scene.add_mesh_trimesh(name, mesh, position=(origin[0], origin[1], 0.0))
+        shown = Shown(mesh, (origin[0], origin[1], 0.0))
+        self.meshes[name] = shown
+        for view in list(self.views.values()):
+            view.put(name, shown)
         self.shown_at[name] = time.monotonic()
-        return node
 
-    def _clear_raw(self) -> None:
-        for node in self.raw.values():
-            node.remove()
-        self.raw.clear()
-        self.zero = None
-
-    def _style(self, node: Any, *, merged: bool) -> None:
-        mode = self.show.value
-        node.visible = mode == "both" or mode == ("merged" if merged else "raw")
-        node.scale = (1.0, 1.0, float(self.exaggeration.value))
-
-    def _restyle(self) -> None:
-        with self._lock:
-            for node in self.raw.values():
-                self._style(node, merged=False)
-            for node in [*self.merged.values(), *self.live.values()]:
-                self._style(node, merged=True)
+    def _drop(self, name: str) -> None:
+        self.meshes.pop(name, None)
+        for view in list(self.views.values()):
+            view.drop(name)

@@ -14,6 +14,7 @@ from backend.api.responses import NPY, npy_response
 from backend.api.schemas import InstrumentOut, SimFaultIn
 from backend.db.models import Run
 from backend.services import Services
+from backend.viewer_access import COOKIE, viewer_key
 from hardware.sim.instrument import SimulatedAFM
 
 router = APIRouter(prefix="/api/instrument", tags=["instrument"])
@@ -153,6 +154,21 @@ def sim_fault(body: SimFaultIn, services: ServicesDep, operator: OperatorDep) ->
         data=body.model_dump(),
     )
     return Response(status_code=204)
+
+
+@router.post("/viewer/session", status_code=204)
+def viewer_session(services: ServicesDep, operator: OperatorDep) -> Response:
+    """Let this browser open the 3D viewer: a cookie (HttpOnly, SameSite=Strict) that the
+    viewer's port checks, with the page's origin, before it sends anything."""
+    response = Response(status_code=204)
+    response.set_cookie(
+        COOKIE,
+        viewer_key(services.token),
+        httponly=True,
+        samesite="strict",
+        max_age=7 * 24 * 3600,
+    )
+    return response
 
 
 @router.get("/viewer")

@@ -406,6 +406,21 @@ function listen() {
 
 // -- start ------------------------------------------------------------------------------------
 
+/** The 3D viewer, for a browser that holds the token (the viewer checks a cookie for it). */
+async function openViewer() {
+  const viewer = await act(() => get("/api/instrument/viewer"));
+  const say = (text) => ($("viewer").srcdoc = `<p style='font:14px system-ui'>${text}</p>`);
+  if (!viewer || !viewer.enabled) return say("The 3D viewer is off (MOSAIC_VIEWER=false).");
+  if (!token()) return say("Enter the API token (above) to open the 3D viewer.");
+  try {
+    await post("/api/instrument/viewer/session");
+  } catch (err) {
+    return say(`The 3D viewer needs the API token: ${err.message}`);
+  }
+  $("viewer").removeAttribute("srcdoc");
+  $("viewer").src = `${location.protocol}//${location.hostname}:${viewer.port}/`;
+}
+
 async function start() {
   $("token").value = token();
   $("token").addEventListener("change", (e) => setToken(e.target.value));
@@ -414,12 +429,8 @@ async function start() {
   const latest = await act(() => get("/api/events/latest"));
   state.lastEvent = latest ? latest.id : 0; // the page already shows what happened before
   listen();
-  const viewer = await act(() => get("/api/instrument/viewer"));
-  if (viewer && viewer.enabled) {
-    $("viewer").src = `${location.protocol}//${location.hostname}:${viewer.port}/`;
-  } else {
-    $("viewer").srcdoc = "<p style='font:14px system-ui'>The 3D viewer is off (MOSAIC_VIEWER=false).</p>";
-  }
+  await openViewer();
+  $("token").addEventListener("change", () => act(openViewer));
   const sems = await act(() => get("/api/sem"));
   // the latest image, unless the operator already asked for one while the page started
   if (sems && sems.length && sem.loads === 0) await act(() => sem.load(sems[sems.length - 1]));

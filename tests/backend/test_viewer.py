@@ -2,11 +2,21 @@
 
 from __future__ import annotations
 
+import time
+from collections.abc import Callable
+
+import msgspec
 import numpy as np
 import pytest
+import viser
+from viser._messages import GuiUpdateMessage, ViewerCameraMessage
+from websockets.exceptions import ConnectionClosed
+from websockets.sync.client import ClientConnection, connect
+from websockets.typing import Origin, Subprotocol
 
 from backend.server_process import free_port
 from backend.viewer import HeightMap, Viewer, decimate, mesh_of
+from backend.viewer_access import COOKIE, admission, viewer_key
 
 
 def test_decimation_keeps_the_vertex_budget() -> None:
@@ -54,12 +64,103 @@ def test_the_scene_holds_one_node_per_patch_and_the_mosaic_beside() -> None:
         names = viewer.node_names()
         assert names["raw"] == [f"/raw/run7/p{i:04d}" for i in range(3)]
         assert names["merged"] == ["/merged/job3"]
-        merged = viewer.merged[3]
-        assert float(merged.position[0]) > 0.8 + 0.5  # to the right of the raw patches
+        assert viewer.meshes["/merged/job3"].position[0] > 0.8 + 0.5  # right of the raw ones
         viewer.show_patch(8, 0, hmap, patches=1)  # another run clears the raw patches
         assert viewer.node_names()["raw"] == ["/raw/run8/p0000"]
-        viewer.exaggeration.value = 40.0
-        viewer._restyle()
-        assert tuple(viewer.raw[(8, 0)].scale) == (1.0, 1.0, 40.0)
+        assert sorted(viewer.meshes) == ["/merged/job3", "/raw/run8/p0000"]
+    finally:
+        viewer.close()
+
+
+TOKEN = "viewer-test-token-0123"
+API_PORT = 8123
+
+
+def _browser(port: int, *, origin: str, cookie: str | None) -> ClientConnection:
+    """A websocket as the viewer's page opens it (viser's subprotocol)."""
+    headers = {"Cookie": f"{COOKIE}={cookie}"} if cookie is not None else {}
+    return connect(
+        f"ws://127.0.0.1:{port}/",
+        origin=Origin(origin),
+        additional_headers=headers,
+        subprotocols=[Subprotocol(f"viser-v{viser.__version__}")],
+        open_timeout=10,
+    )
+
+
+def _hello(socket: ClientConnection) -> None:
+    """What a browser's viewer sends first (its camera): viser counts it connected then."""
+    camera = ViewerCameraMessage(
+        (1.0, 0.0, 0.0, 0.0), (0.0, -3.0, 3.0), 1.0, 0.01, 100.0, 480, 640,
+        (0.0, 0.0, 0.0), (0.0, 0.0, 1.0),
+    )  # fmt: skip
+    socket.send(msgspec.msgpack.encode(camera.as_serializable_dict()))
+
+
+def _closed_with(socket: ClientConnection) -> int | None:
+    try:
+        while True:
+            socket.recv(timeout=10)
+    except ConnectionClosed as closed:
+        return closed.rcvd.code if closed.rcvd is not None else None
+
+
+def _wait(until: Callable[[], bool]) -> None:
+    deadline = time.monotonic() + 10
+    while not until():
+        assert time.monotonic() < deadline, "the viewer never got there"
+        time.sleep(0.02)
+
+
+def test_only_this_servers_page_with_the_token_gets_a_view() -> None:
+    viewer = Viewer(port=free_port(), admit=admission(token=TOKEN, api_port=API_PORT, origins=[]))
+    page = f"http://127.0.0.1:{API_PORT}"
+    try:
+        for origin, cookie in (
+            (page, None),  # no token
+            (page, viewer_key("another-token-0123456")),  # a wrong one
+            ("http://evil.example", viewer_key(TOKEN)),  # another site's page
+            (f"http://127.0.0.1:{API_PORT + 1}", viewer_key(TOKEN)),  # another port's
+        ):
+            with _browser(viewer.port, origin=origin, cookie=cookie) as socket:
+                assert _closed_with(socket) == 1008, origin
+        assert viewer.views == {}
+        with _browser(viewer.port, origin=page, cookie=viewer_key(TOKEN)) as socket:
+            _hello(socket)
+            _wait(lambda: len(viewer.views) == 1)
+    finally:
+        viewer.close()
+
+
+def test_each_browser_keeps_its_own_settings_and_values_out_of_range_are_ignored() -> None:
+    viewer = Viewer(port=free_port())
+    try:
+        hmap = HeightMap(np.zeros((8, 8)), (0.0, 0.0), (0.1e-6, 0.1e-6))
+        viewer.show_patch(1, 0, hmap, patches=1)
+        page = f"http://127.0.0.1:{API_PORT}"
+        with (
+            _browser(viewer.port, origin=page, cookie=None) as first,
+            _browser(viewer.port, origin=page, cookie=None) as second,
+        ):
+            _hello(first)
+            _wait(lambda: len(viewer.views) == 1)
+            _hello(second)
+            _wait(lambda: len(viewer.views) == 2)
+            mine, theirs = (viewer.views[k] for k in sorted(viewer.views))
+
+            def send(value: float) -> None:
+                update = GuiUpdateMessage(mine.exaggeration._impl.uuid, {"value": value})
+                first.send(msgspec.msgpack.encode(update.as_serializable_dict()))
+
+            for bad in (float("nan"), 1e308, -5.0):
+                send(bad)
+            send(40.0)
+            _wait(lambda: mine.scale == 40.0)
+            assert tuple(mine.nodes["/raw/run1/p0000"].scale) == (1.0, 1.0, 40.0)
+            assert theirs.scale == 1.0
+            assert tuple(theirs.nodes["/raw/run1/p0000"].scale) == (1.0, 1.0, 1.0)
+            send(float("inf"))
+            time.sleep(0.3)
+            assert mine.scale == 40.0  # the last sane value kept
     finally:
         viewer.close()
