@@ -173,9 +173,14 @@ def viewer_session(services: ServicesDep, operator: OperatorDep) -> Response:
 
 @router.get("/viewer")
 def viewer(services: ServicesDep) -> dict[str, object]:
-    """Where the 3D viewer listens (its port; the page builds the URL from its own host) and
-    what it shows."""
+    """Where the 3D viewer listens (its port; the page builds the URL from its own host), what
+    it shows and how many browsers it shows it to."""
     v = services.viewer
     if v is None:
-        return {"enabled": False, "port": None, "nodes": {"raw": [], "merged": [], "live": []}}
-    return {"enabled": True, "port": v.port, "nodes": v.node_names()}
+        return {
+            "enabled": False,
+            "port": None,
+            "nodes": {"raw": [], "merged": [], "live": []},
+            "browsers": 0,
+        }
+    return {"enabled": True, "port": v.port, "nodes": v.node_names(), "browsers": len(v.views)}

@@ -121,11 +121,16 @@ def test_only_this_servers_page_with_the_token_gets_a_view() -> None:
             (page, viewer_key("another-token-0123456")),  # a wrong one
             ("http://evil.example", viewer_key(TOKEN)),  # another site's page
             (f"http://127.0.0.1:{API_PORT + 1}", viewer_key(TOKEN)),  # another port's
+            (f"http://localhost:{viewer.port}", viewer_key(TOKEN)),  # another host's
         ):
             with _browser(viewer.port, origin=origin, cookie=cookie) as socket:
                 assert _closed_with(socket) == 1008, origin
         assert viewer.views == {}
         with _browser(viewer.port, origin=page, cookie=viewer_key(TOKEN)) as socket:
+            _hello(socket)
+            _wait(lambda: len(viewer.views) == 1)
+        own = f"http://127.0.0.1:{viewer.port}"  # the viewer's own page, in the frame
+        with _browser(viewer.port, origin=own, cookie=viewer_key(TOKEN)) as socket:
             _hello(socket)
             _wait(lambda: len(viewer.views) == 1)
     finally:

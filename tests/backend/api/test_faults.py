@@ -65,12 +65,15 @@ def test_a_link_that_stays_dead_blocks_the_instrument_until_reset(server: Server
     other = server.create()
     r = server.post(f"/api/runs/{other['id']}/start")
     assert r.status_code == 409 and "reset" in r.json()["detail"]
-    r = server.post(f"/api/runs/{rid}/reset")  # still dead: stays in fault
+    assert server.post(f"/api/runs/{rid}/reset").status_code == 422  # a note is required
+    checked = {"note": "robot link cable reseated"}
+    r = server.post(f"/api/runs/{rid}/reset", checked)  # still dead: stays in fault
     assert r.status_code == 409 and "stays in fault" in r.json()["detail"]
     server.post("/api/instrument/sim/fault", {"fault": "none"})
-    r = server.post(f"/api/runs/{rid}/reset")
+    r = server.post(f"/api/runs/{rid}/reset", checked)
     assert r.status_code == 200, r.text
     assert r.json()["state"] == "failed" and "reset by the operator" in r.json()["message"]
+    assert "robot link cable reseated" in r.json()["message"]
     _tip_is_safe(server)
 
 
