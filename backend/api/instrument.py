@@ -25,6 +25,8 @@ MAX_TRUTH_POINTS = 4096 * 4096
 SAMPLE_EXTENT = 12e-3
 #: How far a ``no_surface`` fault lowers the simulated sample, metres (beyond any landing).
 NO_SURFACE_DROP = 1e-3
+#: How far a ``crash`` fault lifts the sample mid-line, metres (a step far beyond the loop).
+CRASH_JUMP = 100e-9
 
 
 @router.get("", response_model=InstrumentOut)
@@ -129,18 +131,23 @@ def sim_surface(
 @router.post("/sim/fault", status_code=204)
 def sim_fault(body: SimFaultIn, services: ServicesDep, operator: OperatorDep) -> Response:
     """Make the simulated instrument misbehave: a serial link goes silent, answers garbage
-    or an error code, or drops; the sample goes out of reach (``no_surface``); or the scans
-    of chosen patches are spoiled (``tip_change``, ``parachute``, ``lost_lines``, ``z_jump``).
-    ``none`` heals everything."""
+    or an error code, or drops; the sample goes out of reach (``no_surface``); the sample
+    jumps up under the scanning tip (``crash``: the tip crashes, the run ends in fault); or
+    the scans of chosen patches are spoiled (``tip_change``, ``parachute``, ``lost_lines``,
+    ``z_jump``). ``none`` heals everything (a crashed tip stays crashed: change it)."""
     sim = _sim(services)
     where = f"on the {body.link} link"
     if body.fault == "none":
         sim.stage_server.inject(None)
         sim.robot_server.inject(None)
         sim.sample_z = 0.0
+        sim.jump_next_line(0.0)
         services.runner.rescans.disarm()
     elif body.fault == "no_surface":
         sim.sample_z = -NO_SURFACE_DROP
+    elif body.fault == "crash":
+        sim.jump_next_line(CRASH_JUMP)
+        where = "in the middle of the next line scanned"
     elif body.fault in ("silent", "garbage", "error", "drop"):
         server = sim.stage_server if body.link == "stage" else sim.robot_server
         server.inject(body.fault, code=body.code, count=body.count)

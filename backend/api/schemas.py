@@ -125,11 +125,12 @@ class SemAcquireIn(Strict):
 LinkFault = Literal["silent", "garbage", "error", "drop"]
 #: Faults that spoil the scans of chosen patches (:mod:`hardware.sim.faults`).
 SpoilingFault = Literal["tip_change", "parachute", "lost_lines", "z_jump"]
-SimFault = LinkFault | SpoilingFault | Literal["no_surface", "none"]
+SimFault = LinkFault | SpoilingFault | Literal["no_surface", "crash", "none"]
 
 
 class SimFaultIn(Strict):
-    """Make the simulated instrument misbehave (``none`` heals everything).
+    """Make the simulated instrument misbehave (``none`` heals everything; ``crash`` lifts
+    the sample under the scanning tip by a step no loop follows: the tip crashes).
 
     A link fault (``silent``, ``garbage``, ``error``, ``drop``) acts on the ``link``'s next
     ``count`` commands; a spoiling fault (``tip_change``, ``parachute``, ``lost_lines``,

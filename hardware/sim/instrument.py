@@ -148,6 +148,8 @@ class SimulatedAFM:
         self._spoiling: ArmedFault | None = None
         self._slew_rate = SLEW_RATE
         self._envelope: ScanEnvelope | None = None
+        #: a jump of the sample armed for the middle of the next line, metres
+        self._jump = 0.0
 
     # -- lifecycle --------------------------------------------------------------------------
 
@@ -181,6 +183,12 @@ class SimulatedAFM:
                 z_range=z,
             )
         return self._envelope
+
+    def jump_next_line(self, height: float) -> None:
+        """The sample jumps ``height`` metres up in the middle of the next line recorded (the
+        holder slips, or a particle under the tip), and stays there: a step no loop follows,
+        so the tip crashes into it (the crash an operator must see handled)."""
+        self._jump = height
 
     def change_tip(self) -> None:
         """A new probe mounted (after a crash): its tip whole, the loop open, Z retracted."""
@@ -427,6 +435,16 @@ class SimulatedAFM:
         ext = z.extension(t0)
         tip0 = self.params.z_top - (z.true_position(t0) - ext)
         d_set = self.probe.distance_at(setpoint - self.charging_offset(t0))
+        if self._jump:  # a step in no time: the tip meets it with the extension it had
+            jump, self._jump = self._jump, 0.0
+            self.sample_z += jump
+            if jump > d_set - loop.crash_depth:
+                self.crashed = True
+                raise CrashError(
+                    f"the tip crashed into the surface: the sample jumped {jump * 1e9:.3g} nm "
+                    "up under it mid-line, faster than any force loop follows"
+                )
+            surf[len(surf) // 2 :] += jump
         try:
             followed = follow_line(surf, tip0, ext, d_set, loop)
         except CrashError:

@@ -1,0 +1,227 @@
+"""What a hostile or clumsy request can do to the instrument's safety, finding by finding: an
+upload that would decode to gigabytes, bodies of any size and encoding, NaN and absurd
+numbers, a row that cannot be shown, event streams, hosts and headers, and a crash that must
+block the next landing. (The latencies under load are ``benchmarks/server_bench.py``'s.)"""
+
+from __future__ import annotations
+
+import io
+import struct
+import zlib
+from collections.abc import Iterator
+
+import numpy as np
+from sqlalchemy import update
+
+from backend.db.models import Run
+from tests.backend.api.conftest import AUTH, Server, plan
+
+
+def tiff_declaring(width: int, height: int) -> bytes:
+    """A TIFF of a few hundred bytes that declares ``width`` x ``height`` 8-bit pixels in
+    one deflated strip (what decompression bombs look like: the header promises gigabytes)."""
+    strip = zlib.compress(bytes(4096))
+    tags = [  # (tag, type, count, value): SHORT 3, LONG 4
+        (256, 4, 1, width),
+        (257, 4, 1, height),
+        (258, 3, 1, 8),
+        (259, 3, 1, 8),  # deflate
+        (262, 3, 1, 1),
+        (273, 4, 1, 0),  # strip offset, filled in below
+        (277, 3, 1, 1),
+        (278, 4, 1, height),
+        (279, 4, 1, len(strip)),
+    ]
+    ifd_at = 8
+    data_at = ifd_at + 2 + 12 * len(tags) + 4
+    out = bytearray(b"II*\x00" + struct.pack("<I", ifd_at))
+    out += struct.pack("<H", len(tags))
+    for tag, kind, count, value in tags:
+        value = data_at if tag == 273 else value
+        packed = struct.pack("<H", value) + b"\0\0" if kind == 3 else struct.pack("<I", value)
+        out += struct.pack("<HHI", tag, kind, count) + packed
+    out += struct.pack("<I", 0) + strip
+    return bytes(out)
+
+
+def test_an_sem_tiff_declaring_gigapixels_is_refused_from_its_header(server: Server) -> None:
+    for width, height in ((100_000, 100_000), (20_000, 20_000)):
+        bomb = tiff_declaring(width, height)
+        assert len(bomb) < 1000
+        r = server.client.post(
+            "/api/sem/upload",
+            files={"file": ("bomb.tif", bomb, "image/tiff")},
+            data={"pixel_size": "1e-8"},
+            headers=AUTH,
+        )
+        assert r.status_code == 422, r.text
+        assert f"declares {height} x {width}" in r.json()["detail"]
+    assert server.client.get("/api/sem").json() == []
+    assert (
+        not list((server.data_dir / "sem").glob("*.npy"))
+        if (server.data_dir / "sem").exists()
+        else True
+    )
+
+
+def test_a_tiff_scan_declaring_gigapixels_is_refused_in_an_offline_upload(server: Server) -> None:
+    bomb = tiff_declaring(100_000, 100_000)
+    files = [("files", (f"s{k}.tif", bomb, "image/tiff")) for k in range(2)]
+    r = server.client.post(
+        "/api/runs/offline", files=files, data={"pixel_size": "1e-8"}, headers=AUTH
+    )
+    assert r.status_code == 422 and "declares" in r.json()["detail"], r.text
+
+
+def test_bodies_past_their_limit_are_refused_whatever_their_encoding(server: Server) -> None:
+    big = b'{"roi": "' + b"x" * (2 << 20) + b'"}'
+
+    def chunks() -> Iterator[bytes]:  # no Content-Length: Transfer-Encoding chunked
+        for k in range(0, len(big), 64 * 1024):
+            yield big[k : k + 64 * 1024]
+
+    for content in (big, chunks()):
+        r = server.client.post(
+            "/api/runs/preview", content=content, headers={"Content-Type": "application/json"}
+        )
+        assert r.status_code == 413, r.text
+        assert "limit" in r.json()["detail"]
+
+
+def test_a_refused_body_is_never_echoed_nor_a_nan_a_server_error(server: Server) -> None:
+    junk = {"roi": {"x": "y" * 200_000, "y": 0, "width": 1e-6, "height": 1e-6}}
+    r = server.client.post("/api/runs/preview", json={**plan(), **junk})
+    assert r.status_code == 422 and len(r.content) < 4000, len(r.content)
+    for literal in ("NaN", "Infinity", "-Infinity"):
+        body = (
+            '{"roi": {"x": LITERAL, "y": 0, "width": 1e-6, "height": 1e-6}, '
+            '"patch": {"width": 8e-7, "height": 8e-7, "pixels": [16, 16]}, '
+            '"overlap": [0.25, 0.25]}'
+        ).replace("LITERAL", literal)
+        r = server.client.post(
+            "/api/runs/preview", content=body, headers={"Content-Type": "application/json"}
+        )
+        assert r.status_code == 422, (literal, r.text)
+        assert r.json()["detail"][0]["loc"] == ["body", "roi", "x"]
+
+
+def test_absurd_numbers_are_refused_with_the_field_to_fix(server: Server) -> None:
+    huge = plan()
+    huge["roi"]["width"] = 1e308
+    r = server.client.post("/api/runs/preview", json=huge)
+    assert r.status_code == 422 and r.json()["field"] == "roi.width", r.text
+    for rate, words in ((0.01, "outside the scanner"), (60.0, "less than or equal")):
+        r = server.client.post("/api/runs/preview", json=plan(line_rate=rate))
+        assert r.status_code == 422 and words in r.text, r.text
+    fine = plan(pixels=(4096, 4096), patch=1e-6)  # 0.24 nm pixels
+    r = server.client.post("/api/runs/preview", json=fine)
+    assert r.status_code == 422 and r.json()["field"] in ("patch.pixels", "line_rate"), r.text
+
+
+def test_an_offline_upload_with_an_absurd_pixel_size_is_refused(server: Server) -> None:
+    buffers = []
+    for _ in range(2):
+        b = io.BytesIO()
+        np.save(b, np.zeros((16, 16)))
+        buffers.append(b.getvalue())
+    files = [("files", (f"s{k}.npy", data, "application/octet-stream"))
+             for k, data in enumerate(buffers)]  # fmt: skip
+    grid = {"rows": "1", "cols": "2", "overlap_x": "0.25"}
+    r = server.client.post(
+        "/api/runs/offline", files=files, data={**grid, "pixel_size": "1e307"}, headers=AUTH
+    )
+    assert r.status_code == 422, r.text
+    assert server.client.get("/api/runs").json() == []
+    # a name longer than a file system takes is kept short, not a server error
+    long = [("files", ("a" * 300 + f"{k}.npy", data, "application/octet-stream"))
+            for k, data in enumerate(buffers)]  # fmt: skip
+    r = server.client.post(
+        "/api/runs/offline", files=long, data={**grid, "pixel_size": "1e-8"}, headers=AUTH
+    )
+    assert r.status_code == 201, r.text
+
+
+def test_a_damaged_row_is_listed_with_its_damage_not_a_server_error(server: Server) -> None:
+    run = server.create()
+    with server.services.sessions() as session:  # as an earlier version could store it
+        session.execute(update(Run).where(Run.id == run["id"]).values(roi_width=float("inf")))
+        session.commit()
+    server.create()
+    listed = server.client.get("/api/runs")
+    assert listed.status_code == 200, listed.text
+    damaged = next(r for r in listed.json() if r["id"] == run["id"])
+    assert damaged["roi"]["width"] is None
+    assert damaged["damage"] == ["roi_width is inf, not a finite number"]
+    assert server.client.get(f"/api/runs/{run['id']}").status_code == 200
+
+
+def test_event_streams_start_now_and_replay_a_bounded_history(server: Server) -> None:
+    for k in range(5):
+        server.services.events.emit("note", f"old {k}", data=None)
+    latest = server.client.get("/api/events/latest").json()["id"]
+    history = server.client.get("/api/events?follow=false").text
+    assert history.count("event: note") == 5
+    later = server.client.get(f"/api/events?follow=false&after={latest - 2}").text
+    assert later.count("event: note") == 2
+    assert server.services.events.newest(0, limit=3) == (
+        server.services.events.since(latest - 3),
+        latest - 3,
+    )
+
+
+def test_hosts_not_ours_are_refused_and_pages_carry_security_headers(server: Server) -> None:
+    r = server.client.get("/api/runs", headers={"Host": "attacker.example"})
+    assert r.status_code == 400 and "Host" in r.json()["detail"]
+    page = server.client.get("/")
+    assert page.status_code == 200
+    assert "frame-ancestors 'none'" in page.headers["content-security-policy"]
+    assert page.headers["x-frame-options"] == "DENY"
+    assert page.headers["x-content-type-options"] == "nosniff"
+
+
+def test_status_is_never_safe_while_a_run_has_the_instrument(server: Server) -> None:
+    run = server.create(plan(size=2.5e-6, pixels=(48, 48)))
+    server.post(f"/api/runs/{run['id']}/start")
+    seen = []
+    while True:
+        status = server.client.get("/api/instrument").json()
+        state = server.client.get(f"/api/runs/{run['id']}").json()["state"]
+        if state != "running":
+            break
+        if status["active_run"] is not None:
+            seen.append(status)
+    assert seen and all(s["safe_state"] is False for s in seen)
+    assert server.client.get("/api/instrument").json()["safe_state"] is True
+
+
+def test_a_crash_is_a_fault_that_blocks_every_landing_until_a_reset_with_a_note(
+    server: Server,
+) -> None:
+    run = server.create(plan(pixels=(16, 16)))
+    rid = run["id"]
+    server.post(f"/api/runs/{rid}/start")
+    server.wait(rid, lambda r: r["progress"]["stored"] >= 2)
+    assert server.post("/api/instrument/sim/fault", {"fault": "crash"}).status_code == 204
+    ended = server.wait_state(rid, "fault", "failed", "completed")
+    assert ended["state"] == "fault", ended
+    assert "crashed" in ended["message"] and "resets the run with a note" in ended["message"]
+    status = server.client.get("/api/instrument").json()
+    assert status["state"] == "fault" and "crashed" in status["message"]
+    assert status["safe_state"] is True  # retracted: safe, but not to be landed
+    other = server.create()
+    for url in (f"/api/runs/{rid}/resume", f"/api/runs/{other['id']}/start"):
+        r = server.post(url)
+        assert r.status_code == 409 and "reset" in r.json()["detail"], r.text
+    assert server.post(f"/api/runs/{rid}/reset", {"note": ""}).status_code == 422
+    # the tip was looked at, not changed: the crashed tip still cannot land
+    r = server.post(f"/api/runs/{rid}/reset", {"note": "looked at it"})
+    assert r.status_code == 200 and r.json()["state"] == "failed"
+    server.post(f"/api/runs/{rid}/resume")
+    again = server.wait_state(rid, "fault", "failed", "completed")
+    assert again["state"] == "fault" and "PLL lost lock" in again["message"], again
+    # a new tip: the run resumes from its first patch not stored and completes
+    new_tip = {"note": "tip changed after the crash", "tip_changed": True}
+    assert server.post(f"/api/runs/{rid}/reset", new_tip).status_code == 200
+    server.post(f"/api/runs/{rid}/resume")
+    done = server.wait_state(rid, "completed", "failed", "fault")
+    assert done["state"] == "completed", done
