@@ -2,7 +2,7 @@ from __future__ import annotations
 
 import pytest
 
-from hardware.mcs_axis import FineCalibration, MCSAxis
+from hardware.mcs_axis import STAGE_TRAVEL, FineCalibration, MCSAxis, TravelError
 from hardware.protocols import PositionerAxis
 from hardware.sim.mcs_server import MCSServer
 from hardware.smaract_mcs import AxisStatus, MCSController
@@ -33,3 +33,21 @@ def test_axis_on_the_simulator() -> None:
         # 100 backward steps of 92 nm, each scattering by ±10 %
         assert pos - after == pytest.approx(100 * 92e-9, rel=0.03)
         assert MCSAxis(ctl, 1, name="blind", has_sensor=False).position() is None
+
+
+def test_a_move_past_the_stage_travel_is_refused_before_anything_is_sent() -> None:
+    link = Transcript([(b":MPA0,5999000,0\n", b":E0,0\n")])  # the only command that goes (nm)
+    stage = MCSAxis(MCSController(link), 0, name="stage x", travel=STAGE_TRAVEL)
+    stage.move_to(5.999e-3)
+    for target in (6.0005e-3, -6.0005e-3, float("nan"), float("inf")):
+        with pytest.raises(TravelError, match="past its travel"):
+            stage.move_to(target)
+
+
+def test_the_simulated_stage_stays_within_its_travel() -> None:
+    with MCSServer() as srv, MCSController.open(srv.url) as ctl:
+        stage = MCSAxis(ctl, 0, name="stage x", travel=STAGE_TRAVEL)
+        stage.move_to(5.9e-3)
+        with pytest.raises(TravelError):
+            stage.move_to(6.0005e-3)
+        assert stage.position() == pytest.approx(5.9e-3, abs=50e-9)
