@@ -12,7 +12,7 @@ from fastapi.responses import JSONResponse
 from backend.api.deps import OperatorDep, ServicesDep, SessionDep
 from backend.api.responses import NPY, PNG_RESPONSES, height_map, npy_response, png_response
 from backend.api.runs import get_run
-from backend.api.schemas import JobId, MergeIn, MergeOut, RunId
+from backend.api.schemas import JobId, MergeIn, MergeOut, MergeParams, RunId
 from backend.db.models import MergeJob, Run
 from backend.db.patch_store import read_merge
 from backend.formats import export_heights
@@ -48,12 +48,41 @@ def _job(session: SessionDep, job_id: int) -> MergeJob:
     return job
 
 
+#: The finest a merge's pixel or cell may be, as a share of the scans' own pixel, and the
+#: most pixels its mosaic may have (a quarter of the scans' pixel adds nothing but memory).
+FINEST_SHARE = 0.25
+MOST_PIXELS = 1 << 30
+
+
+def _check_scale(run: Run, p: MergeParams) -> None:
+    """Refuse a pixel or cell far finer than the scans' own, or a mosaic too large to hold,
+    before a merge process is started for it (422 naming the parameter)."""
+    scan = min(run.patch_width / run.pixels_x, run.patch_height / run.pixels_y)
+    for name, value in (("pixel_size", min(p.pixel_size) if p.pixel_size else None),
+                        ("cell", p.cell), ("coarse_cell", p.coarse_cell)):  # fmt: skip
+        if value is not None and value < FINEST_SHARE * scan:
+            raise HTTPException(
+                422,
+                f"parameters.{name}: {value * 1e9:.3g} nm is finer than a quarter of the scans' "
+                f"own {scan * 1e9:.3g} nm pixel: it adds no detail, only memory",
+            )
+    if p.pixel_size is not None:
+        px, py = p.pixel_size
+        count = (run.roi_width / px + 1) * (run.roi_height / py + 1)
+        if not count <= MOST_PIXELS:
+            raise HTTPException(
+                422,
+                f"parameters.pixel_size: the mosaic would have {count:.3g} pixels, more than "
+                f"{MOST_PIXELS}: use a larger pixel",
+            )
+
+
 @router.post("/api/runs/{run_id}/merges", status_code=202, response_model=MergeOut)
 def start_merge(
     run_id: RunId, body: MergeIn, services: ServicesDep, session: SessionDep, _: OperatorDep
 ) -> MergeOut:
     """Queue a merge of the run's stored patches (all, or the listed indices)."""
-    get_run(session, run_id)
+    _check_scale(get_run(session, run_id), body.parameters)
     parameters: dict[str, Any] = body.parameters.model_dump(exclude_none=True)
     if "pixel_size" in parameters:
         parameters["pixel_size"] = list(parameters["pixel_size"])

@@ -6,9 +6,9 @@ block the next landing. (The latencies under load are ``benchmarks/server_bench.
 from __future__ import annotations
 
 import io
-import struct
-import zlib
+import sys
 from collections.abc import Iterator
+from pathlib import Path
 
 import numpy as np
 from sqlalchemy import update
@@ -16,32 +16,9 @@ from sqlalchemy import update
 from backend.db.models import Run
 from tests.backend.api.conftest import AUTH, Server, plan
 
-
-def tiff_declaring(width: int, height: int) -> bytes:
-    """A TIFF of a few hundred bytes that declares ``width`` x ``height`` 8-bit pixels in
-    one deflated strip (what decompression bombs look like: the header promises gigabytes)."""
-    strip = zlib.compress(bytes(4096))
-    tags = [  # (tag, type, count, value): SHORT 3, LONG 4
-        (256, 4, 1, width),
-        (257, 4, 1, height),
-        (258, 3, 1, 8),
-        (259, 3, 1, 8),  # deflate
-        (262, 3, 1, 1),
-        (273, 4, 1, 0),  # strip offset, filled in below
-        (277, 3, 1, 1),
-        (278, 4, 1, height),
-        (279, 4, 1, len(strip)),
-    ]
-    ifd_at = 8
-    data_at = ifd_at + 2 + 12 * len(tags) + 4
-    out = bytearray(b"II*\x00" + struct.pack("<I", ifd_at))
-    out += struct.pack("<H", len(tags))
-    for tag, kind, count, value in tags:
-        value = data_at if tag == 273 else value
-        packed = struct.pack("<H", value) + b"\0\0" if kind == 3 else struct.pack("<I", value)
-        out += struct.pack("<HHI", tag, kind, count) + packed
-    out += struct.pack("<I", 0) + strip
-    return bytes(out)
+# the benchmarks are scripts beside each other, not a package
+sys.path.insert(0, str(Path(__file__).resolve().parents[3] / "benchmarks"))
+from bombs import tiff_declaring
 
 
 def test_an_sem_tiff_declaring_gigapixels_is_refused_from_its_header(server: Server) -> None:
@@ -225,3 +202,14 @@ def test_a_crash_is_a_fault_that_blocks_every_landing_until_a_reset_with_a_note(
     server.post(f"/api/runs/{rid}/resume")
     done = server.wait_state(rid, "completed", "failed", "fault")
     assert done["state"] == "completed", done
+
+
+def test_a_merge_finer_than_the_scans_can_use_is_refused_before_it_starts(server: Server) -> None:
+    run = server.create()  # 50 nm pixels
+    for parameters, name in (
+        ({"pixel_size": [0.2e-9, 0.2e-9]}, "pixel_size"),
+        ({"cell": 1e-9}, "cell"),
+    ):
+        r = server.post(f"/api/runs/{run['id']}/merges", {"parameters": parameters})
+        assert r.status_code == 422 and f"parameters.{name}" in r.json()["detail"], r.text
+    assert server.client.get(f"/api/runs/{run['id']}/merges").json() == []
