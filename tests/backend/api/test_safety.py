@@ -11,6 +11,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
+import pytest
 from sqlalchemy import update
 
 from backend.db.models import Run
@@ -213,3 +214,18 @@ def test_a_merge_finer_than_the_scans_can_use_is_refused_before_it_starts(server
         r = server.post(f"/api/runs/{run['id']}/merges", {"parameters": parameters})
         assert r.status_code == 422 and f"parameters.{name}" in r.json()["detail"], r.text
     assert server.client.get(f"/api/runs/{run['id']}/merges").json() == []
+
+
+@pytest.mark.slow
+def test_an_offline_upload_takes_more_than_a_thousand_files(server: Server) -> None:
+    # the multipart parser's default stops at 1,000 files; the route takes its own 2,500
+    b = io.BytesIO()
+    np.save(b, np.random.default_rng(0).normal(size=(8, 8)) * 1e-9)
+    files = [("files", (f"s{k:04d}.npy", b.getvalue(), "application/octet-stream"))
+             for k in range(1001)]  # fmt: skip
+    grid = {"rows": "7", "cols": "143", "overlap_x": "0.4", "overlap_y": "0.4"}
+    r = server.client.post(
+        "/api/runs/offline", files=files, data={**grid, "pixel_size": "1e-8"}, headers=AUTH
+    )
+    assert r.status_code == 201, r.text
+    assert r.json()["progress"]["total"] == 1001
