@@ -67,6 +67,7 @@ bench: install
 	$(BIN)/python benchmarks/sim_bench.py
 	$(BIN)/python benchmarks/nanonis_bench.py
 	$(BIN)/python benchmarks/server_bench.py
+	$(BIN)/python benchmarks/safety_bench.py
 	$(BIN)/python benchmarks/viewer_bench.py
 	$(BIN)/python benchmarks/live_bench.py
 

@@ -4,8 +4,8 @@ costs it.
 
 Starts ``mosaic-afm serve`` on the simulated instrument (50 simulated seconds a wall second,
 so a 64-patch run lasts the whole measurement) and, for each load, starts a run, lets the
-load run, and times pause/resume pairs and status reads against it, then the abort (answered
-once the tip is retracted). Loads: none; SEM uploads of TIFFs declaring 100,000 x 100,000
+load run, and times pause/resume pairs and status reads against it, then the abort (its
+answer, at most 0.8 s, and when the run is aborted with the tip retracted). Loads: none; SEM uploads of TIFFs declaring 100,000 x 100,000
 pixels (4 at a time); 50 MB JSON bodies, with a length and chunked (4 at a time); 200 event
 streams that ask for the whole history and never read; merges back to back; PNG renders of
 patches. Then the bombs alone: seconds each and the server's memory over idle. Target
@@ -138,7 +138,8 @@ def under_load(server: ServerProcess, name: str, seconds: float) -> dict[str, An
         t = time.perf_counter()
         client.post(f"/api/runs/{rid}/abort", json={"reason": "benchmark"}, headers=AUTH)
         abort = time.perf_counter() - t
-        state = client.get(f"/api/runs/{rid}").json()["state"]
+        state = wait_for(client, f"/api/runs/{rid}", lambda b: b["state"] != "running")["state"]
+        safe_s = time.perf_counter() - t
         safe = client.get("/api/instrument").json()["safe_state"]
         log_lines = server.log.read_text().count("\n") - lines_before
         stop.set()
@@ -154,6 +155,7 @@ def under_load(server: ServerProcess, name: str, seconds: float) -> dict[str, An
         "max_s": float(every.max()),
         "per_action_p99_s": {k: float(np.percentile(v, 99)) for k, v in times.items()},
         "abort_s": abort,
+        "aborted_safe_s": safe_s,
         "aborted": state == "aborted" and safe is True,
         "server_log_lines": log_lines,
     }
@@ -208,7 +210,8 @@ def main(argv: list[str] | None = None) -> int:
                 r = rows[-1]
                 print(
                     f"{name:<26} {r['answers']:>4} answers  p99 {r['p99_s']:6.3f} s  max "
-                    f"{r['max_s']:6.3f} s  abort {r['abort_s']:6.3f} s  "
+                    f"{r['max_s']:6.3f} s  abort {r['abort_s']:6.3f} s (safe at "
+                    f"{r['aborted_safe_s']:.3f} s)  "
                     f"{'aborted, safe' if r['aborted'] else 'NOT ABORTED SAFE'}  "
                     f"log +{r['server_log_lines']} lines",
                     flush=True,

@@ -39,6 +39,9 @@ from merge.io.preview import afm_colors, fit_size
 
 router = APIRouter(prefix="/api/runs", tags=["runs"])
 
+#: Seconds an abort waits for the safe state before it answers (the abort goes on).
+ABORT_ANSWER = 0.8
+
 
 def _plan(body: PlanIn, services: Services, session: Session) -> Plan:
     if body.sem_roi is not None:
@@ -270,10 +273,13 @@ def abort_run(
     operator: OperatorDep,
     body: Annotated[AbortIn | None, Body()] = None,
 ) -> RunOut:
-    """Abort a run: an active one stops, retracts the tip and stops the axes (safe state)."""
+    """Abort a run: an active one stops, retracts the tip and stops the axes (safe state).
+    The answer comes once the run is aborted, or after :data:`ABORT_ANSWER` seconds at most
+    with ``pending_request: "abort"`` while the tip is still being retracted (follow the run
+    or its events to see it end)."""
     get_run(session, run_id)
     reason = (body.reason if body else "") or f"aborted by {operator}"
-    services.runner.abort(run_id, actor=operator, reason=reason)
+    services.runner.abort(run_id, actor=operator, reason=reason, wait=ABORT_ANSWER)
     return _current(run_id, services, session)
 
 
