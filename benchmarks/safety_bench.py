@@ -5,12 +5,13 @@ costs it.
 Starts ``mosaic-afm serve`` on the simulated instrument (50 simulated seconds a wall second,
 so a 64-patch run lasts the whole measurement) and, for each load, starts a run, lets the
 load run, and times pause/resume pairs and status reads against it, then the abort (its
-answer, at most 0.8 s, and when the run is aborted with the tip retracted). Loads: none; SEM uploads of TIFFs declaring 100,000 x 100,000
-pixels (4 at a time); 50 MB JSON bodies, with a length and chunked (4 at a time); 200 event
-streams that ask for the whole history and never read; merges back to back; PNG renders of
-patches. Then the bombs alone: seconds each and the server's memory over idle. Target
-(issue 62): p99 under 1 s for every safety action under every load; a bomb refused in under
-1 s with under 100 MB over idle. Prints a table; writes ``benchmarks/results/safety_bench.json``.
+answer, at most 0.8 s, and when the run is aborted with the tip retracted). Loads: none; SEM
+uploads of TIFFs declaring 100,000 x 100,000 pixels (4 at a time); 50 MB JSON bodies, with a
+length and chunked (4 at a time); 200 event streams that ask for the whole history and never
+read; merges back to back; PNG renders of patches. Then the bombs alone: seconds each and
+the server's memory over idle. Target (issue 62): p99 under 1 s for every safety action under
+every load; a bomb refused in under 1 s with under 100 MB over idle. Prints a table; writes
+``benchmarks/results/safety_bench.json``.
 """
 
 from __future__ import annotations
