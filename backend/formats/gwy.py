@@ -1,9 +1,12 @@
 """Gwyddion ``.gwy`` files: read any data field (own bounded reader of the serialisation),
 write a mosaic (own writer, a block of rows at a time).
 
-Gwyddion's data fields hold the top row first; the project's arrays hold the bottom row
-first (rows along +y), so both directions flip vertically. Gwyddion's offset is the field's
-corner, ours the centre of pixel (0, 0): half a pixel apart, converted both ways.
+Gwyddion's data fields hold the top row first and its y grows down the rows: ``xoff``,
+``yoff`` are the top-left corner of the field. The project's arrays hold the bottom row first
+and its y grows up (rows along +y), so data flip vertically and y changes sign: the centre of
+our pixel (0, 0), the bottom-left one, lies at ``(xoff + dx/2, -(yoff + yreal) + dy/2)``.
+Tiles placed by their offsets in Gwyddion lie in the project's mosaic as Gwyddion shows them,
+and a mosaic written here opens in Gwyddion where its input files lay.
 """
 
 from __future__ import annotations
@@ -138,9 +141,10 @@ def read_gwy(path: str | Path, *, channel: str | None = None) -> AfmImage:
     if nx < 1 or ny < 1 or values.size != nx * ny or not (xreal > 0 and yreal > 0):
         raise FormatError(f"{p}: data field {names[index]!r} is inconsistent ({nx} x {ny})")
     dx, dy = xreal / nx, yreal / ny
-    # Gwyddion's offset is the field's corner; ours is pixel (0, 0)'s centre
+    # Gwyddion's offset is the top-left corner, y down; ours the bottom-left pixel's centre
+    # (Gwyddion leaves an offset of 0 out of the file: absent is 0, as Gwyddion reads it)
     xoff = float(field.get("xoff", 0.0) or 0.0) + dx / 2
-    yoff = float(field.get("yoff", 0.0) or 0.0) + dy / 2
+    yoff = -(float(field.get("yoff", 0.0) or 0.0) + yreal) + dy / 2
     return AfmImage(
         heights=values.reshape(ny, nx)[::-1].copy(),
         pixel_size=(dx, dy),
@@ -190,9 +194,9 @@ class _Field:
             [
                 _scalar("xreal", "d", nx * pixel_size[0]),
                 _scalar("yreal", "d", ny * pixel_size[1]),
-                # the corner, as Gwyddion has it
+                # the top-left corner, y down, as Gwyddion has it
                 _scalar("xoff", "d", origin[0] - pixel_size[0] / 2),
-                _scalar("yoff", "d", origin[1] - pixel_size[1] / 2),
+                _scalar("yoff", "d", -(origin[1] - pixel_size[1] / 2 + ny * pixel_size[1])),
                 _name("si_unit_xy") + b"o" + _si_unit("m"),
             ]
         )

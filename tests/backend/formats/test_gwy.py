@@ -24,7 +24,8 @@ def _gwyfile_bytes(path: Path, h: np.ndarray, pixel: tuple[float, float]) -> byt
             xreal=nx * pixel[0],
             yreal=ny * pixel[1],
             xoff=1e-6 - pixel[0] / 2,
-            yoff=-2e-6 - pixel[1] / 2,
+            # the top-left corner, y down: our origin (-2 µm) is the bottom-left pixel's centre
+            yoff=-(-2e-6 - pixel[1] / 2 + ny * pixel[1]),
             si_unit_xy=GwySIUnit(unitstr="m"),
             si_unit_z=GwySIUnit(unitstr=unit),
         )

@@ -1,0 +1,117 @@
+"""A folder of overlapping scans as AFM users have them: a real image cut into tiles, each
+written in its format's own convention (where its offsets point, which row comes first), with
+stage errors, Z offsets, tilts and noise; imported and merged, the tiles must lie where they
+were cut and the mosaic must match the image within the noise."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+import merge
+from backend.cli import main
+from backend.cli.formats_cmd import height_readers
+from backend.synthetic import scored
+from hardware.sim.synth import SynthPatch
+from tests.conftest import SHARED_DATA
+
+IMAGE = SHARED_DATA / "mos2.npy"
+PIXEL = (3.97339e-6 / 512, 3.97339e-6 / 256)  # mos2: 7.76 x 15.52 nm, not square
+needs_image = pytest.mark.skipif(not IMAGE.is_file(), reason=f"no real scan at {IMAGE}")
+
+#: A 3 x 3 grid of tiles of 200 x 100 px (1.55 µm square), a third overlapping.
+TILE = (100, 200)  # rows, cols
+STEP = (66, 133)
+
+
+def _tiles(seed: int = 5) -> list[tuple[SynthPatch, np.ndarray]]:
+    """The tiles, each as the truth (where it was cut, how it was spoiled) and the heights an
+    instrument recorded (rows along +y, metres)."""
+    image = np.load(IMAGE)
+    rng = np.random.default_rng(seed)
+    out = []
+    for r in range(3):
+        for c in range(3):
+            i0, j0 = r * STEP[0], c * STEP[1]
+            true = image[i0 : i0 + TILE[0], j0 : j0 + TILE[1]]
+            cut = (j0 * PIXEL[0], i0 * PIXEL[1])  # the pixel (0, 0) of the tile
+            stage_error = rng.uniform(-40e-9, 40e-9, 2)
+            z0, a, b = rng.normal(0, 5e-9), rng.normal(0, 2e-3), rng.normal(0, 2e-3)
+            yy, xx = np.mgrid[0 : TILE[0], 0 : TILE[1]]
+            x, y = xx * PIXEL[0], yy * PIXEL[1]
+            recorded = true + z0 + a * x + b * y + rng.normal(0, 0.2e-9, true.shape)
+            nominal = (cut[0] + stage_error[0], cut[1] + stage_error[1])
+            # the truth maps a recorded point (nominal place, recorded height) to where it is
+            rotation = Rotation.from_rotvec([-b, a, 0.0]).as_matrix()
+            p0 = np.array([nominal[0], nominal[1], recorded[0, 0]])
+            q0 = np.array([cut[0], cut[1], true[0, 0]])
+            truth = SynthPatch(
+                id=f"r{r}c{c}",
+                heights=recorded,
+                origin=nominal,
+                pixel_size=PIXEL,
+                order=3 * r + c,
+                row=r,
+                col=c,
+                rotation=rotation,
+                translation=q0 - rotation @ p0,
+                z_drift=0.0,
+            )
+            out.append((truth, recorded))
+    return out
+
+
+def write_gwy_tile(path: Path, patch: SynthPatch) -> None:
+    """As Gwyddion writes it (with ``gwyfile``): row 0 at the top, ``xoff``/``yoff`` the
+    top-left corner, y growing down the rows."""
+    from gwyfile.objects import GwyContainer, GwyDataField
+
+    ny, nx = patch.heights.shape
+    dx, dy = patch.pixel_size
+    top = patch.origin[1] + (ny - 0.5) * dy  # our top edge, y up
+    field = GwyDataField(
+        patch.heights[::-1].copy(),
+        xreal=nx * dx,
+        yreal=ny * dy,
+        xoff=patch.origin[0] - dx / 2,
+        yoff=-top,
+        si_unit_xy="m",
+        si_unit_z="m",
+    )
+    container = GwyContainer()
+    container["/0/data"] = field
+    container["/0/data/title"] = "Height"
+    container.tofile(str(path))
+
+
+WRITERS: dict[str, Callable[[Path, SynthPatch], None]] = {".gwy": write_gwy_tile}
+
+
+@needs_image
+@pytest.mark.parametrize("suffix", sorted(WRITERS))
+def test_a_folder_of_tiles_lies_where_they_were_cut_and_merges_to_the_image(
+    tmp_path: Path, suffix: str
+) -> None:
+    tiles = _tiles()
+    folder = tmp_path / "scans"
+    folder.mkdir()
+    for truth, _ in tiles:
+        WRITERS[suffix](folder / f"{truth.id}{suffix}", truth)
+    files = sorted(str(p) for p in folder.iterdir())
+    assert main(["import", *files, "--out", str(tmp_path / "set")]) == 0
+    manifest = merge.read_patch_set(tmp_path / "set" / "manifest.json", readers=height_readers())
+    by_id = {t.id: t for t, _ in tiles}
+    for patch, path in zip(manifest.patches, files, strict=True):
+        truth = by_id[Path(path).stem]
+        assert patch.origin == pytest.approx(truth.origin, abs=1e-12)  # where the file says
+    out = tmp_path / "merged"
+    assert main(["merge", str(tmp_path / "set" / "manifest.json"), "--out", str(out)]) == 0
+    result = merge.read_result(out)
+    transforms = result.transforms
+    order = [Path(f).stem for f in files]
+    s = scored([by_id[k] for k in order], [transforms[p.id] for p in manifest.patches])
+    assert s.xy < 2e-9 and s.z < 0.4e-9, (s.xy, s.z)
