@@ -10,8 +10,8 @@ import numpy as np
 import tifffile
 from numpy.typing import NDArray
 
-from backend.formats.image import FormatError
-from backend.formats.tiff import check_declared
+from merge.io.formats.image import FormatError
+from merge.io.formats.tiff import check_declared
 
 FloatArray = NDArray[np.float64]
 

@@ -24,8 +24,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from backend.formats.exports import grid_triangles
 from merge.io.detail import block_means, detail_frame, detail_step
+from merge.io.formats.exports import grid_triangles
 from merge.io.preview import afm_colors
 
 log = logging.getLogger("mosaic_afm.viewer")

@@ -14,13 +14,21 @@ Pure numpy/scipy, laid out as its pipeline (:mod:`merge.pipeline` runs the stage
 The entry points:
 
 * :func:`merge.run` — merge a :class:`PatchSet` with a :class:`MergeConfig`;
-* :func:`merge.read_patch_set` / :func:`merge.write_result` — the file formats of DESIGN.md.
+* :func:`merge.read_patch_set` / :func:`merge.write_result` — the file formats of DESIGN.md;
+* :func:`merge.read_scans` — a folder of scans from any AFM, placed by their offsets.
 """
 
 from merge.config import METHODS, MergeConfig
 from merge.core import MergeCancelled, Patch, PatchSet, PatchSetError, PatchTransform
 from merge.core.progress import Status
-from merge.io import StoredResult, read_patch_set, read_result, write_patch_set, write_result
+from merge.io import (
+    StoredResult,
+    read_patch_set,
+    read_result,
+    read_scans,
+    write_patch_set,
+    write_result,
+)
 from merge.pipeline import run
 from merge.render import Mosaic, render_mosaic
 from merge.report import MergeResult, PatchReport
@@ -40,6 +48,7 @@ __all__ = [
     "StoredResult",
     "read_patch_set",
     "read_result",
+    "read_scans",
     "render_mosaic",
     "run",
     "write_patch_set",

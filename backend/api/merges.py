@@ -15,8 +15,8 @@ from backend.api.runs import get_run
 from backend.api.schemas import JobId, MergeIn, MergeOut, MergeParams, RunId
 from backend.db.models import MergeJob, Run
 from backend.db.patch_store import read_merge
-from backend.formats import export_heights
 from merge import MergeConfig
+from merge.io.formats import export_heights
 
 router = APIRouter(tags=["merges"])
 

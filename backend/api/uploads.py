@@ -1,6 +1,6 @@
 """Offline runs: a folder of overlapping scans from any AFM, uploaded for a merge.
 
-The files are kept as uploaded (in the data dir), read with :mod:`backend.formats`, and
+The files are kept as uploaded (in the data dir), read with :mod:`merge.io.formats`, and
 stored as the patches of a run that had no acquisition: it is ``completed`` from the start,
 listed and merged like any other, and its patches go to the 3D viewer as they are stored.
 """
@@ -23,9 +23,9 @@ from backend.api.runs import add_run, run_out
 from backend.api.schemas import RunOut
 from backend.db.models import PatchRecord, Run
 from backend.db.patch_store import dataset_name, mark_stored, write_patch
-from backend.formats import READABLE, AfmImage, FormatError, read_image, reader_for
-from backend.formats.layout import LayoutError, scan_places
 from backend.services import Services
+from merge.io.formats import READABLE, AfmImage, FormatError, read_image, reader_for
+from merge.io.formats.layout import LayoutError, scan_places
 
 router = APIRouter(prefix="/api/runs", tags=["runs"])
 

@@ -5,10 +5,14 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import sys
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from backend.cli.common import UsageError, float_pair
+
+if TYPE_CHECKING:
+    import merge
 
 FORMATS_HELP = ".gwy, .tif/.tiff, .png, .ply, .stl, .npy (+ .json)"
 
@@ -43,22 +47,19 @@ def add_parsers(sub: Any) -> None:
 
     p = sub.add_parser(
         "import",
-        help="build a patch-set manifest from AFM files",
-        description="Write DIR/manifest.json naming FILES as patches. Positions come from the "
-        "files' scan offsets when they all have one, else from --grid, --overlap and --order.",
+        help="build a patch-set manifest from AFM files or a folder of them",
+        description="Write DIR/manifest.json naming the scans of FILES (files, or folders: "
+        "every readable AFM file in them, in natural name order) as patches. Positions come "
+        "from the files' scan offsets, else from --grid, --overlap and --order.",
     )
-    p.add_argument("files", nargs="+", metavar="FILES")
+    p.add_argument("files", nargs="+", metavar="FILES", help="AFM files, or folders of them")
     p.add_argument("--out", required=True, metavar="DIR")
-    p.add_argument("--grid", help="ROWSxCOLS of the grid the files were scanned in, in order")
-    p.add_argument("--overlap", type=float_pair, help="OX,OY fractions between neighbours")
-    p.add_argument("--order", choices=["snake", "raster"], default="snake")
-    p.add_argument("--channel", help="channel to read (default: topography)")
-    p.add_argument("--pixel-size", type=_pixel, help="dx[,dy] metres, for files without one")
+    add_scan_options(p)
     p.set_defaults(func=import_files)
 
 
 def _read(path: str, channel: str | None, pixel: tuple[float, float] | None) -> Any:
-    from backend.formats import FormatError, read_image
+    from merge.io.formats import FormatError, read_image
 
     try:
         return read_image(path, channel=channel, pixel_size=pixel)
@@ -67,7 +68,7 @@ def _read(path: str, channel: str | None, pixel: tuple[float, float] | None) -> 
 
 
 def convert(args: argparse.Namespace) -> int:
-    from backend.formats import FormatError, export_heights
+    from merge.io.formats import FormatError, export_heights
 
     image = _read(args.input, args.channel, args.pixel_size)
     try:
@@ -87,7 +88,7 @@ def convert(args: argparse.Namespace) -> int:
 
 def export(args: argparse.Namespace) -> int:
     import merge
-    from backend.formats import FormatError, export_heights
+    from merge.io.formats import FormatError, export_heights
 
     try:
         stored = merge.read_result(args.result)
@@ -108,11 +109,24 @@ def export(args: argparse.Namespace) -> int:
     return 0
 
 
-def import_files(args: argparse.Namespace) -> int:
-    from backend.formats.layout import LayoutError, scan_places
+def add_scan_options(p: Any) -> None:
+    """The options that say how to read and place a folder of scans (import and merge)."""
+    p.add_argument("--grid", help="ROWSxCOLS of the grid the files were scanned in, in order")
+    p.add_argument("--overlap", type=float_pair, help="OX,OY fractions between neighbours")
+    p.add_argument("--order", choices=["snake", "raster"], default="snake")
+    p.add_argument("--channel", help="channel to read (default: topography)")
+    p.add_argument("--pixel-size", type=_pixel, help="dx[,dy] metres, for files without one")
+    p.add_argument(
+        "--skip-bad",
+        action="store_true",
+        help="leave out files that cannot be read (each named) instead of stopping",
+    )
 
-    images = [_read(f, args.channel, args.pixel_size) for f in args.files]
-    out = Path(args.out)
+
+def read_scan_args(sources: list[str], args: argparse.Namespace) -> merge.PatchSet:
+    """The patch set of ``sources`` as the scan options say (:func:`merge.read_scans`)."""
+    import merge
+
     grid = None
     if args.grid:
         try:
@@ -120,52 +134,43 @@ def import_files(args: argparse.Namespace) -> int:
         except ValueError:
             raise UsageError(f"--grid must be ROWSxCOLS, e.g. 5x10, got {args.grid!r}") from None
         grid = (rows, cols)
+
+    def skipped(path: Path, why: str) -> None:
+        print(f"skipped {path}: {why}", file=sys.stderr)
+
     try:
-        places = scan_places(images, grid, overlap=args.overlap, order=args.order)
-    except LayoutError as exc:
-        raise UsageError(f"{exc} (--grid ROWSxCOLS, --overlap OX,OY)") from None
+        return merge.read_scans(
+            sources,
+            grid=grid,
+            overlap=args.overlap,
+            order=args.order,
+            channel=args.channel,
+            pixel_size=args.pixel_size,
+            on_skip=skipped if args.skip_bad else None,
+        )
+    except merge.PatchSetError as exc:
+        raise UsageError(str(exc)) from None
+
+
+def import_files(args: argparse.Namespace) -> int:
+    patch_set = read_scan_args(args.files, args)
+    out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     patches = []
-    for k, (path, image, (origin, row, col)) in enumerate(
-        zip(args.files, images, places, strict=True)
-    ):
+    for patch in patch_set:
         entry: dict[str, Any] = {
-            "id": f"p{k:03d}",
-            "file": os.path.relpath(Path(path).resolve(), out.resolve()),
-            "order": k,
-            "origin": [float(origin[0]), float(origin[1])],
-            "pixel_size": [image.pixel_size[0], image.pixel_size[1]],
-            "channel": image.channel,
+            "id": patch.id,
+            "file": os.path.relpath(Path(patch.source or "").resolve(), out.resolve()),
+            "order": patch.order,
+            "origin": [float(patch.origin[0]), float(patch.origin[1])],
+            "pixel_size": [float(patch.pixel_size[0]), float(patch.pixel_size[1])],
         }
-        if row is not None:
-            entry["row"], entry["col"] = row, col
+        if args.channel:
+            entry["channel"] = args.channel
+        if patch.row is not None:
+            entry["row"], entry["col"] = patch.row, patch.col
         patches.append(entry)
     manifest = {"format": "mosaic-afm/patchset@1", "units": "m", "patches": patches}
     (out / "manifest.json").write_text(json.dumps(manifest, indent=1) + "\n", encoding="utf-8")
     print(f"{len(patches)} patches -> {out / 'manifest.json'}")
     return 0
-
-
-def _heights(path: Path) -> Any:
-    from backend.formats import read_image
-
-    return read_image(path).heights
-
-
-class _HeightReaders(dict[str, Any]):
-    """Suffix -> height reader; suffixes it does not list but the formats read (the numbered
-    NanoScope captures ``.000`` ...) resolve on demand. ``.npy`` stays the merge's own."""
-
-    def __missing__(self, suffix: str) -> Any:
-        from backend.formats import reader_for
-
-        if suffix == ".npy" or reader_for(f"x{suffix}") is None:
-            raise KeyError(suffix)
-        return _heights
-
-
-def height_readers() -> dict[str, Any]:
-    """The merge's extra height-file readers: every format :mod:`backend.formats` reads."""
-    from backend.formats import READERS
-
-    return _HeightReaders({suffix: _heights for suffix in READERS if suffix != ".npy"})

@@ -5,21 +5,37 @@ from __future__ import annotations
 import argparse
 import sys
 import time
-from typing import Any
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from backend.cli.common import ProgressBar, UsageError, float_pair
-from backend.cli.formats_cmd import height_readers
+from backend.cli.formats_cmd import add_scan_options, read_scan_args
+
+if TYPE_CHECKING:
+    import merge
+
+#: The exit code of a merge written but not to be trusted (its verdict says why).
+UNTRUSTED = 3
 
 
 def add_parser(sub: Any) -> None:
     p = sub.add_parser(
         "merge",
-        help="merge a patch set (manifest.json) into one mosaic",
-        description="Fuse all patches of a patch set simultaneously (GPA-ICP) into one topography.",
+        help="merge a patch set (manifest.json) or a folder of AFM files into one mosaic",
+        description="Fuse all patches of a patch set simultaneously (GPA-ICP) into one "
+        "topography. SOURCE is a manifest.json (or its folder), or AFM files and folders of "
+        "them (read and placed as `import` does, in one step). The last line is the verdict; "
+        "the exit code is 3 when the mosaic is written but not to be trusted (no overlaps, "
+        "patches that overlap nothing, most places unconfirmed).",
     )
-    p.add_argument("manifest", help="the patch set's manifest.json (or its folder)")
+    p.add_argument(
+        "sources",
+        nargs="+",
+        metavar="SOURCE",
+        help="manifest.json or its folder; or AFM files, or folders of them",
+    )
     p.add_argument("--out", required=True, help="folder for mosaic.npy, mosaic.json, preview.png")
     p.add_argument(
         "--method",
@@ -46,6 +62,7 @@ def add_parser(sub: Any) -> None:
         help="measure the scanner's row and column bend shared by every patch (open-loop piezo "
         "hysteresis and creep) from the overlaps and take it out, then merge again",
     )
+    add_scan_options(p)
     p.add_argument("--no-preview", action="store_true", help="do not write preview.png")
     p.add_argument("--quiet", action="store_true", help="no progress display")
     p.set_defaults(func=run)
@@ -67,7 +84,7 @@ def run(args: argparse.Namespace) -> int:
             pixel_size=args.pixel,
             self_calibrate=args.self_calibrate,
         )
-        patch_set = merge.read_patch_set(args.manifest, readers=height_readers())
+        patch_set = _patch_set(args)
     except (merge.PatchSetError, ValueError) as exc:
         raise UsageError(str(exc)) from None
     bar = None if args.quiet else ProgressBar()
@@ -101,4 +118,19 @@ def run(args: argparse.Namespace) -> int:
         f"{result.iterations} iterations, {'converged' if result.converged else 'not converged'}, "
         f"median patch residual {residual}, mosaic {nx} x {ny} px -> {args.out}"
     )
-    return 0
+    from merge.report.verdict import verdict
+
+    said = verdict(result)
+    print(said.line)
+    return 0 if said.trusted else UNTRUSTED
+
+
+def _patch_set(args: argparse.Namespace) -> merge.PatchSet:
+    """The patch set of a manifest (or its folder), else of scan files and folders."""
+    import merge
+
+    sources = [Path(s) for s in args.sources]
+    first = sources[0]
+    if len(sources) == 1 and (first.suffix == ".json" or (first / "manifest.json").is_file()):
+        return merge.read_patch_set(first)
+    return read_scan_args(args.sources, args)

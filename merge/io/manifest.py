@@ -31,6 +31,17 @@ def _read_npy(path: Path) -> FloatArray:
 READERS: dict[str, HeightReader] = {".npy": _read_npy}
 
 
+def _vendor(path: Path, channel: Any) -> HeightReader | None:
+    """A reader of an AFM file of any vendor format (:mod:`merge.io.formats`), of its
+    ``channel`` (topography by default)."""
+    from merge.io.formats import read_image, reader_for
+
+    if reader_for(path) is None:
+        return None
+    wanted = channel if isinstance(channel, str) and channel else None
+    return lambda p: read_image(p, channel=wanted).heights
+
+
 def read_patch_set(
     manifest: str | Path, *, readers: Mapping[str, HeightReader] | None = None
 ) -> PatchSet:
@@ -41,8 +52,9 @@ def read_patch_set(
     manifest : path
         The manifest file (or the folder holding ``manifest.json``).
     readers : mapping, optional
-        Extra height-file readers by lower-case suffix (``".gwy"`` ...), tried before the
-        built-in ``.npy`` reader.
+        Extra height-file readers by lower-case suffix, tried before the built-in ones:
+        ``.npy`` and every AFM format of :mod:`merge.io.formats` (an entry's ``channel``
+        names the channel to read; topography by default).
 
     Raises
     ------
@@ -97,10 +109,11 @@ def _read_entry(entry: Any, k: int, folder: Path, readers: Mapping[str, HeightRe
     try:  # indexing, not .get: a mapping given may resolve suffixes it does not list
         reader = readers[fpath.suffix.lower()]
     except KeyError:
-        reader = READERS.get(fpath.suffix.lower())
+        reader = READERS.get(fpath.suffix.lower()) or _vendor(fpath, entry.get("channel"))
     if reader is None:
-        known = ", ".join(sorted({*READERS, *readers}))
-        raise PatchSetError(f"{name}: no reader for {fpath.suffix!r} files (known: {known})")
+        from merge.io.formats import READABLE
+
+        raise PatchSetError(f"{name}: no reader for {fpath.suffix!r} files (known: {READABLE})")
     try:
         heights = reader(fpath)
     except PatchSetError:

@@ -15,6 +15,7 @@ from merge.report.evaluate import Grid, Score, score_mosaic
 from merge.report.quality import PatchFit, assess
 from merge.report.summary import MergeResult, PatchReport, holds_xy, patch_reports
 from merge.report.ties import untied
+from merge.report.verdict import Verdict, verdict
 
 __all__ = [
     "Grid",
@@ -22,10 +23,12 @@ __all__ = [
     "PatchFit",
     "PatchReport",
     "Score",
+    "Verdict",
     "assess",
     "holds_xy",
     "patch_reports",
     "score_mosaic",
     "unconfirmed",
     "untied",
+    "verdict",
 ]

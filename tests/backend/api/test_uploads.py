@@ -9,10 +9,10 @@ import httpx
 import numpy as np
 import pytest
 
-from backend.formats.gwy import write_gwy
 from hardware.sim.drift import DriftModel
 from hardware.sim.surfaces import FoldedSurface
 from hardware.sim.synth import synthesize
+from merge.io.formats.gwy import write_gwy
 from tests.backend.api.conftest import AUTH, Server
 
 
@@ -90,7 +90,7 @@ def test_unreadable_uploads_are_refused(server: Server, tmp_path: Path) -> None:
 
 
 def test_numbered_nanoscope_captures_place_by_offset(server: Server, tmp_path: Path) -> None:
-    from tests.backend.formats.test_nanoscope import write_nanoscope
+    from tests.merge.io.formats.test_nanoscope import write_nanoscope
 
     rng = np.random.default_rng(2)
     raw = rng.integers(-3000, 3000, (24, 32))

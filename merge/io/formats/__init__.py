@@ -16,14 +16,14 @@ from typing import Any
 
 import numpy as np
 
-from backend.formats.exports import EXPORTS, export_heights
-from backend.formats.gwy import read_gwy
-from backend.formats.ibw import read_ibw
-from backend.formats.image import AfmImage, FormatError
-from backend.formats.nanoscope import read_nanoscope
-from backend.formats.nid import read_nid
-from backend.formats.sxm import read_sxm
-from backend.formats.tiff import read_tiff
+from merge.io.formats.exports import EXPORTS, export_heights
+from merge.io.formats.gwy import read_gwy
+from merge.io.formats.ibw import read_ibw
+from merge.io.formats.image import AfmImage, FormatError
+from merge.io.formats.nanoscope import read_nanoscope
+from merge.io.formats.nid import read_nid
+from merge.io.formats.sxm import read_sxm
+from merge.io.formats.tiff import read_tiff
 
 #: Most pixels one scan may have (4096 x 4096): larger ones are refused before they are read.
 MAX_PIXELS = 4096 * 4096

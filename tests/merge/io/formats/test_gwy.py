@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 from gwyfile.objects import GwyContainer, GwyDataField, GwySIUnit
 
-from backend.formats import gwy
-from backend.formats.image import FormatError
+from merge.io.formats import gwy
+from merge.io.formats.image import FormatError
 
 
 def _gwyfile_bytes(path: Path, h: np.ndarray, pixel: tuple[float, float]) -> bytes:

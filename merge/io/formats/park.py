@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from backend.formats.image import AfmImage, FormatError, choose_channel
+from merge.io.formats.image import AfmImage, FormatError, choose_channel
 
 MAGIC = 0x0E031301
 TAG_MAGIC, TAG_VERSION, TAG_DATA, TAG_HEADER = 50432, 50433, 50434, 50435

@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from backend.formats.image import AfmImage, FormatError, choose_channel
+from merge.io.formats.image import AfmImage, FormatError, choose_channel
 
 #: Bytes per value of Igor's numeric wave types (TN003: NT_FP32 2, NT_FP64 4, NT_I8 8,
 #: NT_I16 0x10, NT_I32 0x20, unsigned with 0x40, complex with 0x01).

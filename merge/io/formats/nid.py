@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from backend.formats.image import AfmImage, FormatError, choose_channel
+from merge.io.formats.image import AfmImage, FormatError, choose_channel
 
 _DTYPES = {(16, "Signed"): "<i2", (32, "Signed"): "<i4", (16, "Unsigned"): "<u2",
            (32, "Unsigned"): "<u4", (64, "Signed"): "<i8"}  # fmt: skip

@@ -10,14 +10,14 @@ import numpy as np
 import pytest
 
 from backend.cli import main
-from backend.formats import FormatError, export_heights, read_image
 from backend.synthetic import registration_error
 from hardware.sim.drift import DriftModel
 from hardware.sim.surfaces import ImageSurface
 from hardware.sim.synth import synthesize
 from merge import read_result
-from tests.backend.formats.oracle import gwyddion_convert, needs_gwyddion
+from merge.io.formats import FormatError, export_heights, read_image
 from tests.conftest import SHARED_DATA
+from tests.merge.io.formats.oracle import gwyddion_convert, needs_gwyddion
 
 DATA = SHARED_DATA
 pytestmark = pytest.mark.skipif(
@@ -108,7 +108,7 @@ def test_exports_open_in_their_tools(tmp_path: Path) -> None:
 def test_round_trip_gwy_patches_import_merge_export(tmp_path: Path) -> None:
     """mos2 cut into drifting patches written as .gwy with their scan offsets, imported,
     merged, exported as .gwy and read back."""
-    from backend.formats.gwy import write_gwy
+    from merge.io.formats.gwy import write_gwy
 
     pitch = (3.97339e-6 / 512, 3.97339e-6 / 256)
     surface = ImageSurface(np.load(DATA / "mos2.npy"), pitch)
@@ -160,4 +160,9 @@ def test_convert_and_cli_errors(tmp_path: Path, capsys: pytest.CaptureFixture[st
     assert main(["convert", str(tmp_path / "missing.nid"), str(tmp_path / "x.gwy")]) == 2
     assert "no such file" in capsys.readouterr().err
     assert main(["import", str(tmp_path / "grid.npy"), "--out", str(tmp_path / "s")]) == 2
-    assert "scan offset" in capsys.readouterr().err
+    assert "needs two at least" in capsys.readouterr().err
+    (tmp_path / "grid2.npy").write_bytes((tmp_path / "grid.npy").read_bytes())
+    pair = [str(tmp_path / "grid.npy"), str(tmp_path / "grid2.npy"), "--pixel-size", "1e-8"]
+    assert main(["import", *pair, "--out", str(tmp_path / "s")]) == 2
+    said = capsys.readouterr().err
+    assert "grid.npy, grid2.npy carry no scan offset" in said and "--grid" in said

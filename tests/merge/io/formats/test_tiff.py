@@ -7,8 +7,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from backend.formats import read_image, tiff
-from backend.formats.exports import export_heights
+from merge.io.formats import read_image, tiff
+from merge.io.formats.exports import export_heights
 
 
 def test_a_tiff_past_four_gigabytes_is_a_bigtiff(

@@ -7,8 +7,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from backend.formats import FormatError, read_image
-from tests.backend.formats.oracle import gwyddion_convert, needs_gwyddion
+from merge.io.formats import FormatError, read_image
+from tests.merge.io.formats.oracle import gwyddion_convert, needs_gwyddion
 
 
 def write_sxm(

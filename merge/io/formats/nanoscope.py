@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from backend.formats.image import AfmImage, FormatError, choose_channel
+from merge.io.formats.image import AfmImage, FormatError, choose_channel
 
 MAGIC = b"\\*File list"
 END = b"\\*File list end"

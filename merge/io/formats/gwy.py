@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from backend.formats.image import (
+from merge.io.formats.image import (
     AfmImage,
     FloatArray,
     FormatError,

@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from backend.formats import FormatError, read_image
-from tests.backend.formats.oracle import gwyddion_convert, needs_gwyddion
+from merge.io.formats import FormatError, read_image
+from tests.merge.io.formats.oracle import gwyddion_convert, needs_gwyddion
 
 BIN_HEADER, WAVE_HEADER = 64, 320  # bytes, version field included in the first
 
@@ -129,7 +129,7 @@ def test_import_lays_out_by_wave_offsets_and_merges(
     capsys.readouterr()
     write_ibw(files[1], surface[None, :, 30:70], ["HeightRetrace"], pixel=pixel, first=(0, 0))
     assert main(["import", *map(str, files), "--out", str(tmp_path / "again")]) == 2
-    assert "share a scan offset" in capsys.readouterr().err
+    assert "scan0.ibw, scan1.ibw share one scan offset" in capsys.readouterr().err
 
 
 def test_a_single_unlabelled_length_wave_is_the_height(tmp_path: Path) -> None:

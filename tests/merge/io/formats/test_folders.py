@@ -5,6 +5,7 @@ were cut and the mosaic must match the image within the noise."""
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 from pathlib import Path
 
@@ -14,7 +15,6 @@ from scipy.spatial.transform import Rotation
 
 import merge
 from backend.cli import main
-from backend.cli.formats_cmd import height_readers
 from backend.synthetic import scored
 from hardware.sim.synth import SynthPatch
 from tests.conftest import SHARED_DATA
@@ -103,7 +103,7 @@ def test_a_folder_of_tiles_lies_where_they_were_cut_and_merges_to_the_image(
         WRITERS[suffix](folder / f"{truth.id}{suffix}", truth)
     files = sorted(str(p) for p in folder.iterdir())
     assert main(["import", *files, "--out", str(tmp_path / "set")]) == 0
-    manifest = merge.read_patch_set(tmp_path / "set" / "manifest.json", readers=height_readers())
+    manifest = merge.read_patch_set(tmp_path / "set" / "manifest.json")
     by_id = {t.id: t for t, _ in tiles}
     for patch, path in zip(manifest.patches, files, strict=True):
         truth = by_id[Path(path).stem]
@@ -115,3 +115,52 @@ def test_a_folder_of_tiles_lies_where_they_were_cut_and_merges_to_the_image(
     order = [Path(f).stem for f in files]
     s = scored([by_id[k] for k in order], [transforms[p.id] for p in manifest.patches])
     assert s.xy < 2e-9 and s.z < 0.4e-9, (s.xy, s.z)
+
+
+def _folder(tmp_path: Path) -> Path:
+    folder = tmp_path / "scans"
+    folder.mkdir()
+    for truth, _ in _tiles():
+        write_gwy_tile(folder / f"{truth.id}.gwy", truth)
+    return folder
+
+
+@needs_image
+def test_a_folder_merges_in_one_step_with_a_plain_verdict(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    folder = _folder(tmp_path)
+    assert main(["merge", str(folder), "--out", str(tmp_path / "m"), "--quiet"]) == 0
+    last = capsys.readouterr().out.strip().splitlines()[-1]
+    assert last.startswith("CONFIRMED: every patch's place measured") and "9 patches" in last
+    # the Python API reads what the CLI reads
+    patch_set = merge.read_scans(folder)
+    assert [p.id for p in patch_set] == [f"r{r}c{c}" for r in range(3) for c in range(3)]
+
+
+@needs_image
+def test_tiles_that_overlap_nothing_are_written_but_not_trusted(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    folder = tmp_path / "apart"
+    folder.mkdir()
+    for truth, _ in _tiles()[:3]:  # one row of tiles, then spread 10 µm apart
+        far = dataclasses.replace(truth, origin=(truth.origin[0] * 10, truth.origin[1]))
+        write_gwy_tile(folder / f"{truth.id}.gwy", far)
+    assert main(["merge", str(folder), "--out", str(tmp_path / "m"), "--quiet"]) == 3
+    last = capsys.readouterr().out.strip().splitlines()[-1]
+    assert last.startswith("NOT TRUSTED") and "overlap" in last
+    assert (tmp_path / "m" / "mosaic.npy").is_file()  # written all the same
+
+
+@needs_image
+def test_an_unreadable_file_stops_the_folder_by_name_unless_skipped(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    folder = _folder(tmp_path)
+    (folder / "r9c9.gwy").write_bytes(b"GWYPnot really")
+    assert main(["import", str(folder), "--out", str(tmp_path / "s")]) == 2
+    assert "r9c9.gwy" in capsys.readouterr().err
+    assert main(["import", str(folder), "--out", str(tmp_path / "s"), "--skip-bad"]) == 0
+    said = capsys.readouterr()
+    assert "skipped" in said.err and "r9c9.gwy" in said.err and "9 patches" in said.out

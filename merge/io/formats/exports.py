@@ -11,9 +11,9 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from backend.formats.gwy import write_gwy
-from backend.formats.image import FloatArray, FormatError, top_down_bands
-from backend.formats.tiff import write_tiff
+from merge.io.formats.gwy import write_gwy
+from merge.io.formats.image import FloatArray, FormatError, top_down_bands
+from merge.io.formats.tiff import write_tiff
 from merge.io.png import encode_png
 from merge.io.preview import render_panels
 from merge.render import Mosaic

@@ -15,8 +15,8 @@ from typing import Any
 
 import numpy as np
 
-from backend.formats.image import AfmImage, FloatArray, FormatError, top_down_bands
-from backend.formats.park import is_park, read_park
+from merge.io.formats.image import AfmImage, FloatArray, FormatError, top_down_bands
+from merge.io.formats.park import is_park, read_park
 
 #: Bytes of heights from which a TIFF is written as BigTIFF: a classic TIFF's offsets are 32
 #: bits, so a file past 4 GB (a mosaic of 32,000 x 32,000 px in float32) cannot be one; below,

@@ -11,12 +11,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from backend.formats import AfmImage, FormatError, read_image
-from backend.formats.gwy import write_gwy
-from tests.backend.formats.test_ibw import LABELS, _layers, write_ibw
-from tests.backend.formats.test_nanoscope import write_nanoscope
-from tests.backend.formats.test_park import park_header, write_park
-from tests.backend.formats.test_sxm import _frames, write_sxm
+from merge.io.formats import AfmImage, FormatError, read_image
+from merge.io.formats.gwy import write_gwy
+from tests.merge.io.formats.test_ibw import LABELS, _layers, write_ibw
+from tests.merge.io.formats.test_nanoscope import write_nanoscope
+from tests.merge.io.formats.test_park import park_header, write_park
+from tests.merge.io.formats.test_sxm import _frames, write_sxm
 
 RAW = np.random.default_rng(0).integers(-3000, 3000, (24, 32))
 WRITERS: dict[str, Callable[[Path], None]] = {

@@ -8,8 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from backend.formats import FormatError, read_image
-from tests.backend.formats.oracle import gwyddion_convert, needs_gwyddion
+from merge.io.formats import FormatError, read_image
+from tests.merge.io.formats.oracle import gwyddion_convert, needs_gwyddion
 
 Image = tuple[str, np.ndarray, int, float, str, str]  # name, raw, bytes/pixel, hard V, sens, dir
 

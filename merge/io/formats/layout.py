@@ -8,8 +8,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
-from backend.formats.image import AfmImage
-from hardware.mosaic_plan import snake_grid
+from merge.io.formats.image import AfmImage
 
 Place = tuple[tuple[float, float], int | None, int | None]  # origin (m), row, col
 
@@ -47,11 +46,14 @@ def scan_places(
     if overlap is None:
         raise LayoutError("a grid needs the overlap (fractions along x and y)")
     ny, nx = images[0].heights.shape
-    size = (nx * images[0].pixel_size[0], ny * images[0].pixel_size[1])
-    try:
-        plan = snake_grid(rows, cols, patch_size=size, overlap=overlap)
-    except ValueError as exc:
-        raise LayoutError(str(exc)) from None
-    if order == "raster":  # every row left to right
-        plan = sorted(plan, key=lambda p: (p.row, p.col))
-    return [(p.origin, p.row, p.col) for p in plan]
+    w, h = nx * images[0].pixel_size[0], ny * images[0].pixel_size[1]
+    if not all(0 <= o < 1 for o in overlap):
+        raise LayoutError(f"overlaps must be fractions in [0, 1), got {overlap}")
+    if rows < 1 or cols < 1:
+        raise LayoutError(f"a grid needs a row and a column at least, got {rows} x {cols}")
+    step = (w * (1 - overlap[0]), h * (1 - overlap[1]))
+    out: list[Place] = []
+    for r in range(rows):  # the files in acquisition order: snake (row 1 right to left), raster
+        cs = range(cols - 1, -1, -1) if order == "snake" and r % 2 else range(cols)
+        out.extend(((c * step[0], r * step[1]), r, c) for c in cs)
+    return out

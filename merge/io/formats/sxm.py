@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from backend.formats.image import AfmImage, FormatError, choose_channel
+from merge.io.formats.image import AfmImage, FormatError, choose_channel
 
 MARKER = b"\x1a\x04"
 
