@@ -17,7 +17,12 @@ import merge
 from backend.cli import main
 from backend.synthetic import scored
 from hardware.sim.synth import SynthPatch
+from merge.io.formats.gwy import _fields
 from tests.conftest import SHARED_DATA
+from tests.merge.io.formats.test_ibw import write_ibw
+from tests.merge.io.formats.test_nanoscope import write_nanoscope
+from tests.merge.io.formats.test_park import V2, park_header, write_park
+from tests.merge.io.formats.test_sxm import write_sxm
 
 IMAGE = SHARED_DATA / "mos2.npy"
 PIXEL = (3.97339e-6 / 512, 3.97339e-6 / 256)  # mos2: 7.76 x 15.52 nm, not square
@@ -88,7 +93,67 @@ def write_gwy_tile(path: Path, patch: SynthPatch) -> None:
     container.tofile(str(path))
 
 
-WRITERS: dict[str, Callable[[Path, SynthPatch], None]] = {".gwy": write_gwy_tile}
+def _centre(patch: SynthPatch) -> tuple[float, float]:
+    """The scan's centre, which NanoScope, Nanonis and Park headers give as its offset."""
+    ny, nx = patch.heights.shape
+    (dx, dy), (x0, y0) = patch.pixel_size, patch.origin
+    return float(x0 + (nx - 1) * dx / 2), float(y0 + (ny - 1) * dy / 2)
+
+
+def _size(patch: SynthPatch) -> tuple[float, float]:
+    ny, nx = patch.heights.shape
+    return float(nx * patch.pixel_size[0]), float(ny * patch.pixel_size[1])
+
+
+def write_nanoscope_tile(path: Path, patch: SynthPatch) -> None:
+    """Bruker NanoScope: 32-bit counts, the bottom line first, X/Y offset the scan's centre
+    (in nm), the scan size in µm."""
+    hard, lsb = 10.0, 10.0 * 20e-9 / 2.0**32  # V, metres per count at 20 nm/V
+    raw = np.round(patch.heights / lsb).astype(np.int64)
+    (w, h), (cx, cy) = _size(patch), _centre(patch)
+    write_nanoscope(
+        path,
+        [("Height", raw, 4, hard, "Sens. Zsens", "Retrace")],
+        scan_size=f"{w * 1e6!r} {h * 1e6!r} ~m",
+        offset=(f"{cx * 1e9!r} nm", f"{cy * 1e9!r} nm"),
+    )
+
+
+def write_sxm_tile(path: Path, patch: SynthPatch) -> None:
+    """Nanonis .sxm: float32 frames, scanned up (the bottom line first), SCAN_OFFSET the
+    scan's centre in the scan frame (y up)."""
+    frames = [("Z", "m", patch.heights, None)]
+    write_sxm(path, frames, scan_range=_size(patch), centre=_centre(patch), up=True)
+
+
+def write_park_tile(path: Path, patch: SynthPatch) -> None:
+    """Park Systems TIFF (version 2, float32 in µm): the bottom line first, the header's
+    offset the scan's centre in µm."""
+    (w, h), (cx, cy) = _size(patch), _centre(patch)
+    head = park_header(
+        patch.heights.shape,
+        size_um=(w * 1e6, h * 1e6),
+        centre_um=(cx * 1e6, cy * 1e6),
+        gain=1.0,
+        unit="um",
+        data_type=2,
+    )
+    write_park(path, (patch.heights * 1e6).astype("<f4"), head, V2)
+
+
+def write_ibw_tile(path: Path, patch: SynthPatch) -> None:
+    """Asylum .ibw: the wave's x/y scaling starts at pixel (0, 0), y up."""
+    layers = patch.heights[None].astype(np.float32)
+    write_ibw(path, layers, ["HeightRetrace"], pixel=patch.pixel_size, first=patch.origin)
+
+
+WRITERS: dict[str, Callable[[Path, SynthPatch], None]] = {
+    ".gwy": write_gwy_tile,
+    ".spm": write_nanoscope_tile,
+    ".sxm": write_sxm_tile,
+    ".tiff": write_park_tile,
+    ".ibw": write_ibw_tile,
+}
 
 
 @needs_image
@@ -164,3 +229,27 @@ def test_an_unreadable_file_stops_the_folder_by_name_unless_skipped(
     assert main(["import", str(folder), "--out", str(tmp_path / "s"), "--skip-bad"]) == 0
     said = capsys.readouterr()
     assert "skipped" in said.err and "r9c9.gwy" in said.err and "9 patches" in said.out
+
+
+@needs_image
+def test_the_exported_gwy_lies_where_the_input_files_lie_in_gwyddion(tmp_path: Path) -> None:
+    folder = _folder(tmp_path)
+    assert main(["merge", str(folder), "--out", str(tmp_path / "m"), "--quiet"]) == 0
+    assert main(["export", str(tmp_path / "m"), "--format", "gwy"]) == 0
+
+    def corner(path: Path) -> tuple[float, float, float, float]:
+        """The field's top-left corner as Gwyddion has it, and its far corner."""
+        field = _fields(path)[0][1]
+        x, y = float(field.get("xoff", 0.0)), float(field.get("yoff", 0.0))
+        return x, y, x + float(field["xreal"]), y + float(field["yreal"])
+
+    tiles = [corner(p) for p in sorted(folder.glob("*.gwy"))]
+    mosaic = corner(tmp_path / "m" / "mosaic.gwy")
+    union = (
+        min(t[0] for t in tiles),
+        min(t[1] for t in tiles),
+        max(t[2] for t in tiles),
+        max(t[3] for t in tiles),
+    )
+    # within the stage errors the merge corrects (±40 nm) and a pixel of the mosaic
+    assert mosaic == pytest.approx(union, abs=60e-9)
