@@ -338,7 +338,8 @@ def patch_preview(
         return png_response([(f"P{index}", hmap)], size=size)
     finite = stored.heights[np.isfinite(stored.heights)]
     lo, hi = np.percentile(finite, [1, 99]) if finite.size else (0.0, 1e-9)
-    rgb = afm_colors((fit_size(stored.heights, size) - lo) / max(hi - lo, 1e-12))
+    shown = fit_size(stored.heights, size, pixel_size=stored.pixel_size)[::-1]  # +y up
+    rgb = afm_colors((shown - lo) / max(hi - lo, 1e-12))
     return Response(
         encode_png(rgb),
         media_type="image/png",

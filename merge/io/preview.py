@@ -1,5 +1,6 @@
 """``preview.png``: the mosaic before (nominal placement) and after the merge, side by side,
-in one colour map with a nm colour bar and a scale bar."""
+in one colour map with a nm colour bar and an L-shaped scale bar (x and y), at the true aspect
+of the sample (non-square pixels drawn square on the sample) and +y up."""
 
 from __future__ import annotations
 
@@ -48,12 +49,18 @@ def _nice_step(span: float, target: int) -> float:
     return float(10 * mag)
 
 
-def fit_size(heights: FloatArray, size: int) -> FloatArray:
-    """Nearest-neighbour resample so the longer side is ``size`` pixels."""
+def fit_size(
+    heights: FloatArray, size: int, *, pixel_size: tuple[float, float] = (1.0, 1.0)
+) -> FloatArray:
+    """Nearest-neighbour resample so that the longer side is ``size`` pixels and every pixel
+    shown is square on the sample: a map of ``pixel_size`` (dx, dy) pixels keeps its true
+    aspect (a 2 x 1 µm area drawn twice as wide as tall, whatever its pixel counts)."""
     ny, nx = heights.shape
-    f = size / max(ny, nx)
-    rows = np.minimum((np.arange(max(1, round(ny * f))) / f).astype(int), ny - 1)
-    cols = np.minimum((np.arange(max(1, round(nx * f))) / f).astype(int), nx - 1)
+    width, height = nx * pixel_size[0], ny * pixel_size[1]
+    f = size / max(width, height)
+    out_nx, out_ny = max(1, round(width * f)), max(1, round(height * f))
+    rows = np.minimum((np.arange(out_ny) * ny / out_ny).astype(int), ny - 1)
+    cols = np.minimum((np.arange(out_nx) * nx / out_nx).astype(int), nx - 1)
     out: FloatArray = heights[np.ix_(rows, cols)]
     return out
 
@@ -73,7 +80,8 @@ def render_panels(panels_in: list[tuple[str, Mosaic]], *, size: int = 420) -> UI
     if not panels_in:
         raise ValueError("need at least one height map")
     mosaics = [m for _, m in panels_in]
-    panels = [fit_size(m.heights, size) for m in mosaics]
+    # +y up, as on the sample (and in Gwyddion): the last row of a map is the picture's top
+    panels = [fit_size(m.heights, size, pixel_size=m.pixel_size)[::-1] for m in mosaics]
     # the colour scale from what the panels show (not a copy of every mosaic's heights)
     both = np.concatenate([p[np.isfinite(p)] for p in panels])
     lo, hi = np.percentile(both, [1, 99], overwrite_input=True) if both.size else (0.0, 1.0)
@@ -91,12 +99,16 @@ def render_panels(panels_in: list[tuple[str, Mosaic]], *, size: int = 420) -> UI
         h, w = panel.shape
         img[title_h : title_h + h, col : col + w] = afm_colors((panel - lo) / (hi - lo))
         draw_text(img, title, 8, col, color=INK)
-        # scale bar: a round length near a quarter of the panel width
-        metres_per_px = mosaic.pixel_size[0] * mosaic.heights.shape[1] / w
-        length = _nice_step(0.25 * w * metres_per_px, 1)
-        bar_px = max(1, round(length / metres_per_px))
+        # an L-shaped scale bar, a round length near a quarter of the panel's shorter side
+        # along x (below it) and along y (left of it): the pixels shown are square
+        per_x = mosaic.pixel_size[0] * mosaic.heights.shape[1] / w
+        per_y = mosaic.pixel_size[1] * mosaic.heights.shape[0] / h
+        length = _nice_step(0.25 * min(w * per_x, h * per_y), 1)
+        bar_x, bar_y = max(1, round(length / per_x)), max(1, round(length / per_y))
         y = title_h + ph + 12
-        img[y : y + 4, col : col + bar_px] = INK
+        img[y : y + 4, col : col + bar_x] = INK
+        img[title_h + h - bar_y : title_h + h, col - 8 : col - 4] = INK
+        img[title_h + h : y + 4, col - 8 : col - 4] = INK  # the corner of the L
         label = f"{length * 1e6:g} µm" if length >= 1e-6 else f"{length * 1e9:g} nm"
         draw_text(img, label, y + 8, col, color=INK)
         col += w + margin
