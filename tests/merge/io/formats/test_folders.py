@@ -253,3 +253,13 @@ def test_the_exported_gwy_lies_where_the_input_files_lie_in_gwyddion(tmp_path: P
     )
     # within the stage errors the merge corrects (±40 nm) and a pixel of the mosaic
     assert mosaic == pytest.approx(union, abs=60e-9)
+
+
+@needs_image
+def test_the_python_example_merges_a_folder_as_printed(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from examples import merge_folder
+
+    assert merge_folder.main([str(_folder(tmp_path)), str(tmp_path / "m")]) == 0
+    assert capsys.readouterr().out.strip().splitlines()[-1].startswith("CONFIRMED")
