@@ -9,7 +9,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from hardware.mosaic_plan import PlannedPatch, snake_grid
-from hardware.procedures import acquire_patch
+from hardware.procedures import PatchResult, acquire_patch
 from hardware.sim.instrument import SimulatedAFM
 
 FloatArray = NDArray[np.float64]
@@ -24,6 +24,32 @@ class ScannedPatch:
     origin: tuple[float, float]
     pixel_size: tuple[float, float]
     line_times: FloatArray
+
+
+def acquire_on(
+    afm: SimulatedAFM,
+    *,
+    origin: tuple[float, float],
+    size: tuple[float, float],
+    pixels: tuple[int, int],
+    line_rate: float,
+) -> PatchResult:
+    """One patch on the simulated instrument through the real procedure
+    (:func:`~hardware.procedures.acquire_patch`): its stage, robot, loop and recorder."""
+    return acquire_patch(
+        stage_x=afm.stage_x,
+        stage_y=afm.stage_y,
+        x=afm.robot_x,
+        y=afm.robot_y,
+        z=afm.robot_z,
+        loop=afm,
+        probe=afm,
+        recorder=afm,
+        origin=origin,
+        size=size,
+        pixels=pixels,
+        line_rate=line_rate,
+    )
 
 
 def scan_mosaic(
@@ -45,19 +71,8 @@ def scan_mosaic(
     plan = snake_grid(rows, cols, patch_size=patch_size, overlap=overlap, start=start)
     out = []
     for planned in plan:
-        result = acquire_patch(
-            stage_x=afm.stage_x,
-            stage_y=afm.stage_y,
-            x=afm.robot_x,
-            y=afm.robot_y,
-            z=afm.robot_z,
-            loop=afm,
-            probe=afm,
-            recorder=afm,
-            origin=planned.origin,
-            size=patch_size,
-            pixels=pixels,
-            line_rate=line_rate,
+        result = acquire_on(
+            afm, origin=planned.origin, size=patch_size, pixels=pixels, line_rate=line_rate
         )
         patch = ScannedPatch(
             plan=planned,

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from backend.acquisition.planner import InstrumentLimits, PatchSpec, PlanError, check_scan
-from hardware.procedures import acquire_patch
 from hardware.protocols import ScanLines
 from hardware.sim.instrument import SimulatedAFM
+from hardware.sim.mosaic import acquire_on
 from hardware.sim.surfaces import surface_by_name
 
 SIZE = 1.6e-6  # the fine range: the widest, fastest patch
@@ -22,20 +22,9 @@ def sample(request: pytest.FixtureRequest) -> str:
 
 
 def _scan(afm: SimulatedAFM, pixels: tuple[int, int], rate: float) -> ScanLines:
-    return acquire_patch(
-        stage_x=afm.stage_x,
-        stage_y=afm.stage_y,
-        x=afm.robot_x,
-        y=afm.robot_y,
-        z=afm.robot_z,
-        loop=afm,
-        probe=afm,
-        recorder=afm,
-        origin=(0.2e-6, 0.5e-6),  # over an edge of the chessboard, a fold of the other
-        size=(SIZE, SIZE),
-        pixels=pixels,
-        line_rate=rate,
-    ).lines
+    # over an edge of the chessboard, a fold of the other
+    return acquire_on(afm, origin=(0.2e-6, 0.5e-6), size=(SIZE, SIZE), pixels=pixels,
+                      line_rate=rate).lines  # fmt: skip
 
 
 def _refusal(patch: PatchSpec, rate: float, limits: InstrumentLimits) -> PlanError | None:

@@ -13,7 +13,6 @@ from hardware.procedures import (
     LandingConfig,
     NoSurfaceError,
     SaturationError,
-    acquire_patch,
     land,
     retract,
 )
@@ -21,6 +20,7 @@ from hardware.protocols import TRACKING_BOUND, ForceLoop, LineRecorder, ProbeSig
 from hardware.raster import FineRaster
 from hardware.sim.faults import LOST_SHARE, Z_JUMP, strike_line
 from hardware.sim.instrument import SimulatedAFM, WorldParams
+from hardware.sim.mosaic import acquire_on
 from hardware.sim.probe import ProbeModel
 from hardware.sim.surfaces import FoldedSurface
 
@@ -76,20 +76,8 @@ def test_a_crash_is_detected(afm: SimulatedAFM) -> None:
 
 def _acquire(afm: SimulatedAFM) -> Any:
     """A 30 x 30 patch of 0.6 µm at (1, 2) µm, through the real procedure."""
-    return acquire_patch(
-        stage_x=afm.stage_x,
-        stage_y=afm.stage_y,
-        x=afm.robot_x,
-        y=afm.robot_y,
-        z=afm.robot_z,
-        loop=afm,
-        probe=afm,
-        recorder=afm,
-        origin=(1e-6, 2e-6),
-        size=(0.6e-6, 0.6e-6),
-        pixels=(30, 30),
-        line_rate=2.0,
-    )
+    return acquire_on(afm, origin=(1e-6, 2e-6), size=(0.6e-6, 0.6e-6), pixels=(30, 30),
+                      line_rate=2.0)  # fmt: skip
 
 
 def test_a_scan_reproduces_the_surface_within_noise_and_dilation(afm: SimulatedAFM) -> None:
