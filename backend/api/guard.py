@@ -122,7 +122,7 @@ class Gate:
         if refused is not None:
             await refused(scope, receive, send)
             return
-        limit = self.upload_limit if scope["path"] in UPLOADS else self.json_limit
+        limit = self._limit(scope["path"])
         started = False
 
         async def secured(message: Message) -> None:
@@ -138,6 +138,10 @@ class Gate:
             if started:
                 raise
             await JSONResponse({"detail": exc.detail}, 413)(scope, receive, secured)
+
+    def _limit(self, path: str) -> int:
+        """The body limit of the route at ``path``, bytes."""
+        return self.upload_limit if path in UPLOADS else self.json_limit
 
     def _refusal(self, request: Request) -> JSONResponse | None:
         """What a request is refused with before its body is read."""
@@ -156,7 +160,7 @@ class Gate:
         if length is not None:
             if not length.isdigit():
                 return JSONResponse({"detail": "Content-Length must be a number"}, 400)
-            limit = self.upload_limit if request.url.path in UPLOADS else self.json_limit
+            limit = self._limit(request.url.path)
             if int(length) > limit:
                 return JSONResponse({"detail": BodyTooLarge(limit).detail}, 413)
         return None
@@ -168,8 +172,9 @@ def safe_errors(errors: list[dict[str, object]]) -> list[dict[str, object]]:
     never a NaN that JSON cannot write)."""
     out: list[dict[str, object]] = []
     for error in errors[:50]:
+        loc = error.get("loc", ())
         item: dict[str, object] = {
-            "loc": list(error.get("loc", ()))[:10],  # type: ignore[call-overload]
+            "loc": list(loc)[:10] if isinstance(loc, list | tuple) else [],
             "msg": str(error.get("msg", ""))[:500],
             "type": str(error.get("type", "")),
         }
