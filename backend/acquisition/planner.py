@@ -8,8 +8,7 @@ problem is a :class:`PlanError` naming the field to fix (HTTP 422 at the API).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
-from dataclasses import field as default
+from dataclasses import dataclass, field
 
 from hardware.envelope import ScanEnvelope
 from hardware.mosaic_plan import PlannedPatch, snake_grid
@@ -35,7 +34,7 @@ class InstrumentLimits:
     max_pixels: int = 4096
     max_patches: int = 2500
     max_overlap: float = 0.9
-    scan: ScanEnvelope = default(default_factory=ScanEnvelope)
+    scan: ScanEnvelope = field(default_factory=ScanEnvelope)
     #: the finest pixel the stage's sensors and the merge make sense of, metres
     min_pitch: float = 0.5e-9
     #: pixels an overlap must span for the merge to match two patches
@@ -133,27 +132,27 @@ def plan_mosaic(
     """The snake-ordered grid of ``patch`` covering ``roi`` with ``overlap`` (fractions),
     scanned at ``line_rate`` (lines per second; checked by :func:`check_scan` when given)."""
     lim = limits or InstrumentLimits()
-    for value, field in ((roi.width, "roi.width"), (roi.height, "roi.height")):
-        _finite_positive(value, field)
-    for value, field in ((roi.x, "roi.x"), (roi.y, "roi.y")):
+    for value, name in ((roi.width, "roi.width"), (roi.height, "roi.height")):
+        _finite_positive(value, name)
+    for value, name in ((roi.x, "roi.x"), (roi.y, "roi.y")):
         if not math.isfinite(value):
-            raise PlanError(field, f"must be a finite number of metres, got {value!r}")
-    for value, field, (lo, hi) in (
+            raise PlanError(name, f"must be a finite number of metres, got {value!r}")
+    for value, name, (lo, hi) in (
         (roi.width, "roi.width", lim.travel[0]),
         (roi.height, "roi.height", lim.travel[1]),
     ):
         if value > hi - lo:
             raise PlanError(
-                field, f"{value:.3g} m is more than the stage's travel of {(hi - lo) * 1e3:g} mm"
+                name, f"{value:.3g} m is more than the stage's travel of {(hi - lo) * 1e3:g} mm"
             )
-    for value, field, fine in (
+    for value, name, fine in (
         (patch.width, "patch.width", lim.fine_range[0]),
         (patch.height, "patch.height", lim.fine_range[1]),
     ):
-        _finite_positive(value, field)
+        _finite_positive(value, name)
         if value > fine:
             raise PlanError(
-                field, f"{value * 1e6:.3g} µm exceeds the fine scan range of {fine * 1e6:.3g} µm"
+                name, f"{value * 1e6:.3g} µm exceeds the fine scan range of {fine * 1e6:.3g} µm"
             )
     if len(patch.pixels) != 2:
         raise PlanError("patch.pixels", "must be two whole numbers [nx, ny]")

@@ -35,6 +35,7 @@ from hardware.sim.mcs_server import MCSServer
 from hardware.sim.probe import ProbeModel
 from hardware.sim.relief import patch_relief, steepest_slope
 from hardware.sim.surfaces import Surface
+from hardware.sim.tip import apex_height
 from hardware.smaract_mcs import MCSController
 
 FloatArray = NDArray[np.float64]
@@ -45,19 +46,6 @@ DRIFT_SPREAD = 2.0
 ENVELOPE_SHARE = 0.85
 #: Largest spacing of the force loop's knots along a line, metres.
 KNOT_SPACING = 4e-9
-
-
-def _tip_offsets() -> tuple[FloatArray, FloatArray, FloatArray]:
-    """Unit offsets of the apex and 16 points of a spherical tip, and how far each sits above
-    the apex when the sphere touches there (in tip radii)."""
-    ang = np.linspace(0, 2 * np.pi, 8, endpoint=False)
-    ox = np.concatenate([[0.0], 0.5 * np.cos(ang), np.cos(ang)])
-    oy = np.concatenate([[0.0], 0.5 * np.sin(ang), np.sin(ang)])
-    lift = 1.0 - np.sqrt(np.maximum(1.0 - ox**2 - oy**2, 0.0))
-    return ox, oy, lift
-
-
-_TIP_OFFSETS = _tip_offsets()
 
 
 @dataclass(frozen=True)
@@ -215,14 +203,7 @@ class SimulatedAFM:
 
     def surface_height(self, x: FloatArray, y: FloatArray, t: float) -> FloatArray:
         """Surface under a tip of finite radius (its apex rides on the highest nearby point)."""
-        xa, ya = np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64)
-        ox, oy, lift = _TIP_OFFSETS
-        r = self.params.tip_radius
-        # one surface call for the apex and 16 points of a sphere of radius r around it
-        hx = xa.reshape(-1)[None, :] + r * ox[:, None]
-        hy = ya.reshape(-1)[None, :] + r * oy[:, None]
-        touch = self.surface.height(hx, hy) - r * lift[:, None]
-        top = np.nanmax(touch, axis=0).reshape(xa.shape)
+        top = apex_height(self.surface, x, y, self.params.tip_radius)
         out: FloatArray = top + self.drift(t)[2] + self.sample_z
         return out
 
@@ -237,13 +218,8 @@ class SimulatedAFM:
         if not tip:
             out: FloatArray = np.asarray(self.surface.height(xx, yy), dtype=np.float64)
             return out
-        ox, oy, lift = _TIP_OFFSETS
-        r = self.params.tip_radius
-        rows = []
-        for k in range(ny):  # row by row: 17 surface points per grid point
-            hx = xx[k][None, :] + r * ox[:, None]
-            hy = yy[k][None, :] + r * oy[:, None]
-            rows.append(np.nanmax(self.surface.height(hx, hy) - r * lift[:, None], axis=0))
+        r = self.params.tip_radius  # row by row: 17 surface points per grid point
+        rows = [apex_height(self.surface, xx[k], yy[k], r) for k in range(ny)]
         dilated: FloatArray = np.asarray(rows, dtype=np.float64)
         return dilated
 
