@@ -5,6 +5,7 @@ block the next landing. (The latencies under load are ``benchmarks/server_bench.
 
 from __future__ import annotations
 
+import asyncio
 import io
 import sys
 from collections.abc import Iterator
@@ -15,6 +16,7 @@ import pytest
 from sqlalchemy import update
 
 from backend.db.models import Run
+from backend.events import QUEUE_SIZE
 from tests.backend.api.conftest import AUTH, Server, plan
 
 # the benchmarks are scripts beside each other, not a package
@@ -229,3 +231,25 @@ def test_an_offline_upload_takes_more_than_a_thousand_files(server: Server) -> N
     )
     assert r.status_code == 201, r.text
     assert r.json()["progress"]["total"] == 1001
+
+
+def test_a_stream_that_never_reads_is_dropped_with_one_log_line(
+    server: Server, caplog: pytest.LogCaptureFixture
+) -> None:
+    bus = server.services.events
+    loop, served = asyncio.new_event_loop(), bus._loop
+    try:
+        bus.attach(loop)
+        queue = bus.subscribe()  # a client that never takes an event
+        for k in range(QUEUE_SIZE + 50):
+            bus.publish("note", f"n{k}", data=None)
+        loop.run_until_complete(asyncio.sleep(0.05))  # the loop hands them over
+        assert queue.qsize() == QUEUE_SIZE + 1  # the events it could hold, then its end
+        items = [queue.get_nowait() for _ in range(queue.qsize())]
+        assert items[-1] is None and queue not in bus._subscribers
+    finally:
+        if served is not None:
+            bus.attach(served)
+        loop.close()
+    dropped = [r for r in caplog.records if "fell" in r.getMessage()]
+    assert len(dropped) == 1
