@@ -37,6 +37,7 @@ MAX_OFFSET = 1.0
 
 def _places(
     images: list[AfmImage],
+    names: list[str],
     rows: int | None,
     cols: int | None,
     overlap: tuple[float, float],
@@ -49,7 +50,7 @@ def _places(
             raise HTTPException(422, "rows, cols: give both, or neither to use the scan offsets")
         grid = (rows, cols)
     try:
-        places = scan_places(images, grid, overlap=overlap, order=order)
+        places = scan_places(images, grid, overlap=overlap, order=order, names=names)
     except LayoutError as exc:
         raise HTTPException(422, f"rows, cols: {exc}") from None
     return [(o, r if r is not None else 0, c if c is not None else k)
@@ -166,7 +167,7 @@ def _store(
     """The uploaded scans as a completed run: its rows, its file, its patches."""
     overlap_x, overlap_y = overlap
     _check_geometry(images, names)
-    places = _places(images, rows, cols, (overlap_x, overlap_y), order)
+    places = _places(images, names, rows, cols, (overlap_x, overlap_y), order)
     ny, nx = images[0].heights.shape
     width, height = nx * images[0].pixel_size[0], ny * images[0].pixel_size[1]
     xs = [o[0] for o, _, _ in places]

@@ -2,8 +2,9 @@
 (:mod:`merge.io.formats`), placed by their own scan offsets or by a grid, as a patch set.
 
 Every problem names the file: one that cannot be read stops the whole (or, with
-``on_skip``, is left out and told); one without a scan offset is refused unless a grid is
-given; two that share an offset are refused as a layout they cannot be.
+``on_skip``, is left out and told); one without a scan offset, or scanned rotated, is refused
+unless a grid is given; two that share an offset are refused as a layout they cannot be
+(:func:`merge.io.formats.layout.scan_places`).
 """
 
 from __future__ import annotations
@@ -80,21 +81,10 @@ def read_scans(
         paths.append(path)
     if len(images) < 2:
         raise PatchSetError(f"{len(images)} readable scan(s): a mosaic needs two at least")
-    if grid is None:
-        missing = [p.name for p, im in zip(paths, images, strict=True) if im.offset is None]
-        if missing:
-            raise PatchSetError(
-                f"{_names(missing)} carry no scan offset, so nothing says where they lie: "
-                "give the grid and the overlap (--grid ROWSxCOLS --overlap OX,OY)"
-            )
-        shared = _shared([im.offset for im in images], [p.name for p in paths])
-        if shared:
-            raise PatchSetError(
-                f"{shared} share one scan offset, so the offsets do not lay out a mosaic: "
-                "give the grid and the overlap"
-            )
     try:
-        places = scan_places(images, grid, overlap=overlap, order=order)
+        places = scan_places(
+            images, grid, overlap=overlap, order=order, names=[p.name for p in paths]
+        )
     except LayoutError as exc:
         raise PatchSetError(str(exc)) from None
     ids = _ids(paths)
@@ -113,19 +103,6 @@ def read_scans(
             zip(paths, images, places, strict=True)
         )
     )
-
-
-def _names(names: Sequence[str], most: int = 5) -> str:
-    shown = ", ".join(names[:most])
-    return shown + (f" and {len(names) - most} more" if len(names) > most else "")
-
-
-def _shared(offsets: Sequence[tuple[float, float] | None], names: Sequence[str]) -> str:
-    """The files whose offsets another file has too (named), or empty."""
-    seen: dict[tuple[float, float] | None, list[str]] = {}
-    for offset, name in zip(offsets, names, strict=True):
-        seen.setdefault(offset, []).append(name)
-    return "; ".join(_names(group) for group in seen.values() if len(group) > 1)
 
 
 def _ids(paths: Sequence[Path]) -> list[str]:

@@ -13,8 +13,17 @@ from merge.io.formats.image import AfmImage
 Place = tuple[tuple[float, float], int | None, int | None]  # origin (m), row, col
 
 
+#: Degrees of scan rotation past which a file's offset does not place it.
+MAX_ROTATION = 1.0
+
+
 class LayoutError(ValueError):
     """The scans cannot be placed as asked; the message says what to give."""
+
+
+def _listed(names: Sequence[str], most: int = 5) -> str:
+    shown = ", ".join(names[:most])
+    return shown + (f" and {len(names) - most} more" if len(names) > most else "")
 
 
 def scan_places(
@@ -23,20 +32,43 @@ def scan_places(
     *,
     overlap: tuple[float, float] | None = None,
     order: str = "snake",
+    names: Sequence[str] | None = None,
 ) -> list[Place]:
     """Origin (pixel (0, 0), metres) and grid cell of every scan, in the order given.
 
-    Without ``grid`` the files' scan offsets place them, and must all exist and differ; with
-    ``grid = (rows, cols)`` the scans fill it in acquisition ``order`` ("snake" or "raster")
-    with the nominal pitch of the first scan's size and ``overlap`` (fractions).
+    Without ``grid`` the files' scan offsets place them: every file must have one, none may
+    share one, and none may be scanned rotated in the scan plane (more than
+    :data:`MAX_ROTATION` degrees: its offset alone does not place it); the messages name the
+    files (``names``, else their numbers). With ``grid = (rows, cols)`` the scans fill it in
+    acquisition ``order`` ("snake" or "raster") with the nominal pitch of the first scan's
+    size and ``overlap`` (fractions).
     """
+    label = list(names) if names is not None else [f"file {k + 1}" for k in range(len(images))]
     if grid is None:
         offsets = [im.offset for im in images]
-        if any(o is None for o in offsets):
-            raise LayoutError("some files carry no scan offset: give the grid and the overlap")
-        if len(set(offsets)) < len(offsets):
+        missing = [n for n, o in zip(label, offsets, strict=True) if o is None]
+        if missing:
             raise LayoutError(
-                "some files share a scan offset, so the offsets do not lay out a mosaic: "
+                f"{_listed(missing)} carry no scan offset, so nothing says where they lie: "
+                "give the grid and the overlap (--grid ROWSxCOLS --overlap OX,OY)"
+            )
+        rotated = [
+            f"{n} ({float(im.metadata['rotation_deg']):g}°)"
+            for n, im in zip(label, images, strict=True)
+            if abs(float(im.metadata.get("rotation_deg", "0"))) > MAX_ROTATION
+        ]
+        if rotated:
+            raise LayoutError(
+                f"{_listed(rotated)} were scanned rotated in the scan plane: their offsets do "
+                "not place them; merge scans taken without scan rotation, or give the grid"
+            )
+        groups: dict[tuple[float, float] | None, list[str]] = {}
+        for n, o in zip(label, offsets, strict=True):
+            groups.setdefault(o, []).append(n)
+        shared = "; ".join(_listed(g) for g in groups.values() if len(g) > 1)
+        if shared:
+            raise LayoutError(
+                f"{shared} share one scan offset, so the offsets do not lay out a mosaic: "
                 "give the grid and the overlap"
             )
         return [(o, None, None) for o in offsets if o is not None]

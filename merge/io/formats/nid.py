@@ -5,6 +5,11 @@ channels group by group (``Gr0-Ch1=DataSet-0:1``), each channel section gives ``
 ``Lines``, the X/Y ranges and the Z range and minimum that map the integers to values, and
 the binary block holds the channels in that order. Row 0 is the first line stored, which is
 how the shipped ``mos2.npy`` holds it (Gwyddion shows the same data flipped vertically).
+
+Where the scan lies: ``[DataSet\\Parameters\\Imaging]`` gives ``ScanOffset=V[x,y,z]*[m,m,m]``,
+the centre of the scan area (the channels' own ``Dim0Min``/``Dim1Min`` are 0, the image's own
+frame), and ``[DataSet-Info]`` its rotation in the scan plane (``Rotation=45 °``), kept in the
+metadata as ``rotation_deg``: a rotated scan is not placed by its offset alone.
 """
 
 from __future__ import annotations
@@ -31,6 +36,26 @@ def _sections(text: str) -> dict[str, dict[str, str]]:
             key, value = line.split("=", 1)
             current[key.strip()] = value.strip()
     return out
+
+
+def _vector(text: str | None) -> list[float] | None:
+    """``V[1.2e-06,-3e-07,0]*[m,m,m]`` as numbers (None when absent or not one)."""
+    match = re.fullmatch(r"V\[([^\]]*)\]\*\[[^\]]*\]", (text or "").strip())
+    if match is None:
+        return None
+    try:
+        return [float(v) for v in match.group(1).split(",")]
+    except ValueError:
+        return None
+
+
+def _degrees(text: str | None) -> float:
+    """``45 °`` (or ``-175m°``) in degrees; 0 when absent."""
+    match = re.match(r"\s*([-+0-9.eE]+)\s*(m?)", text or "")
+    if match is None:
+        return 0.0
+    value = float(match.group(1))
+    return value / 1000 if match.group(2) else value
 
 
 def read_nid(path: str | Path, *, channel: str | None = None) -> AfmImage:
@@ -77,15 +102,21 @@ def read_nid(path: str | Path, *, channel: str | None = None) -> AfmImage:
             full = 2.0**bits
             shift = 2.0 ** (bits - 1) if sign == "Signed" else 0.0
             heights = zmin + (raw.astype(np.float64) + shift) / full * zrange
-            dx = float(info["Dim0Range"]) / nx
-            dy = float(info["Dim1Range"]) / ny
+            width, height = float(info["Dim0Range"]), float(info["Dim1Range"])
+            dx, dy = width / nx, height / ny
+            centre = _vector(sections.get("DataSet\\Parameters\\Imaging", {}).get("ScanOffset"))
+            place: tuple[float, float] | None = None
+            if centre is not None and len(centre) >= 2:
+                place = (centre[0] - width / 2 + dx / 2, centre[1] - height / 2 + dy / 2)
+            rotation = _degrees(sections.get("DataSet-Info", {}).get("Rotation"))
             return AfmImage(
                 heights=heights,
                 pixel_size=(dx, dy),
                 channel=name,
                 unit=info.get("Dim2Unit", ""),
-                offset=(float(info.get("Dim0Min", 0.0)), float(info.get("Dim1Min", 0.0))),
+                offset=place,
                 channels=tuple(names),
+                metadata={"rotation_deg": f"{rotation:g}"},
             )
         offset += size
     raise FormatError(f"{p}: channel {names[index]!r} not found in the data block")

@@ -105,7 +105,7 @@ def test_numbered_nanoscope_captures_place_by_offset(server: Server, tmp_path: P
     assert origins[1][0] - origins[0][0] == pytest.approx(1e-6)
     write_nanoscope(paths[1], [height], scan_size="2 2 ~m", offset=("0 nm", "0 nm"))
     r = _upload(server, paths)
-    assert r.status_code == 422 and "share a scan offset" in r.json()["detail"]
+    assert r.status_code == 422 and "share one scan offset" in r.json()["detail"]
 
 
 def _uploads_left(server: Server) -> list[Path]:

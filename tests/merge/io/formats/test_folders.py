@@ -147,7 +147,28 @@ def write_ibw_tile(path: Path, patch: SynthPatch) -> None:
     write_ibw(path, layers, ["HeightRetrace"], pixel=patch.pixel_size, first=patch.origin)
 
 
+def write_nid_tile(path: Path, patch: SynthPatch) -> None:
+    """Nanosurf .nid: 32-bit counts over the Z range, the first line stored first (the
+    bottom), ``ScanOffset`` the scan's centre and the channel's own Dim0Min/Dim1Min 0."""
+    ny, nx = patch.heights.shape
+    (w, h), (cx, cy) = _size(patch), _centre(patch)
+    zmin, zrange = float(patch.heights.min()) - 1e-9, float(np.ptp(patch.heights)) + 2e-9
+    raw = np.round((patch.heights - zmin) / zrange * 2.0**32 - 2.0**31)
+    raw = np.clip(raw, -(2**31), 2**31 - 1).astype("<i4")
+    header = "\r\n".join([
+        "[DataSet]", "Version=2", "GroupCount=1", "Gr0-Name=Scan forward", "Gr0-ID=0",
+        "Gr0-Count=1", "Gr0-Ch0=DataSet-0:1", "",
+        "[DataSet-Info]", "Rotation=0 \u00b0", "",
+        "[DataSet\\Parameters\\Imaging]", f"ScanOffset=V[{cx!r},{cy!r},0]*[m,m,m]", "",
+        "[DataSet-0:1]", f"Points={nx}", f"Lines={ny}", "SaveBits=32", "SaveSign=Signed",
+        f"Dim0Range={w!r}", "Dim0Min=0", f"Dim1Range={h!r}", "Dim1Min=0", "Dim2Name=Z-Axis",
+        "Dim2Unit=m", f"Dim2Range={zrange!r}", f"Dim2Min={zmin!r}", "",
+    ])  # fmt: skip
+    path.write_bytes(header.encode("latin-1") + b"#!" + raw.tobytes())
+
+
 WRITERS: dict[str, Callable[[Path, SynthPatch], None]] = {
+    ".nid": write_nid_tile,
     ".gwy": write_gwy_tile,
     ".spm": write_nanoscope_tile,
     ".sxm": write_sxm_tile,
@@ -263,3 +284,20 @@ def test_the_python_example_merges_a_folder_as_printed(
 
     assert merge_folder.main([str(_folder(tmp_path)), str(tmp_path / "m")]) == 0
     assert capsys.readouterr().out.strip().splitlines()[-1].startswith("CONFIRMED")
+
+
+@needs_image
+def test_a_real_nid_lies_at_its_scan_offset_and_a_rotated_one_is_not_placed_by_it(
+    tmp_path: Path,
+) -> None:
+    from merge.io.formats import read_image
+
+    mos2 = read_image(SHARED_DATA / "mos2.nid")  # ScanOffset=V[-1.84326e-06,-4.27246e-07,...]
+    dx, dy = mos2.pixel_size
+    assert mos2.offset == pytest.approx(
+        (-1.84326e-06 - 3.97339e-6 / 2 + dx / 2, -4.27246e-07 - 3.97339e-6 / 2 + dy / 2)
+    )
+    grid = read_image(SHARED_DATA / "grid.nid")  # scanned at 45°
+    assert grid.metadata["rotation_deg"] == "45"
+    with pytest.raises(merge.PatchSetError, match=r"grid.nid \(45°\) were scanned rotated"):
+        merge.read_scans([SHARED_DATA / "mos2.nid", SHARED_DATA / "grid.nid"])
