@@ -13,6 +13,7 @@ from backend.cli import (
     sim_cmd,
     sim_nanonis_cmd,
     sim_scan_cmd,
+    sim_sharksem_cmd,
     store_cmd,
     synth_cmd,
 )
@@ -30,6 +31,7 @@ def build_parser() -> argparse.ArgumentParser:
     synth_cmd.add_parser(sub)
     sim_cmd.add_parser(sub)
     sim_nanonis_cmd.add_parser(sub)
+    sim_sharksem_cmd.add_parser(sub)
     sim_scan_cmd.add_parser(sub)
     serve_cmd.add_parser(sub)
     formats_cmd.add_parsers(sub)

@@ -8,10 +8,15 @@ detector adds shading (faces turned towards it are brighter); shot noise on top.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
+from numpy.typing import NDArray
 
 from hardware.protocols import SEMImage
 from hardware.sim.surfaces import Surface
+
+FloatArray = NDArray[np.float64]
 
 
 class SimulatedSEM:
@@ -51,12 +56,66 @@ class SimulatedSEM:
         x = origin[0] + np.arange(pixels) * pitch
         y = origin[1] + np.arange(pixels) * pitch
         xx, yy = np.meshgrid(x, y)
-        h = self.surface.height(xx, yy)
+        signal = self.signal(xx, yy, self.noise)
+        return SEMImage(pixels=signal, origin=origin, pixel_size=(pitch, pitch))
+
+    def signal(self, x: FloatArray, y: FloatArray, noise: float) -> FloatArray:
+        """The secondary-electron signal at stage points ``x``, ``y`` (a 2-D grid of them,
+        metres, of any orientation): tilt yield, detector shading and relative shot
+        ``noise``."""
+        h = self.surface.height(x, y)
         h = np.where(np.isfinite(h), h, np.nanmin(h) if np.isfinite(h).any() else 0.0)
-        gy, gx = np.gradient(h, pitch)
+        # the slopes along the stage's axes, from the grid's own neighbours (chain rule)
+        h_r, h_c = np.gradient(h)
+        x_r, x_c = np.gradient(x)
+        y_r, y_c = np.gradient(y)
+        det = x_c * y_r - x_r * y_c
+        gx = (h_c * y_r - h_r * y_c) / det
+        gy = (x_c * h_r - x_r * h_c) / det
         cos_tilt = 1.0 / np.sqrt(1.0 + gx**2 + gy**2)
         yield_ = 1.0 / cos_tilt  # tilt contrast: edges bright
         facing = (gx * self.detector[0] + gy * self.detector[1]) * cos_tilt
-        signal = yield_ * (1.0 - 0.3 * facing)  # faces sloping down towards the detector
-        signal *= 1.0 + self.rng.normal(0.0, self.noise, signal.shape)
-        return SEMImage(pixels=signal, origin=origin, pixel_size=(pitch, pitch))
+        out: FloatArray = yield_ * (1.0 - 0.3 * facing)  # faces sloping towards the detector
+        out *= 1.0 + self.rng.normal(0.0, noise, out.shape)
+        return out
+
+
+@dataclass(frozen=True)
+class SEMGeometry:
+    """How an SEM sits over the sample stage, the truth a calibration must find: its scan
+    axes are rotated by ``rotation`` degrees (counter-clockwise) and scaled by ``scale``
+    against the stage's, and the centre of its field of view lies at ``offset`` (stage,
+    metres)."""
+
+    rotation: float = 3.0
+    scale: float = 1.025
+    offset: tuple[float, float] = (0.0, 0.0)
+
+    def to_stage(self, u: FloatArray, v: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """Stage positions of SEM-frame points ``(u, v)`` (metres from the field's centre,
+        ``v`` up the screen)."""
+        a = np.deg2rad(self.rotation)
+        c, s = self.scale * np.cos(a), self.scale * np.sin(a)
+        return self.offset[0] + c * u - s * v, self.offset[1] + s * u + c * v
+
+
+def render_frame(
+    sem: SimulatedSEM,
+    geometry: SEMGeometry,
+    *,
+    field: float,
+    pixels: int,
+    scan_rotation: float = 0.0,
+    dwell: float = 1e-6,
+) -> FloatArray:
+    """A frame as the SEM shows it (row 0 the top line) of ``field`` metres across, its scan
+    turned by ``scan_rotation`` degrees, each pixel dwelt on ``dwell`` seconds: the shot noise
+    falls as its square root (:attr:`SimulatedSEM.noise` at 1 µs)."""
+    pitch = field / pixels
+    k = (np.arange(pixels) - (pixels - 1) / 2) * pitch
+    uu, vv = np.meshgrid(k, -k)  # row 0 at the top: v down the rows
+    a = np.deg2rad(scan_rotation)
+    u, v = np.cos(a) * uu - np.sin(a) * vv, np.sin(a) * uu + np.cos(a) * vv
+    x, y = geometry.to_stage(u, v)
+    noise = sem.noise * np.sqrt(1e-6 / dwell)
+    return sem.signal(x, y, noise)

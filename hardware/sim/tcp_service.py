@@ -113,3 +113,15 @@ def close_connection(conn: socket.socket) -> None:
     with contextlib.suppress(OSError):
         conn.shutdown(socket.SHUT_RDWR)
     conn.close()
+
+
+def recv_exact(conn: socket.socket, n: int) -> bytes | None:
+    """Exactly ``n`` bytes from ``conn``, or None when the peer closed it first."""
+    chunks, got = [], 0
+    while got < n:
+        chunk = conn.recv(min(n - got, 1 << 20))
+        if not chunk:
+            return None
+        chunks.append(chunk)
+        got += len(chunk)
+    return b"".join(chunks)
