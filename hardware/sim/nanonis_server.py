@@ -16,7 +16,6 @@ the middle of a frame).
 
 from __future__ import annotations
 
-import socket
 import socketserver
 from collections import deque
 from typing import Literal
@@ -25,7 +24,7 @@ from hardware.nanonis import wire
 from hardware.nanonis.errors import NanonisProtocolError
 from hardware.sim.instrument import SimulatedAFM
 from hardware.sim.nanonis_controller import NanonisController
-from hardware.sim.tcp_service import TCPService, close_connection
+from hardware.sim.tcp_service import TCPService, close_connection, recv_exact
 
 LinkFault = Literal["drop", "silent", "error", "short", "garbage"]
 PhysicsFault = Literal["pll_loss", "z_limit"]
@@ -97,11 +96,11 @@ class NanonisServer(TCPService[LinkFault]):
         conn = handler.connection
         while True:
             try:
-                header = _recv_exact(conn, wire.HEADER_SIZE)
+                header = recv_exact(conn, wire.HEADER_SIZE)
                 if header is None:
                     return
                 parsed = wire.decode_header(header)
-                body = _recv_exact(conn, parsed.body_size)
+                body = recv_exact(conn, parsed.body_size)
                 if body is None:
                     return
             except (OSError, NanonisProtocolError):
@@ -131,14 +130,3 @@ class NanonisServer(TCPService[LinkFault]):
             if mode == "short":  # the rest never comes: the controller went away mid-reply
                 close_connection(conn)
                 return
-
-
-def _recv_exact(conn: socket.socket, n: int) -> bytes | None:
-    chunks, got = [], 0
-    while got < n:
-        chunk = conn.recv(min(n - got, 1 << 20))
-        if not chunk:
-            return None
-        chunks.append(chunk)
-        got += len(chunk)
-    return b"".join(chunks)
