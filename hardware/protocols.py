@@ -196,23 +196,37 @@ class PatchScanner(Protocol):
 
 @dataclass(frozen=True)
 class SEMImage:
-    """An SEM image and where its pixels are on the stage.
+    """An SEM image and where its pixels are on the stage: an affine map.
 
-    pixels : (ny, nx) grey levels.
-    origin : stage position (metres) of pixel (0, 0).
-    pixel_size : (dx, dy) metres per pixel along the image's columns and rows.
+    pixels : (ny, nx) grey levels, row 0 the top line as the SEM shows it.
+    origin : stage position (metres) of pixel (0, 0)'s centre.
+    pixel_size : metres per pixel along the image's columns and rows (positive).
+    matrix : the 2 x 2 map from a pixel step (column, row) to stage metres: rotation, scale,
+        shear and the rows' direction; None is ``diag(pixel_size)`` (axis-aligned, rows along
+        +y: how the images of earlier versions were placed).
     """
 
     pixels: NDArray[np.float64]
     origin: tuple[float, float]
     pixel_size: tuple[float, float]
+    matrix: tuple[tuple[float, float], tuple[float, float]] | None = None
+
+    @property
+    def map(self) -> NDArray[np.float64]:
+        """The 2 x 2 pixel-to-stage matrix (``matrix``, or ``diag(pixel_size)``)."""
+        if self.matrix is None:
+            return np.diag(np.asarray(self.pixel_size, dtype=np.float64))
+        return np.asarray(self.matrix, dtype=np.float64)
 
     def to_stage(self, col: float, row: float) -> tuple[float, float]:
         """Stage position of fractional pixel ``(col, row)``."""
-        return (
-            self.origin[0] + col * self.pixel_size[0],
-            self.origin[1] + row * self.pixel_size[1],
-        )
+        x, y = self.map @ np.array([col, row]) + np.asarray(self.origin)
+        return float(x), float(y)
+
+    def to_pixel(self, x: float, y: float) -> tuple[float, float]:
+        """The fractional pixel ``(col, row)`` of stage position ``(x, y)``."""
+        col, row = np.linalg.solve(self.map, np.array([x, y]) - np.asarray(self.origin))
+        return float(col), float(row)
 
 
 @runtime_checkable

@@ -52,10 +52,12 @@ class Roi:
 
     @classmethod
     def from_sem(cls, image: SEMImage, col: float, row: float, width: float, height: float) -> Roi:
-        """The stage rectangle of an SEM pixel rectangle (corner ``col, row``, size in pixels)."""
-        x0, y0 = image.to_stage(col, row)
-        x1, y1 = image.to_stage(col + width, row + height)
-        return cls(min(x0, x1), min(y0, y1), abs(x1 - x0), abs(y1 - y0))
+        """The stage rectangle covering an SEM pixel rectangle (corner ``col, row``, size in
+        pixels): on an image rotated against the stage, the rectangle drawn is a rotated one
+        on the stage, and the ROI the stage-aligned rectangle around it."""
+        corners = [image.to_stage(c, r) for c in (col, col + width) for r in (row, row + height)]
+        xs, ys = [p[0] for p in corners], [p[1] for p in corners]
+        return cls(min(xs), min(ys), max(xs) - min(xs), max(ys) - min(ys))
 
 
 @dataclass(frozen=True)

@@ -30,10 +30,10 @@ from backend.api.schemas import (
     RunId,
     RunOut,
 )
+from backend.api.sem import stored_geometry
 from backend.db.models import MergeJob, PatchRecord, Run, SemImageRecord
 from backend.db.patch_store import LIVE_GROUP, StoredPatch, read_merge, read_patch
 from backend.services import Services
-from hardware.protocols import SEMImage
 from merge.io.png import encode_png
 from merge.io.preview import afm_colors, fit_size
 
@@ -54,8 +54,7 @@ def _plan(body: PlanIn, services: Services, session: Session) -> Plan:
                 422,
                 f"sem_roi: the rectangle leaves the {sem.width} x {sem.height} px image",
             )
-        image = SEMImage(np.zeros((1, 1)), (sem.origin_x, sem.origin_y), (sem.pixel_x, sem.pixel_y))
-        roi = Roi.from_sem(image, r.col, r.row, r.width, r.height)
+        roi = Roi.from_sem(stored_geometry(sem), r.col, r.row, r.width, r.height)
     elif body.roi is not None:
         roi = Roi(body.roi.x, body.roi.y, body.roi.width, body.roi.height)
     else:  # the schema already refuses this

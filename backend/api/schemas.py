@@ -276,6 +276,13 @@ class SemOut(BaseModel):
     height: int
     origin: tuple[float, float] = Field(description="stage position of pixel (0, 0), metres")
     pixel_size: tuple[float, float]
+    matrix: tuple[tuple[float, float], tuple[float, float]] = Field(
+        description="stage metres per pixel step: stage = origin + matrix @ (column, row)"
+    )
+    rotation_deg: float = Field(description="the image's scan rotation, degrees")
+    sem_stage: tuple[float, float, float] | None = Field(
+        default=None, description="where the SEM's own stage stood (x, y, z), metres"
+    )
 
 
 class InstrumentOut(BaseModel):

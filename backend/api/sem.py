@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 from typing import Annotated
 
@@ -13,13 +12,30 @@ from backend.api.deps import OperatorDep, ServicesDep, SessionDep
 from backend.api.responses import NPY, PNG_RESPONSES, npy_response
 from backend.api.schemas import SemAcquireIn, SemId, SemOut
 from backend.db.models import SemImageRecord
-from backend.sem_files import TiffError, read_sem_tiff, save_pixels, sem_path
+from backend.sem_files import TiffError, pixel_map, read_sem_tiff, save_pixels, sem_path
+from hardware.protocols import SEMImage
 from merge.io.png import encode_png
 
 router = APIRouter(prefix="/api/sem", tags=["sem"])
 
 
+def stored_geometry(r: SemImageRecord, pixels: np.ndarray | None = None) -> SEMImage:
+    """The stored image's geometry (and its pixels, when given) as the planner uses it."""
+    matrix = None
+    if r.matrix is not None:
+        (a, b), (c, d) = r.matrix
+        matrix = ((float(a), float(b)), (float(c), float(d)))
+    return SEMImage(
+        pixels if pixels is not None else np.zeros((1, 1)),
+        (r.origin_x, r.origin_y),
+        (r.pixel_x, r.pixel_y),
+        matrix,
+    )
+
+
 def sem_out(r: SemImageRecord) -> SemOut:
+    m = stored_geometry(r).map
+    stage = r.sem_stage
     return SemOut(
         id=r.id,
         created_at=r.created_at,
@@ -28,6 +44,9 @@ def sem_out(r: SemImageRecord) -> SemOut:
         height=r.height,
         origin=(r.origin_x, r.origin_y),
         pixel_size=(r.pixel_x, r.pixel_y),
+        matrix=((float(m[0, 0]), float(m[0, 1])), (float(m[1, 0]), float(m[1, 1]))),
+        rotation_deg=r.rotation,
+        sem_stage=(stage[0], stage[1], stage[2]) if stage is not None and len(stage) == 3 else None,
     )
 
 
@@ -37,8 +56,9 @@ def _store(
     pixels: np.ndarray,
     *,
     source: str,
-    origin: tuple[float, float],
-    pixel_size: tuple[float, float],
+    geometry: SEMImage,
+    rotation: float = 0.0,
+    sem_stage: tuple[float, float, float] | None = None,
 ) -> SemImageRecord:
     """File first, then the row (no row without its file); the file is named by the row."""
     ny, nx = pixels.shape
@@ -47,10 +67,13 @@ def _store(
         file="",
         width=nx,
         height=ny,
-        origin_x=origin[0],
-        origin_y=origin[1],
-        pixel_x=pixel_size[0],
-        pixel_y=pixel_size[1],
+        origin_x=geometry.origin[0],
+        origin_y=geometry.origin[1],
+        pixel_x=geometry.pixel_size[0],
+        pixel_y=geometry.pixel_size[1],
+        matrix=[[float(v) for v in row] for row in geometry.map],
+        rotation=rotation,
+        sem_stage=list(sem_stage) if sem_stage is not None else None,
     )
     session.add(record)
     session.flush()
@@ -74,14 +97,7 @@ def acquire(
     if sem is None:
         raise HTTPException(409, "this instrument has no SEM driver: upload a TIFF instead")
     image = sem.grab(centre=body.centre, field=body.field, pixels=body.pixels)
-    record = _store(
-        session,
-        services,
-        image.pixels,
-        source="acquired",
-        origin=image.origin,
-        pixel_size=image.pixel_size,
-    )
+    record = _store(session, services, image.pixels, source="acquired", geometry=image)
     services.events.emit(
         "sem", f"SEM image {record.id} acquired ({operator})", data={"sem": record.id}
     )
@@ -98,6 +114,14 @@ def upload(
         float | None,
         Form(gt=0, le=1e-4, description="metres per pixel, if the TIFF has no vendor tags"),
     ] = None,
+    rotation: Annotated[
+        float | None,
+        Form(
+            ge=-360,
+            le=360,
+            description="scan rotation, degrees counter-clockwise, if the TIFF does not say",
+        ),
+    ] = None,
     origin_x: Annotated[
         float, Form(ge=-1, le=1, description="stage x of pixel (0, 0), metres")
     ] = 0.0,
@@ -105,34 +129,40 @@ def upload(
         float, Form(ge=-1, le=1, description="stage y of pixel (0, 0), metres")
     ] = 0.0,
 ) -> SemOut:
-    """Upload an SEM TIFF. Its pixel size comes from the vendor's tags (FEI/Thermo, Zeiss)
-    when present, else from ``pixel_size``. A plain route (run in a worker thread): decoding
-    and storing never hold the event loop, so an abort is answered meanwhile."""
+    """Upload an SEM TIFF (row 0 the top line). Its pixel size, scan rotation and SEM stage
+    position come from the vendor's tags (FEI/Thermo, ZEISS SmartSEM, TESCAN) when present,
+    else the pixel size from ``pixel_size`` and the rotation from ``rotation`` (default 0);
+    pixel (0, 0) lies at ``origin``. A plain route (run in a worker thread): decoding and
+    storing never hold the event loop, so an abort is answered meanwhile."""
     limit = services.settings.max_upload_bytes
     data = file.file.read(limit + 1)
     if len(data) > limit:
         raise HTTPException(413, f"the file is larger than the {limit} byte upload limit")
-    if not all(math.isfinite(v) for v in (origin_x, origin_y)):
-        raise HTTPException(422, "origin_x and origin_y must be finite numbers of metres")
     try:
-        pixels, vendor, source = read_sem_tiff(data)
+        pixels, said = read_sem_tiff(data)
     except TiffError as exc:
         raise HTTPException(422, f"file: {exc}") from None
-    if vendor is None:
-        if pixel_size is None or not math.isfinite(pixel_size):
+    size = said.pixel_size
+    if size is not None and not all(1e-12 <= v <= 1e-4 for v in size):
+        raise HTTPException(422, f"file: its {said.source} give a pixel size of {size} m")
+    if size is None:
+        if pixel_size is None:
             raise HTTPException(
                 422,
                 "pixel_size: the TIFF carries no SEM vendor pixel size; give pixel_size in "
                 "metres per pixel",
             )
-        vendor = (pixel_size, pixel_size)
+        size = (pixel_size, pixel_size)
+    turned = said.rotation if said.rotation is not None else (rotation or 0.0)
+    geometry = SEMImage(pixels, (origin_x, origin_y), size, pixel_map(size, turned))
     record = _store(
         session,
         services,
         pixels,
-        source=f"upload ({source})",
-        origin=(origin_x, origin_y),
-        pixel_size=vendor,
+        source=f"upload ({said.source})",
+        geometry=geometry,
+        rotation=turned,
+        sem_stage=said.stage,
     )
     services.events.emit(
         "sem", f"SEM image {record.id} uploaded ({operator})", data={"sem": record.id}

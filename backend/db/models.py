@@ -173,6 +173,13 @@ class SemImageRecord(Base):
     origin_y: Mapped[float] = mapped_column(Float)
     pixel_x: Mapped[float] = mapped_column(Float)
     pixel_y: Mapped[float] = mapped_column(Float)
+    #: the 2 x 2 pixel-to-stage map (metres per pixel step along columns, rows); None:
+    #: diag(pixel_x, pixel_y), how images were placed before it was stored
+    matrix: Mapped[list[list[float]] | None] = mapped_column(JSON, nullable=True)
+    #: the scan rotation the SEM reported or the operator gave, degrees
+    rotation: Mapped[float] = mapped_column(Float, default=0.0)
+    #: where the SEM's own stage stood (x, y, z metres), when the image says
+    sem_stage: Mapped[list[float] | None] = mapped_column(JSON, nullable=True)
 
 
 class Calibration(Base):

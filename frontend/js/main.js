@@ -52,12 +52,19 @@ function roiDrawn(rect) {
   }
   typedRoi = false;
   if (rect) {
-    const a = sem.toStage(rect.col, rect.row);
-    const b = sem.toStage(rect.col + rect.width, rect.row + rect.height);
-    f.roi_x.value = (Math.min(a.x, b.x) * 1e6).toFixed(3);
-    f.roi_y.value = (Math.min(a.y, b.y) * 1e6).toFixed(3);
-    f.roi_width.value = (Math.abs(b.x - a.x) * 1e6).toFixed(3);
-    f.roi_height.value = (Math.abs(b.y - a.y) * 1e6).toFixed(3);
+    // the stage-aligned rectangle around the one drawn (turned, on a rotated image)
+    const corners = [
+      [rect.col, rect.row],
+      [rect.col + rect.width, rect.row],
+      [rect.col, rect.row + rect.height],
+      [rect.col + rect.width, rect.row + rect.height],
+    ].map(([c, r]) => sem.toStage(c, r));
+    const xs = corners.map((p) => p.x);
+    const ys = corners.map((p) => p.y);
+    f.roi_x.value = (Math.min(...xs) * 1e6).toFixed(3);
+    f.roi_y.value = (Math.min(...ys) * 1e6).toFixed(3);
+    f.roi_width.value = ((Math.max(...xs) - Math.min(...xs)) * 1e6).toFixed(3);
+    f.roi_height.value = ((Math.max(...ys) - Math.min(...ys)) * 1e6).toFixed(3);
   } else {
     for (const name of ["roi_x", "roi_y", "roi_width", "roi_height"]) f[name].value = "";
   }

@@ -61,14 +61,18 @@ export class SemView {
     return { col: (cx - this.offset.x) / this.scale, row: (cy - this.offset.y) / this.scale };
   }
 
+  // through the image's affine map: stage = origin + matrix @ (col, row)
   toStage(col, row) {
-    const m = this.image.meta;
-    return { x: m.origin[0] + col * m.pixel_size[0], y: m.origin[1] + row * m.pixel_size[1] };
+    const { origin, matrix: [[a, b], [c, d]] } = this.image.meta;
+    return { x: origin[0] + a * col + b * row, y: origin[1] + c * col + d * row };
   }
 
   fromStage(x, y) {
-    const m = this.image.meta;
-    return { col: (x - m.origin[0]) / m.pixel_size[0], row: (y - m.origin[1]) / m.pixel_size[1] };
+    const { origin, matrix: [[a, b], [c, d]] } = this.image.meta;
+    const u = x - origin[0];
+    const v = y - origin[1];
+    const det = a * d - b * c;
+    return { col: (d * u - b * v) / det, row: (a * v - c * u) / det };
   }
 
   clamp(p) {
@@ -173,6 +177,10 @@ export class SemView {
     this.draw();
   }
 
+  pointToCanvas(col, row) {
+    return [this.offset.x + col * this.scale, this.offset.y + row * this.scale];
+  }
+
   rectToCanvas(col, row, width, height) {
     return [this.offset.x + col * this.scale, this.offset.y + row * this.scale, width * this.scale, height * this.scale];
   }
@@ -207,14 +215,27 @@ export class SemView {
     const centres = [];
     ctx.lineWidth = 1;
     for (const p of plan.patches) {
-      const a = this.fromStage(p.origin[0], p.origin[1]);
-      const b = this.fromStage(p.origin[0] + plan.patchWidth, p.origin[1] + plan.patchHeight);
-      const [x, y, w, h] = this.rectToCanvas(Math.min(a.col, b.col), Math.min(a.row, b.row), Math.abs(b.col - a.col), Math.abs(b.row - a.row));
+      // a patch is a stage-aligned rectangle: on a rotated image, a turned one
+      const [x0, y0] = p.origin;
+      const corners = [
+        [x0, y0],
+        [x0 + plan.patchWidth, y0],
+        [x0 + plan.patchWidth, y0 + plan.patchHeight],
+        [x0, y0 + plan.patchHeight],
+      ].map(([x, y]) => {
+        const q = this.fromStage(x, y);
+        return this.pointToCanvas(q.col, q.row);
+      });
+      ctx.beginPath();
+      corners.forEach(([cx, cy], i) => (i ? ctx.lineTo(cx, cy) : ctx.moveTo(cx, cy)));
+      ctx.closePath();
       ctx.fillStyle = "rgba(60, 170, 255, 0.12)"; // overlaps add up to darker blue
-      ctx.fillRect(x, y, w, h);
+      ctx.fill();
       ctx.strokeStyle = "rgba(60, 170, 255, 0.9)";
-      ctx.strokeRect(x, y, w, h);
-      centres.push([x + w / 2, y + h / 2, p.index]);
+      ctx.stroke();
+      const cx = corners.reduce((t, [x]) => t + x, 0) / 4;
+      const cy = corners.reduce((t, [, y]) => t + y, 0) / 4;
+      centres.push([cx, cy, p.index]);
     }
     ctx.strokeStyle = "#ff5a36"; // the snake: acquisition order
     ctx.beginPath();

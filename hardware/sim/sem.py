@@ -3,7 +3,8 @@
 Contrast, as an Everhart-Thornley detector sees a surface: the secondary-electron yield grows
 with the local tilt (about ``1 / cos θ``), so edges and slopes are bright; the side-mounted
 detector adds shading (faces turned towards it are brighter); shot noise on top. Pixel
-``(col, row)`` of an image lies at stage (sample) position ``origin + (col, row) * pixel``.
+``(col, row)`` of an image lies at stage (sample) position ``origin + (col, -row) * pixel``:
+row 0 is the top line, as an SEM shows it.
 """
 
 from __future__ import annotations
@@ -52,12 +53,14 @@ class SimulatedSEM:
         if not 8 <= pixels <= 4096:
             raise ValueError(f"pixels must be in 8..4096, got {pixels}")
         pitch = field / pixels
-        origin = (centre[0] - field / 2 + pitch / 2, centre[1] - field / 2 + pitch / 2)
+        # row 0 the top line, as an SEM shows it: rows go down the stage's y
+        origin = (centre[0] - field / 2 + pitch / 2, centre[1] + field / 2 - pitch / 2)
         x = origin[0] + np.arange(pixels) * pitch
-        y = origin[1] + np.arange(pixels) * pitch
+        y = origin[1] - np.arange(pixels) * pitch
         xx, yy = np.meshgrid(x, y)
         signal = self.signal(xx, yy, self.noise)
-        return SEMImage(pixels=signal, origin=origin, pixel_size=(pitch, pitch))
+        matrix = ((pitch, 0.0), (0.0, -pitch))
+        return SEMImage(pixels=signal, origin=origin, pixel_size=(pitch, pitch), matrix=matrix)
 
     def signal(self, x: FloatArray, y: FloatArray, noise: float) -> FloatArray:
         """The secondary-electron signal at stage points ``x``, ``y`` (a 2-D grid of them,

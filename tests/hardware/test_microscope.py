@@ -74,8 +74,9 @@ def test_sem_calibration_maps_a_feature_to_its_stage_position() -> None:
     assert x == pytest.approx(0.75e-6, abs=0.05e-6)
     assert y == pytest.approx(0.75e-6, abs=0.05e-6)
     # and the edges are where the heights change: compare with the height gradient
-    xx = img.origin[0] + np.arange(200) * img.pixel_size[0]
-    h = board.height(*np.meshgrid(xx, img.origin[1] + np.arange(200) * img.pixel_size[1]))
+    rows, cols = np.mgrid[0:200, 0:200]
+    xx, yy = img.to_stage(0.0, 0.0)[0] + cols * img.map[0, 0], img.origin[1] + rows * img.map[1, 1]
+    h = board.height(xx, yy)
     steep = (
         ndimage.gaussian_gradient_magnitude(h, 1)
         > 0.5 * ndimage.gaussian_gradient_magnitude(h, 1).max()

@@ -78,3 +78,18 @@ def test_roi_from_sem_pixels_through_the_calibration() -> None:
     img = SEMImage(pixels=np.zeros((100, 100)), origin=(1e-6, 2e-6), pixel_size=(10e-9, 10e-9))
     roi = Roi.from_sem(img, 10, 20, 50, 30)
     assert (roi.x, roi.y, roi.width, roi.height) == pytest.approx((1.1e-6, 2.2e-6, 0.5e-6, 0.3e-6))
+
+
+def test_a_roi_drawn_on_a_rotated_sem_image_covers_the_rotated_rectangle() -> None:
+    a = np.deg2rad(30.0)
+    p = 10e-9
+    matrix = ((p * np.cos(a), p * np.sin(a)), (p * np.sin(a), -p * np.cos(a)))  # rows down
+    img = SEMImage(np.zeros((100, 100)), (1e-6, 2e-6), (p, p), matrix)
+    roi = Roi.from_sem(img, 0, 0, 40, 20)
+    corners = [img.to_stage(c, r) for c in (0, 40) for r in (0, 20)]
+    assert roi.x == pytest.approx(min(x for x, _ in corners))
+    assert roi.y == pytest.approx(min(y for _, y in corners))
+    # a 400 x 200 nm rectangle turned by 30°: its stage-aligned cover
+    assert roi.width == pytest.approx(400e-9 * np.cos(a) + 200e-9 * np.sin(a))
+    assert roi.height == pytest.approx(400e-9 * np.sin(a) + 200e-9 * np.cos(a))
+    assert img.to_pixel(*img.to_stage(12.5, 7.25)) == pytest.approx((12.5, 7.25))

@@ -114,3 +114,69 @@ def test_the_default_sample_has_structure_everywhere_on_20_um(server: Server) ->
     truth = np.load(io.BytesIO(r.content))[:400, :400].reshape(20, 20, 20, 20)
     relief = truth.max(axis=(1, 3)) - truth.min(axis=(1, 3))  # per 1 x 1 µm block
     assert relief.min() > 30e-9
+
+
+def _vendor_tiff(vendor: str) -> bytes:
+    """A 64 x 48 px SEM TIFF of ``vendor`` saying: 12.5 nm pixels, scanned turned 5°, the SEM
+    stage at (1.25, -2.5, 10) mm."""
+    pixels = (np.arange(64 * 48).reshape(48, 64) % 251).astype(np.uint8)
+    if vendor == "fei":  # [Beam] ScanRotation in radians, [Stage] in metres
+        text = (
+            "[User]\nDate=12/06/2026\n[Beam]\nScanRotation=0.0872664626\n"
+            "[Scan]\nPixelWidth=1.25e-08\nPixelHeight=1.25e-08\n"
+            "[Stage]\nStageX=0.00125\nStageY=-0.0025\nStageZ=0.01\n"
+        )
+        tag = (34682, "s", 0, text, True)
+    elif vendor == "zeiss":  # SmartSEM's CZ_SEM tag, tifffile's parse of it
+        text = "\r\n".join(
+            ["0", "AP_IMAGE_PIXEL_SIZE", "Image Pixel Size = 12.5 nm",
+             "AP_SCANROTATION", "Scan Rotation = 5.0 deg",
+             "AP_STAGE_AT_X", "Stage at X = 1.25 mm", "AP_STAGE_AT_Y", "Stage at Y = -2.5 mm",
+             "AP_STAGE_AT_Z", "Stage at Z = 10.0 mm", "END"]
+        )  # fmt: skip
+        tag = (34118, "s", 0, text, True)
+    else:  # TESCAN's header
+        text = (
+            "[MAIN]\nPixelSizeX=1.25e-08\nPixelSizeY=1.25e-08\nScanRotation=5.0\n"
+            "StageX=0.00125\nStageY=-0.0025\nStageZ=0.01\n"
+        )
+        tag = (50431, "s", 0, text, True)
+    buffer = io.BytesIO()
+    tifffile.imwrite(buffer, pixels, extratags=[tag])
+    return buffer.getvalue()
+
+
+@pytest.mark.parametrize("vendor", ["fei", "zeiss", "tescan"])
+def test_an_upload_is_placed_as_its_vendors_tags_say(server: Server, vendor: str) -> None:
+    r = _upload(server, _vendor_tiff(vendor), origin_x="1e-6", origin_y="2e-6")
+    assert r.status_code == 201, r.text
+    sem = r.json()
+    assert sem["pixel_size"] == pytest.approx([12.5e-9, 12.5e-9])
+    assert sem["rotation_deg"] == pytest.approx(5.0)
+    assert sem["sem_stage"] == pytest.approx([1.25e-3, -2.5e-3, 10e-3])
+    a = np.deg2rad(5.0)
+    # rows go down the screen: a step along a row is +x turned by 5°, down a column -y turned
+    expected = [[12.5e-9 * np.cos(a), 12.5e-9 * np.sin(a)],
+                [12.5e-9 * np.sin(a), -12.5e-9 * np.cos(a)]]  # fmt: skip
+    np.testing.assert_allclose(sem["matrix"], expected, rtol=1e-9)
+    # an ROI drawn on it covers the turned rectangle: 40 x 20 px from the origin
+    body = {
+        "sem_roi": {"sem_id": sem["id"], "col": 0, "row": 0, "width": 40, "height": 20},
+        "patch": {"width": 0.6e-6, "height": 0.6e-6, "pixels": [16, 16]},
+        "overlap": [0.25, 0.25],
+    }
+    plan = server.client.post("/api/runs/preview", json=body).json()
+    assert plan["roi"]["width"] == pytest.approx(500e-9 * np.cos(a) + 250e-9 * np.sin(a))
+    assert plan["roi"]["y"] == pytest.approx(2e-6 - 250e-9 * np.cos(a))  # the rows go down
+
+
+def test_an_upload_without_tags_takes_the_rotation_it_is_given(server: Server) -> None:
+    data = _tiff(np.zeros((32, 32), dtype=np.uint16))
+    r = _upload(server, data, pixel_size="5e-9", rotation="-30")
+    assert r.status_code == 201, r.text
+    assert r.json()["rotation_deg"] == -30.0
+    a = np.deg2rad(-30.0)
+    np.testing.assert_allclose(
+        r.json()["matrix"],
+        [[5e-9 * np.cos(a), 5e-9 * np.sin(a)], [5e-9 * np.sin(a), -5e-9 * np.cos(a)]],
+    )
