@@ -18,6 +18,7 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
@@ -32,6 +33,7 @@ from hardware.smaract_mcs import MCSController
 
 if TYPE_CHECKING:
     from hardware.sim.instrument import SimulatedAFM
+    from hardware.sim.sem import SEMGeometry
 
 
 #: Side of the default simulated sample (metres): its structure does not repeat within it.
@@ -129,11 +131,33 @@ def _open_sim(config: str, query: dict[str, list[str]]) -> Microscope:
         probe=afm,
         loop=afm,
         scanner=FineRaster(afm.robot_x, afm.robot_y, afm, afm),
-        sem=SimulatedSEM(afm.surface, seed=int(query.get("seed", ["0"])[-1])),
+        sem=SimulatedSEM(
+            afm.surface,
+            seed=int(query.get("seed", ["0"])[-1]),
+            geometry=_sem_geometry(config, query),
+            stage=afm.stage_position,
+        ),
         simulated=True,
         sim=afm,
         _closers=(afm,),
     )
+
+
+def _sem_geometry(config: str, query: dict[str, list[str]]) -> SEMGeometry:
+    """The simulated SEM's scan against the stage: ``sem_rotation`` (degrees, default 3) and
+    ``sem_scale`` (default 1.025), so that every run meets an SEM a calibration must find."""
+    from hardware.sim.sem import SEMGeometry
+
+    try:
+        rotation = float(query.get("sem_rotation", ["3"])[-1])
+        scale = float(query.get("sem_scale", ["1.025"])[-1])
+    except ValueError:
+        raise ConfigurationError(f"{config}: sem_rotation and sem_scale are numbers") from None
+    if not (math.isfinite(rotation) and -180 <= rotation <= 180 and 0.5 <= scale <= 2.0):
+        raise ConfigurationError(
+            f"{config}: sem_rotation must be in -180..180 degrees and sem_scale in 0.5..2"
+        )
+    return SEMGeometry(rotation=rotation, scale=scale)
 
 
 def simulated_afm(
@@ -152,7 +176,7 @@ def simulated_afm(
     if query is None:
         query = parse_qs(urlsplit(config).query)
 
-    known = {"surface", "seed", "speed", "image", "pixel"}
+    known = {"surface", "seed", "speed", "image", "pixel", "sem_rotation", "sem_scale"}
     unknown = set(query) - known
     if unknown:
         raise ConfigurationError(

@@ -229,8 +229,36 @@ class SEMImage:
         return float(col), float(row)
 
 
+@dataclass(frozen=True)
+class SEMFrame:
+    """An SEM image as the microscope took it, in its own frame (where it lies on the sample
+    stage is the SEM-to-stage calibration's to say).
+
+    pixels : (ny, nx) grey levels, row 0 the top line of the scan (as the SEM shows it).
+    pixel_size : metres per pixel (the field of view over the pixels across).
+    rotation : the scan rotation, degrees (counter-clockwise, as the SEM applies it).
+    stage : the SEM stage's position when it was taken: x, y, z metres.
+    field : the field of view across, metres.
+    dwell : seconds per pixel.
+    detector : the detector's name.
+    """
+
+    pixels: NDArray[np.float64]
+    pixel_size: float
+    rotation: float
+    stage: tuple[float, float, float]
+    field: float
+    dwell: float
+    detector: str
+
+
 @runtime_checkable
 class SEM(Protocol):
     """The scanning electron microscope around the AFM."""
 
-    def grab(self, *, centre: tuple[float, float], field: float, pixels: int) -> SEMImage: ...
+    def acquire(
+        self, *, field: float, pixels: int, dwell: float = 1e-6, detector: str = "SE"
+    ) -> SEMFrame:
+        """One square frame of ``field`` metres across, ``pixels`` a side, ``dwell`` seconds a
+        pixel, on ``detector``, with its geometry as the SEM reports it."""
+        ...

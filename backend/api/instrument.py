@@ -128,6 +128,20 @@ def sim_surface(
     return npy_response(sim.true_heights(x, y, (ny, nx), pixel, tip=tip), "surface.npy")
 
 
+@router.get("/sim/sem")
+def sim_sem(services: ServicesDep) -> dict[str, object]:
+    """The simulated SEM's true map over the stage (what the SEM-to-stage calibration must
+    recover): its scan's rotation (degrees) and scale against the stage, and the lab position
+    of its field's centre (metres)."""
+    _sim(services)
+    sem = services.microscope.sem
+    truth = getattr(sem, "true_map", None)
+    if truth is None:
+        raise HTTPException(404, "this simulated instrument has no simulated SEM")
+    out: dict[str, object] = truth()
+    return out
+
+
 @router.post("/sim/fault", status_code=204)
 def sim_fault(body: SimFaultIn, services: ServicesDep, operator: OperatorDep) -> Response:
     """Make the simulated instrument misbehave: a serial link goes silent, answers garbage

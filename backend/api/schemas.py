@@ -117,9 +117,14 @@ class MergeIn(Strict):
 
 
 class SemAcquireIn(Strict):
+    """An SEM frame to take; ``centre`` is where its field's centre is taken to lie on the
+    stage (its placement until the SEM-to-stage calibration says better)."""
+
     centre: tuple[Metres, Metres] = (0.0, 0.0)
     field: PositiveMetres = Field(default=24e-6, le=1e-2, description="image width, metres")
     pixels: int = Field(default=512, ge=8, le=4096)
+    dwell: FiniteFloat = Field(default=1e-6, ge=1e-8, le=1e-3, description="s a pixel")
+    detector: str = Field(default="SE", min_length=1, max_length=32)
 
 
 LinkFault = Literal["silent", "garbage", "error", "drop"]

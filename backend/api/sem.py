@@ -92,12 +92,35 @@ def _store(
 def acquire(
     body: SemAcquireIn, services: ServicesDep, session: SessionDep, operator: OperatorDep
 ) -> SemOut:
-    """Grab an SEM image centred on ``centre`` (stage, metres), ``field`` metres wide."""
+    """Take an SEM frame ``field`` metres across, ``pixels`` a side, ``dwell`` seconds a pixel,
+    on ``detector``; placed with its field's centre at ``centre`` (stage, metres), turned by
+    the scan rotation the SEM reports, rows down the screen."""
     sem = services.microscope.sem
     if sem is None:
         raise HTTPException(409, "this instrument has no SEM driver: upload a TIFF instead")
-    image = sem.grab(centre=body.centre, field=body.field, pixels=body.pixels)
-    record = _store(session, services, image.pixels, source="acquired", geometry=image)
+    try:
+        frame = sem.acquire(
+            field=body.field, pixels=body.pixels, dwell=body.dwell, detector=body.detector
+        )
+    except ValueError as exc:
+        raise HTTPException(422, str(exc)) from None
+    size = (frame.pixel_size, frame.pixel_size)
+    matrix = pixel_map(size, frame.rotation)
+    middle = (body.pixels - 1) / 2
+    origin = (
+        body.centre[0] - (matrix[0][0] + matrix[0][1]) * middle,
+        body.centre[1] - (matrix[1][0] + matrix[1][1]) * middle,
+    )
+    geometry = SEMImage(frame.pixels, origin, size, matrix)
+    record = _store(
+        session,
+        services,
+        frame.pixels,
+        source=f"acquired ({frame.detector})",
+        geometry=geometry,
+        rotation=frame.rotation,
+        sem_stage=frame.stage,
+    )
     services.events.emit(
         "sem", f"SEM image {record.id} acquired ({operator})", data={"sem": record.id}
     )

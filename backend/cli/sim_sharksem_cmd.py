@@ -48,11 +48,9 @@ def run(args: argparse.Namespace) -> int:
     geometry = SEMGeometry(rotation=args.sem_rotation, scale=args.sem_scale)
     try:
         server = SharkSEMServer(
-            SimulatedSEM(surface, seed=args.seed),
-            geometry,
+            SimulatedSEM(surface, seed=args.seed, geometry=geometry),
             host=args.host,
             port=args.port,
-            seed=args.seed,
         )
     except OSError as exc:
         raise UsageError(f"cannot listen on {args.host}:{args.port} and +1: {exc}") from None

@@ -14,11 +14,11 @@ from __future__ import annotations
 
 import contextlib
 import math
-from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
 
+from hardware.protocols import SEMFrame
 from hardware.sharksem.client import SharkSEMClient
 from hardware.sharksem.errors import SharkSEMError, SharkSEMProtocolError
 from hardware.sharksem.wire import decode
@@ -28,28 +28,6 @@ FloatArray = NDArray[np.float64]
 MM = 1e-3
 #: The input channel images are taken on.
 CHANNEL = 0
-
-
-@dataclass(frozen=True)
-class SEMFrame:
-    """An SEM image as the microscope took it, in its own frame.
-
-    pixels : (ny, nx) grey levels, row 0 the top line of the scan (as the SEM shows it).
-    pixel_size : metres per pixel (the field of view over the pixels across).
-    rotation : the scan rotation, degrees (counter-clockwise, as the SEM applies it).
-    stage : the SEM stage's position when it was taken: x, y, z metres.
-    field : the field of view across, metres.
-    dwell : seconds per pixel.
-    detector : the detector's name.
-    """
-
-    pixels: FloatArray
-    pixel_size: float
-    rotation: float
-    stage: tuple[float, float, float]
-    field: float
-    dwell: float
-    detector: str
 
 
 def _listing(text: str, kind: str) -> dict[int, str]:

@@ -190,6 +190,13 @@ class SimulatedAFM:
         out: FloatArray = self._drift_v * t
         return out
 
+    def stage_position(self) -> tuple[float, float]:
+        """Where the sample stage truly is now (x, y metres): a lab point shows the sample
+        point this far behind it (what the SEM sees move)."""
+        t = self.clock.now()
+        sx, sy = (ch.true_position(t) for ch in self.stage_device.axes)
+        return sx, sy
+
     def sample_xy(self, t: float) -> tuple[float, float]:
         """Sample coordinates under the tip at ``t``."""
         sx, sy = (ch.true_position(t) for ch in self.stage_device.axes)

@@ -9,15 +9,19 @@ row 0 is the top line, as an SEM shows it.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections.abc import Callable
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
 
-from hardware.protocols import SEMImage
+from hardware.protocols import SEMFrame, SEMImage
 from hardware.sim.surfaces import Surface
 
 FloatArray = NDArray[np.float64]
+
+#: The charging drift of the field's centre between two frames, metres (a random walk).
+CHARGING_STEP = 3e-9
 
 
 class SimulatedSEM:
@@ -31,6 +35,12 @@ class SimulatedSEM:
     detector : (dx, dy)
         Horizontal direction of the secondary-electron detector (unit vector).
     seed : int
+    geometry : SEMGeometry
+        How its scan sits over the sample stage (:meth:`acquire`; the truth a calibration
+        must find).
+    stage : callable, optional
+        The sample stage's true position (x, y metres), whose moves the SEM sees the sample
+        make; default fixed at the origin.
     """
 
     def __init__(
@@ -40,14 +50,56 @@ class SimulatedSEM:
         noise: float = 0.05,
         detector: tuple[float, float] = (0.7071, 0.7071),
         seed: int = 0,
+        geometry: SEMGeometry | None = None,
+        stage: Callable[[], tuple[float, float]] | None = None,
     ) -> None:
         self.surface = surface
+        self.geometry = geometry or SEMGeometry()
+        self.stage = stage or (lambda: (0.0, 0.0))
+        self.frames = 0
         self.noise = noise
         self.detector = np.asarray(detector, dtype=np.float64)
         self.rng = np.random.default_rng(seed)
 
+    def acquire(
+        self,
+        *,
+        field: float,
+        pixels: int,
+        dwell: float = 1e-6,
+        detector: str = "SE",
+        scan_rotation: float = 0.0,
+    ) -> SEMFrame:
+        """A frame through its true :attr:`geometry`, the sample where the stage put it, the
+        field's centre crept by charging since the last frame (a random walk of
+        :data:`CHARGING_STEP`), the noise falling with the square root of ``dwell``."""
+        if not (field > 0 and 8 <= pixels <= 8192 and 1e-8 <= dwell <= 1e-3):
+            raise ValueError(f"cannot scan {pixels} px over {field} m at {dwell} s a pixel")
+        if detector.upper() not in ("SE", "BSE", "INBEAM"):
+            raise ValueError(f"no detector {detector!r}: SE, BSE or InBeam")
+        self.frames += 1
+        step = self.rng.normal(0.0, CHARGING_STEP, 2)
+        ox, oy = self.geometry.offset
+        self.geometry = replace(self.geometry, offset=(ox + step[0], oy + step[1]))
+        sx, sy = self.stage()  # a lab point shows the sample point the stage put there
+        seen = replace(self.geometry, offset=(self.geometry.offset[0] - sx,
+                                              self.geometry.offset[1] - sy))  # fmt: skip
+        image = render_frame(
+            self, seen, field=field, pixels=pixels, scan_rotation=scan_rotation, dwell=dwell
+        )
+        return SEMFrame(
+            image, field / pixels, scan_rotation, (0.0, 0.0, 0.01), field, dwell, detector
+        )
+
+    def true_map(self) -> dict[str, object]:
+        """The SEM's true geometry over the stage, as ``GET /api/instrument/sim/sem`` gives
+        it: rotation (degrees), scale and the field centre's lab position (metres)."""
+        g = self.geometry
+        return {"rotation_deg": g.rotation, "scale": g.scale, "offset": list(g.offset)}
+
     def grab(self, *, centre: tuple[float, float], field: float, pixels: int) -> SEMImage:
-        """An image ``field`` metres wide, ``pixels`` square, centred on ``centre`` (stage)."""
+        """An image ``field`` metres wide, ``pixels`` square, centred on ``centre`` (stage),
+        as a perfectly calibrated SEM would place it."""
         if not field > 0:
             raise ValueError(f"field must be positive, got {field}")
         if not 8 <= pixels <= 4096:

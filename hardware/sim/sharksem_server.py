@@ -5,8 +5,8 @@ It answers what :class:`~hardware.sharksem.sem.TescanSEM` asks (``TcpRegDataPort
 ``DtEnumDetectors``, ``DtSelect``, ``DtEnable``, ``EnumGeometries``, ``GetGeometry``,
 ``SetGeometry``, ``ScScanXY``, ``ScStopScan``) and streams every frame's pixels as ``ScData``
 messages on the data link, in blocks. Its images are the simulated SEM's
-(:func:`hardware.sim.sem.render_frame`) through its true :class:`~hardware.sim.sem.SEMGeometry`
-(rotated and scaled against the sample stage), with charging drift between frames.
+(:meth:`hardware.sim.sem.SimulatedSEM.acquire`: through its true geometry, rotated and scaled
+against the sample stage, with charging drift between frames).
 
 Faults, injected as on the other simulators, for ``count`` requests or until healed: ``drop``
 (the control link closes), ``silent`` (no reply), ``garbage`` (a reply that does not parse),
@@ -20,22 +20,19 @@ import socket
 import socketserver
 import threading
 from collections import deque
-from dataclasses import replace
 from typing import Any, Literal
 
 import numpy as np
 
 from hardware.sharksem import wire
 from hardware.sharksem.errors import SharkSEMProtocolError
-from hardware.sim.sem import SEMGeometry, SimulatedSEM, render_frame
+from hardware.sim.sem import SimulatedSEM
 from hardware.sim.tcp_service import TCPService, close_connection, recv_exact
 
 LinkFault = Literal["drop", "silent", "garbage", "short", "drop_data"]
 
 #: Pixels an ``ScData`` message carries at most.
 BLOCK = 64 * 1024
-#: The charging drift of the field's centre between two frames, metres (a random walk).
-CHARGING_STEP = 3e-9
 DETECTORS = ("SE", "BSE", "InBeam")
 VERSION = "SharkSEM simulator 3.2.20"
 
@@ -69,9 +66,7 @@ class SharkSEMServer(TCPService[LinkFault]):
     Parameters
     ----------
     sem : SimulatedSEM
-        What the SEM sees (its sample).
-    geometry : SEMGeometry
-        How its scan sits over the sample stage (the truth a calibration must find).
+        What the SEM sees (its sample, and how its scan sits over the stage: its geometry).
     host, port : str, int
         The control port (0 picks a free one); the data port is the next one up.
     stage : (x, y, z)
@@ -81,12 +76,10 @@ class SharkSEMServer(TCPService[LinkFault]):
     def __init__(
         self,
         sem: SimulatedSEM,
-        geometry: SEMGeometry | None = None,
         *,
         host: str = "127.0.0.1",
         port: int = 0,
         stage: tuple[float, float, float] = (0.0, 0.0, 0.01),
-        seed: int = 0,
     ) -> None:
         for _ in range(50):  # the data port is the control port + 1: find a free pair
             super().__init__(host=host, port=port, code=0)
@@ -98,14 +91,11 @@ class SharkSEMServer(TCPService[LinkFault]):
                 if port:
                     raise
         self.sem = sem
-        self.geometry = geometry or SEMGeometry()
         self.stage = stage
         self.field = 50e-6
         self.detector: int | None = None
         self.enabled = False
         self.scan_rotation = 0.0
-        self.frames = 0
-        self.rng = np.random.default_rng(seed)
         self.world = threading.Lock()
         #: the commands served, for diagnosis and the transcript tests (bounded)
         self.log: deque[str] = deque(maxlen=10_000)
@@ -227,18 +217,14 @@ class SharkSEMServer(TCPService[LinkFault]):
             or self.detector is None
         ):
             return "i", [-1], None  # a square full frame on an enabled detector only
-        self.frames += 1
-        step = self.rng.normal(0.0, CHARGING_STEP, 2)  # the field's centre creeps
-        offset = self.geometry.offset
-        self.geometry = replace(self.geometry, offset=(offset[0] + step[0], offset[1] + step[1]))
-        image = render_frame(
-            self.sem,
-            self.geometry,
+        frame = self.sem.acquire(
             field=self.field,
             pixels=width,
+            dwell=min(max(dwell_ns, 10), 1_000_000) * 1e-9,
+            detector=DETECTORS[self.detector % len(DETECTORS)],
             scan_rotation=self.scan_rotation,
-            dwell=max(dwell_ns, 10) * 1e-9,
         )
+        image = frame.pixels
         lo, hi = np.percentile(image, [0.5, 99.5])
         grey = np.clip((image - lo) / max(hi - lo, 1e-12) * 255 + 0.5, 0, 255).astype(np.uint8)
         return "i", [0], lambda: self._stream(frame_id, grey.ravel(), mode)
@@ -259,8 +245,3 @@ class SharkSEMServer(TCPService[LinkFault]):
                 return
         if mode == "drop_data":
             close_connection(conn)
-
-    def true_map(self) -> dict[str, Any]:
-        """The SEM's true geometry over the stage (what a calibration must recover)."""
-        g = self.geometry
-        return {"rotation_deg": g.rotation, "scale": g.scale, "offset": list(g.offset)}

@@ -3,13 +3,15 @@
 from __future__ import annotations
 
 import io
+from pathlib import Path
 
 import httpx
 import numpy as np
 import pytest
 import tifffile
 
-from tests.backend.api.conftest import AUTH, Server
+from hardware.microscope import ConfigurationError, open_microscope
+from tests.backend.api.conftest import AUTH, Server, open_server
 
 
 def _tiff(pixels: np.ndarray, *, fei_pixel: float | None = None) -> bytes:
@@ -180,3 +182,17 @@ def test_an_upload_without_tags_takes_the_rotation_it_is_given(server: Server) -
         r.json()["matrix"],
         [[5e-9 * np.cos(a), 5e-9 * np.sin(a)], [5e-9 * np.sin(a), -5e-9 * np.cos(a)]],
     )
+
+
+def test_the_simulated_sem_is_rotated_and_scaled_against_the_stage(tmp_path: Path) -> None:
+    for server in open_server(
+        tmp_path, instrument="sim://?speed=max&sem_rotation=-4&sem_scale=0.98"
+    ):
+        truth = server.client.get("/api/instrument/sim/sem").json()
+        assert truth["rotation_deg"] == -4.0 and truth["scale"] == 0.98
+        assert len(truth["offset"]) == 2
+        r = server.post("/api/sem/acquire", {"field": 8e-6, "pixels": 64, "dwell": 2e-6})
+        assert r.status_code == 201, r.text
+        assert server.client.get("/api/instrument/sim/sem").json()["offset"] != truth["offset"]
+    with pytest.raises(ConfigurationError, match="sem_scale"):
+        open_microscope("sim://?sem_scale=5")

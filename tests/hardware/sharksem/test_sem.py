@@ -161,8 +161,9 @@ def test_a_reply_to_another_request_breaks_the_link() -> None:
 
 @pytest.fixture
 def server() -> Iterator[SharkSEMServer]:
-    sem = SimulatedSEM(surface_by_name("chessboard"), seed=3)
-    with SharkSEMServer(sem, SEMGeometry(rotation=4.0, scale=1.03), seed=3) as srv:
+    geometry = SEMGeometry(rotation=4.0, scale=1.03)
+    sem = SimulatedSEM(surface_by_name("chessboard"), seed=3, geometry=geometry)
+    with SharkSEMServer(sem) as srv:
         yield srv
 
 
