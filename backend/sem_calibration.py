@@ -27,6 +27,11 @@ FloatArray = NDArray[np.float64]
 #: Standard deviations of the correlation a peak must stand above the rest to be trusted
 #: (two unrelated noise images reach about 5).
 MIN_CLARITY = 12.0
+#: The next highest correlation peak, over the highest, past which a shift is ambiguous
+#: (the smallest moves, made before any prediction, are judged by it).
+MAX_RIVAL = 0.8
+#: Pixels around a predicted shift its peak is looked for in.
+NEAR = 8.0
 #: The fit's RMS residual, pixels, past which a calibration is refused.
 MAX_RESIDUAL = 0.5
 #: Pixels an image must shift by, at least, for a move to measure anything.
@@ -46,6 +51,8 @@ class Shift:
     columns: float
     rows: float
     clarity: float
+    #: the next highest peak over the highest (near 1: the field repeats itself)
+    rival: float = 0.0
 
 
 def _peak(a: float, b: float, c: float) -> float:
@@ -54,7 +61,7 @@ def _peak(a: float, b: float, c: float) -> float:
     return 0.0 if denominator == 0 else 0.5 * (a - c) / denominator
 
 
-def _correlate(a: FloatArray, b: FloatArray) -> Shift:
+def _correlate(a: FloatArray, b: FloatArray, near: tuple[float, float] | None = None) -> Shift:
     """The translation by phase correlation: whitened cross-power spectrum, a Hann window
     against the edges, the peak to a fraction of a pixel (a first estimate: the window and
     the content's own aliasing bias it by a tenth of a pixel)."""
@@ -64,7 +71,13 @@ def _correlate(a: FloatArray, b: FloatArray) -> Shift:
     cross = fb * np.conj(fa)
     cross /= np.maximum(np.abs(cross), 1e-300)
     surface = np.fft.ifft2(cross).real
-    r, c = (int(v) for v in np.unravel_index(int(np.argmax(surface)), surface.shape))
+    search = surface
+    if near is not None:  # the peak within :data:`NEAR` px of where it is expected
+        ny, nx = surface.shape
+        dr = (np.arange(ny)[:, None] - near[1] + ny / 2) % ny - ny / 2
+        dc = (np.arange(nx)[None, :] - near[0] + nx / 2) % nx - nx / 2
+        search = np.where(np.hypot(dr, dc) <= NEAR, surface, -np.inf)
+    r, c = (int(v) for v in np.unravel_index(int(np.argmax(search)), surface.shape))
     ny, nx = surface.shape
     dr = r + _peak(*(float(surface[(r + d) % ny, c]) for d in (-1, 0, 1)))
     dc = c + _peak(*(float(surface[r, (c + d) % nx]) for d in (-1, 0, 1)))
@@ -72,9 +85,10 @@ def _correlate(a: FloatArray, b: FloatArray) -> Shift:
     rest[np.ix_(np.arange(r - 5, r + 6) % ny, np.arange(c - 5, c + 6) % nx)] = False
     side = surface[rest]
     clarity = float((surface[r, c] - side.mean()) / max(float(side.std()), 1e-300))
+    rival = float(side.max() / surface[r, c]) if surface[r, c] > 0 else 1.0
     dr = dr - ny if dr > ny / 2 else dr
     dc = dc - nx if dc > nx / 2 else dc
-    return Shift(float(dc), float(dr), clarity)
+    return Shift(float(dc), float(dr), clarity, rival)
 
 
 def _refine(a: FloatArray, b: FloatArray, start: Shift, *, steps: int = 12) -> Shift:
@@ -106,17 +120,21 @@ def _refine(a: FloatArray, b: FloatArray, start: Shift, *, steps: int = 12) -> S
         gain, level = gain + step[2], level + step[3]
         if abs(step[0]) + abs(step[1]) < 1e-4:
             break
-    return Shift(float(d[0]), float(d[1]), start.clarity)
+    return Shift(float(d[0]), float(d[1]), start.clarity, start.rival)
 
 
-def phase_shift(before: FloatArray, after: FloatArray) -> Shift:
+def phase_shift(
+    before: FloatArray, after: FloatArray, *, near: tuple[float, float] | None = None
+) -> Shift:
     """The translation of ``after``'s content against ``before``'s (both (ny, nx), one
     shape): phase correlation for where (:func:`_correlate`), then least squares on the
-    overlap for how far exactly (:func:`_refine`)."""
+    overlap for how far exactly (:func:`_refine`). ``near`` (columns, rows): look for the
+    peak within :data:`NEAR` pixels of there only (a sample that repeats itself has peaks
+    alike one period apart)."""
     a, b = np.asarray(before, dtype=np.float64), np.asarray(after, dtype=np.float64)
     if a.shape != b.shape or a.ndim != 2 or min(a.shape) < 16:
         raise ValueError(f"need two 2-D images of one shape, 16 px at least: {a.shape}, {b.shape}")
-    return _refine(a, b, _correlate(a, b))
+    return _refine(a, b, _correlate(a, b, near))
 
 
 @dataclass(frozen=True)
@@ -139,6 +157,8 @@ class Calibration:
     sigma: FloatArray
     stage: tuple[float, float] = (0.0, 0.0)
     field: float | None = None
+    #: the image shift each move made, as measured
+    shifts: tuple[Shift, ...] = ()
 
     @property
     def rotation_deg(self) -> float:
@@ -223,17 +243,46 @@ def calibrate(
     reference image, taken with the sample stage at ``stage``.
 
     Raises :class:`CalibrationError` when an image has too little structure to tell its
-    shift (a peak less clear than :data:`MIN_CLARITY`), when a move shifted the image less
+    shift (a peak less clear than :data:`MIN_CLARITY`), when it repeats itself (a rival peak
+    past :data:`MAX_RIVAL` of it), when a move shifted the image less
     than :data:`MIN_SHIFT` pixels (the stage did not move, or moved too little), or when the
     fit leaves more than :data:`MAX_RESIDUAL` pixels of residual."""
-    shifts = []
-    for k, (move, image) in enumerate(moved):
-        shift = phase_shift(reference, image)
+    # the smallest moves first; once two directions are measured, the later (larger) moves
+    # are looked for where the map so far puts them: a field that repeats itself has peaks
+    # alike one period apart, and only the near one is the move
+    order = sorted(range(len(moved)), key=lambda k: math.hypot(*moved[k][0]))
+    found: dict[int, Shift] = {}
+    for k in order:
+        move, image = moved[k]
+        near = None
+        if len(found) >= 2:
+            try:
+                trial, _, _ = fit_matrix([moved[j][0] for j in found], list(found.values()))
+                predicted = np.linalg.solve(trial, np.asarray(move))
+                near = (float(predicted[0]), float(predicted[1]))
+            except (CalibrationError, np.linalg.LinAlgError):
+                near = None
+        shift = phase_shift(reference, image, near=near)
+        if near is not None and shift.clarity < MIN_CLARITY:
+            elsewhere = phase_shift(reference, image)
+            if elsewhere.clarity >= MIN_CLARITY:
+                raise CalibrationError(
+                    f"the moves disagree: move {k + 1} ({move[0] * 1e6:.3g}, "
+                    f"{move[1] * 1e6:.3g} µm) shifted the image by ({elsewhere.columns:.1f}, "
+                    f"{elsewhere.rows:.1f}) px where the moves before put it at ({near[0]:.1f}, "
+                    f"{near[1]:.1f}): the stage did not go where it was told"
+                )
         if shift.clarity < MIN_CLARITY:
             raise CalibrationError(
                 f"move {k + 1}: the images do not correlate clearly (a peak {shift.clarity:.1f} "
                 "standard deviations high): too little structure in the field; pick a "
                 "textured area"
+            )
+        if near is None and shift.rival > MAX_RIVAL:
+            raise CalibrationError(
+                f"move {k + 1}: two places fit alike (the second peak {shift.rival:.0%} of the "
+                "first): the field repeats itself (a periodic sample); use a smaller field or "
+                "another area"
             )
         if math.hypot(shift.columns, shift.rows) < MIN_SHIFT:
             raise CalibrationError(
@@ -241,7 +290,8 @@ def calibrate(
                 f"by {math.hypot(shift.columns, shift.rows):.2f} px: the stage did not move, or "
                 "moved too little for this field"
             )
-        shifts.append(shift)
+        found[k] = shift
+    shifts = [found[k] for k in range(len(moved))]
     matrix, residual, sigma = fit_matrix([m for m, _ in moved], shifts)
     if residual > MAX_RESIDUAL:
         raise CalibrationError(
@@ -250,4 +300,12 @@ def calibrate(
         )
     (column, row), (x, y) = anchor
     offset = np.array([x, y]) - matrix @ np.array([column, row])
-    return Calibration(matrix, (float(offset[0]), float(offset[1])), residual, sigma, stage, field)
+    return Calibration(
+        matrix,
+        (float(offset[0]), float(offset[1])),
+        residual,
+        sigma,
+        stage,
+        field,
+        tuple(shifts),
+    )

@@ -20,11 +20,12 @@ recovery after a restart and the supervisor between runs (:mod:`backend.acquisit
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import logging
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -93,6 +94,7 @@ class Runner(RunEnding, PatchLoop, UnattendedSafety):
         self._thread: threading.Thread | None = None
         self._control: Control | None = None
         self._io = threading.Lock()  # one user of the instrument links at a time
+        self._busy: str | None = None  # what holds the instrument outside a run
         self._snapshot: dict[str, Any] = {}
         #: runs concluded whose end the database did not take yet: (state, reason, actor)
         self._unrecorded: dict[int, tuple[RunState, str, str]] = {}
@@ -150,6 +152,8 @@ class Runner(RunEnding, PatchLoop, UnattendedSafety):
                     f"run {held}'s end is not recorded yet: " + self._full_message(),
                 )
         with self._lock:
+            if self._busy is not None:
+                raise Conflict(f"the instrument is busy ({self._busy}): start the run after it")
             busy = self._thread is not None and self._thread.is_alive()
             if busy and self._control is not None:
                 raise Conflict(
@@ -249,6 +253,31 @@ class Runner(RunEnding, PatchLoop, UnattendedSafety):
                 f"reset by the operator ({tip}): {note}; safe state confirmed",
                 actor,
             )
+
+    @contextlib.contextmanager
+    def exclusive(self, what: str) -> Iterator[None]:
+        """The instrument for ``what`` (an SEM calibration moving the stage) while no run uses
+        it: a run in progress or in fault, or another such use, is a :class:`Conflict`; a run
+        asked to start meanwhile is refused. The tip is withdrawn first."""
+        with self._lock:
+            if self.active_run is not None:
+                raise Conflict(f"run {self.active_run} is using the instrument: {what} waits")
+            if self._busy is not None:
+                raise Conflict(f"the instrument is busy ({self._busy}): {what} waits")
+            with self.sessions() as session:
+                fault = session.scalars(
+                    select(Run.id).where(Run.state == RunState.FAULT.value)
+                ).first()
+            if fault is not None:
+                raise Conflict(f"run {fault} is in fault: reset it before {what}")
+            self._busy = what
+        try:
+            with self._io:
+                self._safe_state()
+                yield
+        finally:
+            with self._lock:
+                self._busy = None
 
     def wait_idle(self, timeout: float) -> bool:
         with self._lock:

@@ -127,6 +127,52 @@ class SemAcquireIn(Strict):
     detector: str = Field(default="SE", min_length=1, max_length=32)
 
 
+class AnchorIn(Strict):
+    """One point known in both frames: a pixel of the reference image (the tip seen there)
+    and the sample position it shows (metres)."""
+
+    col: FiniteFloat
+    row: FiniteFloat
+    x: Metres
+    y: Metres
+
+
+class CalibrateIn(Strict):
+    """An SEM-to-stage calibration to run: frames of ``field`` metres, ``pixels`` a side,
+    before and after stage moves of ``step`` (default a tenth of the field), along x and y
+    both ways and twice as far."""
+
+    field: PositiveMetres = Field(default=20e-6, le=1e-3)
+    pixels: int = Field(default=256, ge=64, le=2048)
+    step: PositiveMetres | None = Field(default=None, le=1e-3)
+    dwell: FiniteFloat = Field(default=1e-6, ge=1e-8, le=1e-3)
+    detector: str = Field(default="SE", min_length=1, max_length=32)
+    anchor: AnchorIn | None = None
+
+
+class CalibrationOut(BaseModel):
+    """The SEM-to-stage calibration: ``sample = matrix @ (column, row) + offset`` for a frame
+    like its reference, taken with the stage at ``stage``."""
+
+    id: int
+    created_at: datetime
+    instrument: str
+    field: float
+    pixels: int
+    rotation_deg: float = Field(description="of the image's columns from the stage's +x")
+    scale: tuple[float, float] = Field(description="metres per pixel along columns, rows")
+    shear: float = Field(description="cosine of the angle between the pixel axes")
+    offset: tuple[float, float]
+    matrix: tuple[tuple[float, float], tuple[float, float]]
+    stage: tuple[float, float]
+    residual_px: float
+    sigma: tuple[tuple[float, float], tuple[float, float]]
+    moves: list[tuple[float, float, float, float]] = Field(
+        description="each stage move (m) and the image shift it gave (columns, rows)"
+    )
+    actor: str
+
+
 LinkFault = Literal["silent", "garbage", "error", "drop"]
 #: Faults that spoil the scans of chosen patches (:mod:`hardware.sim.faults`).
 SpoilingFault = Literal["tip_change", "parachute", "lost_lines", "z_jump"]

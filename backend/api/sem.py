@@ -7,11 +7,14 @@ from typing import Annotated
 
 import numpy as np
 from fastapi import APIRouter, File, Form, HTTPException, Response, UploadFile
+from sqlalchemy import select
 
+from backend.acquisition.sem_stage import measure, place_frame, stage_position
 from backend.api.deps import OperatorDep, ServicesDep, SessionDep
 from backend.api.responses import NPY, PNG_RESPONSES, npy_response
-from backend.api.schemas import SemAcquireIn, SemId, SemOut
-from backend.db.models import SemImageRecord
+from backend.api.schemas import CalibrateIn, CalibrationOut, SemAcquireIn, SemId, SemOut
+from backend.db.models import SemCalibrationRecord, SemImageRecord
+from backend.sem_calibration import Calibration, CalibrationError
 from backend.sem_files import TiffError, pixel_map, read_sem_tiff, save_pixels, sem_path
 from hardware.protocols import SEMImage
 from merge.io.png import encode_png
@@ -93,8 +96,9 @@ def acquire(
     body: SemAcquireIn, services: ServicesDep, session: SessionDep, operator: OperatorDep
 ) -> SemOut:
     """Take an SEM frame ``field`` metres across, ``pixels`` a side, ``dwell`` seconds a pixel,
-    on ``detector``; placed with its field's centre at ``centre`` (stage, metres), turned by
-    the scan rotation the SEM reports, rows down the screen."""
+    on ``detector``; placed through the SEM-to-stage calibration in force, or without one
+    with its field's centre at ``centre`` (stage, metres), turned by the scan rotation the SEM
+    reports, rows down the screen."""
     sem = services.microscope.sem
     if sem is None:
         raise HTTPException(409, "this instrument has no SEM driver: upload a TIFF instead")
@@ -105,13 +109,23 @@ def acquire(
     except ValueError as exc:
         raise HTTPException(422, str(exc)) from None
     size = (frame.pixel_size, frame.pixel_size)
-    matrix = pixel_map(size, frame.rotation)
-    middle = (body.pixels - 1) / 2
-    origin = (
-        body.centre[0] - (matrix[0][0] + matrix[0][1]) * middle,
-        body.centre[1] - (matrix[1][0] + matrix[1][1]) * middle,
-    )
-    geometry = SEMImage(frame.pixels, origin, size, matrix)
+    record_in_force = _in_force(session, services)
+    if record_in_force is not None:  # where the calibration says
+        geometry = place_frame(
+            frame,
+            calibration=_calibration(record_in_force),
+            pixels_then=record_in_force.pixels,
+            rotation_then=record_in_force.scan_rotation,
+            stage_now=stage_position(services.microscope),
+        )
+    else:  # nominal: its field centred on ``centre``, turned by its scan rotation
+        matrix = pixel_map(size, frame.rotation)
+        middle = (body.pixels - 1) / 2
+        origin = (
+            body.centre[0] - (matrix[0][0] + matrix[0][1]) * middle,
+            body.centre[1] - (matrix[1][0] + matrix[1][1]) * middle,
+        )
+        geometry = SEMImage(frame.pixels, origin, size, matrix)
     record = _store(
         session,
         services,
@@ -125,6 +139,116 @@ def acquire(
         "sem", f"SEM image {record.id} acquired ({operator})", data={"sem": record.id}
     )
     return sem_out(record)
+
+
+def _in_force(session: SessionDep, services: ServicesDep) -> SemCalibrationRecord | None:
+    """The newest calibration of this instrument."""
+    return session.scalars(
+        select(SemCalibrationRecord)
+        .where(SemCalibrationRecord.instrument == services.microscope.description)
+        .order_by(SemCalibrationRecord.id.desc())
+        .limit(1)
+    ).first()
+
+
+def _calibration(r: SemCalibrationRecord) -> Calibration:
+    return Calibration(
+        np.asarray(r.matrix, dtype=np.float64),
+        (r.offset[0], r.offset[1]),
+        r.residual_px,
+        np.asarray(r.sigma, dtype=np.float64),
+        (r.stage[0], r.stage[1]),
+        r.field,
+    )
+
+
+def calibration_out(r: SemCalibrationRecord) -> CalibrationOut:
+    c = _calibration(r)
+    m, sd = c.matrix, c.sigma
+    return CalibrationOut(
+        id=r.id,
+        created_at=r.created_at,
+        instrument=r.instrument,
+        field=r.field,
+        pixels=r.pixels,
+        rotation_deg=c.rotation_deg,
+        scale=c.scale,
+        shear=c.shear,
+        offset=c.offset,
+        matrix=((m[0, 0], m[0, 1]), (m[1, 0], m[1, 1])),
+        stage=c.stage,
+        residual_px=r.residual_px,
+        sigma=((sd[0, 0], sd[0, 1]), (sd[1, 0], sd[1, 1])),
+        moves=[(a, b, c_, d) for a, b, c_, d in r.moves],
+        actor=r.actor,
+    )
+
+
+@router.post("/calibrate", status_code=201, response_model=CalibrationOut)
+def calibrate_sem(
+    body: CalibrateIn, services: ServicesDep, session: SessionDep, operator: OperatorDep
+) -> CalibrationOut:
+    """Measure where the SEM's pixels lie on the stage: frames before and after known moves
+    of the sample stage (the tip withdrawn, no run on the instrument; the stage ends where it
+    began). Its offset comes from ``anchor`` (the tip seen in the reference frame), else from
+    the SEM's nominal mounting over the tip's raster. A calibration that cannot be trusted is
+    a 422 saying why; a busy instrument a 409."""
+    m = services.microscope
+    if m.sem is None:
+        raise HTTPException(409, "this instrument has no SEM driver to calibrate")
+    step = body.step if body.step is not None else body.field / 10
+    anchor = None
+    if body.anchor is not None:
+        a = body.anchor
+        anchor = ((a.col, a.row), (a.x, a.y))
+    try:
+        with services.runner.exclusive("an SEM calibration"):
+            found, rotation, moves = measure(
+                m,
+                field=body.field,
+                pixels=body.pixels,
+                step=step,
+                dwell=body.dwell,
+                detector=body.detector,
+                anchor=anchor,
+            )
+    except CalibrationError as exc:
+        raise HTTPException(422, f"calibration refused: {exc}") from None
+    except ValueError as exc:
+        raise HTTPException(409, str(exc)) from None
+    record = SemCalibrationRecord(
+        instrument=m.description,
+        field=body.field,
+        pixels=body.pixels,
+        scan_rotation=rotation,
+        matrix=found.matrix.tolist(),
+        offset=list(found.offset),
+        stage=list(found.stage),
+        residual_px=found.residual_px,
+        sigma=found.sigma.tolist(),
+        moves=moves,
+        actor=operator,
+    )
+    session.add(record)
+    session.commit()
+    out = calibration_out(record)
+    services.events.emit(
+        "sem",
+        f"SEM calibrated ({operator}): {out.rotation_deg:.3f}°, "
+        f"{out.scale[0] * 1e9:.3f} x {out.scale[1] * 1e9:.3f} nm/px, "
+        f"residual {out.residual_px:.2f} px",
+        data={"calibration": record.id},
+    )
+    return out
+
+
+@router.get("/calibration", response_model=CalibrationOut)
+def calibration_in_force(services: ServicesDep, session: SessionDep) -> CalibrationOut:
+    """The SEM-to-stage calibration acquired frames are placed through (the newest)."""
+    record = _in_force(session, services)
+    if record is None:
+        raise HTTPException(404, "no SEM calibration yet: run POST /api/sem/calibrate")
+    return calibration_out(record)
 
 
 @router.post("/upload", status_code=201, response_model=SemOut)

@@ -182,6 +182,29 @@ class SemImageRecord(Base):
     sem_stage: Mapped[list[float] | None] = mapped_column(JSON, nullable=True)
 
 
+class SemCalibrationRecord(Base):
+    """An SEM-to-stage calibration measured (:mod:`backend.sem_calibration`): the map of the
+    reference image's pixels to the sample at the stage position it was taken at."""
+
+    __tablename__ = "sem_calibrations"
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    created_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
+    instrument: Mapped[str] = mapped_column(String(512), index=True)
+    field: Mapped[float] = mapped_column(Float)
+    pixels: Mapped[int] = mapped_column(Integer)
+    #: the scan rotation the SEM reported when it was measured, degrees
+    scan_rotation: Mapped[float] = mapped_column(Float)
+    matrix: Mapped[list[list[float]]] = mapped_column(JSON)
+    offset: Mapped[list[float]] = mapped_column(JSON)
+    stage: Mapped[list[float]] = mapped_column(JSON)
+    residual_px: Mapped[float] = mapped_column(Float)
+    sigma: Mapped[list[list[float]]] = mapped_column(JSON)
+    #: every stage move made (metres) and the image shift it gave (pixels)
+    moves: Mapped[list[list[float]]] = mapped_column(JSON)
+    actor: Mapped[str] = mapped_column(String(100))
+
+
 class Calibration(Base):
     """A calibration of one axis or instrument quantity (e.g. a fine-mode gain)."""
 
