@@ -91,7 +91,6 @@ class TescanSEM:
         pixels: int,
         dwell: float = 1e-6,
         detector: str = "SE",
-        timeout: float = 60.0,
     ) -> SEMFrame:
         """One ``pixels`` x ``pixels`` frame of ``field`` metres across, ``dwell`` seconds a
         pixel, on ``detector``; its geometry as the SEM reports it."""

@@ -24,7 +24,7 @@ from hardware.nanonis import wire
 from hardware.nanonis.errors import NanonisProtocolError
 from hardware.sim.instrument import SimulatedAFM
 from hardware.sim.nanonis_controller import NanonisController
-from hardware.sim.tcp_service import TCPService, close_connection, recv_exact
+from hardware.sim.tcp_service import TCPService, close_connection, receive_message
 
 LinkFault = Literal["drop", "silent", "error", "short", "garbage"]
 PhysicsFault = Literal["pll_loss", "z_limit"]
@@ -95,17 +95,10 @@ class NanonisServer(TCPService[LinkFault]):
     def serve(self, handler: socketserver.StreamRequestHandler) -> None:
         conn = handler.connection
         while True:
-            try:
-                header = recv_exact(conn, wire.HEADER_SIZE)
-                if header is None:
-                    return
-                parsed = wire.decode_header(header)
-                body = recv_exact(conn, parsed.body_size)
-                if body is None:
-                    return
-            except (OSError, NanonisProtocolError):
-                conn.close()  # a stream out of step cannot be resynchronised
+            got = receive_message(conn, wire.HEADER_SIZE, wire.decode_header, NanonisProtocolError)
+            if got is None:
                 return
+            parsed, body = got
             mode = self.take_fault()
             if mode == "drop":
                 close_connection(conn)

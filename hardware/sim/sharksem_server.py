@@ -27,7 +27,7 @@ import numpy as np
 from hardware.sharksem import wire
 from hardware.sharksem.errors import SharkSEMProtocolError
 from hardware.sim.sem import SimulatedSEM
-from hardware.sim.tcp_service import TCPService, close_connection, recv_exact
+from hardware.sim.tcp_service import TCPService, close_connection, receive_message
 
 LinkFault = Literal["drop", "silent", "garbage", "short", "drop_data"]
 
@@ -125,17 +125,10 @@ class SharkSEMServer(TCPService[LinkFault]):
     def serve(self, handler: socketserver.StreamRequestHandler) -> None:
         conn = handler.connection
         while True:
-            try:
-                head = recv_exact(conn, wire.HEADER_SIZE)
-                if head is None:
-                    return
-                header = wire.decode_header(head)
-                body = recv_exact(conn, header.body_size)
-                if body is None:
-                    return
-            except (OSError, SharkSEMProtocolError):
-                conn.close()  # a stream out of step cannot be resynchronised
+            got = receive_message(conn, wire.HEADER_SIZE, wire.decode_header, SharkSEMProtocolError)
+            if got is None:
                 return
+            header, body = got
             mode = self.take_fault()
             if mode == "drop":
                 close_connection(conn)

@@ -13,9 +13,10 @@ import socket
 import socketserver
 import threading
 from abc import ABC, abstractmethod
+from collections.abc import Callable
 from dataclasses import dataclass
 from types import TracebackType
-from typing import Generic, Self, TypeVar
+from typing import Generic, Protocol, Self, TypeVar
 
 Mode = TypeVar("Mode", bound=str)
 
@@ -125,3 +126,32 @@ def recv_exact(conn: socket.socket, n: int) -> bytes | None:
         chunks.append(chunk)
         got += len(chunk)
     return b"".join(chunks)
+
+
+class _Sized(Protocol):
+    @property
+    def body_size(self) -> int: ...
+
+
+H = TypeVar("H", bound=_Sized)
+
+
+def receive_message(
+    conn: socket.socket,
+    header_size: int,
+    decode: Callable[[bytes], H],
+    garbled: type[Exception],
+) -> tuple[H, bytes] | None:
+    """The next whole message on ``conn``: its header (``decode`` of ``header_size`` bytes)
+    and body; None when the peer closed, or when the stream is out of step (a ``garbled``
+    header, a link error): a simulator closes the connection then, as it cannot resynchronise."""
+    try:
+        head = recv_exact(conn, header_size)
+        if head is None:
+            return None
+        header = decode(head)
+        body = recv_exact(conn, header.body_size)
+    except (OSError, garbled):
+        conn.close()
+        return None
+    return None if body is None else (header, body)
