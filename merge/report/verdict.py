@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from merge.core.errors import listed
 from merge.report.summary import MergeResult
 
 #: Methods that measure XY from the overlaps (the others level Z, or keep the stage's XY).
@@ -21,11 +22,6 @@ class Verdict:
     line: str
     isolated: tuple[str, ...]
     unconfirmed: tuple[str, ...]
-
-
-def _names(ids: tuple[str, ...], most: int = 6) -> str:
-    shown = ", ".join(ids[:most])
-    return shown + (f" and {len(ids) - most} more" if len(ids) > most else "")
 
 
 def verdict(result: MergeResult) -> Verdict:
@@ -46,17 +42,17 @@ def verdict(result: MergeResult) -> Verdict:
         return Verdict(False, line, isolated, loose)
     if isolated:
         line = (
-            f"NOT TRUSTED: {len(isolated)} of {n} patches overlap no other ({_names(isolated)}): "
-            "their places are their offsets, not a measurement; check those files' offsets"
+            f"NOT TRUSTED: {len(isolated)} of {n} patches overlap no other "
+            f"({listed(isolated, 6)}): their places are their offsets, not a measurement; check those files' offsets"
         )
         return Verdict(False, line, isolated, loose)
     if 2 * len(loose) > len(linked):
         line = (
             f"NOT TRUSTED: the places of {len(loose)} of {n} patches are not confirmed by "
-            f"their overlaps ({_names(loose)}; the warnings say why): the offsets may be "
+            f"their overlaps ({listed(loose, 6)}; the warnings say why): the offsets may be "
             "wrong, or the overlaps too narrow or too flat"
         )
         return Verdict(False, line, isolated, loose)
     what = "every patch's place measured by its overlaps" if registering else "Z levelled"
-    caveat = f"; {len(loose)} patch(es) unconfirmed ({_names(loose)})" if loose else ""
+    caveat = f"; {len(loose)} patch(es) unconfirmed ({listed(loose, 6)})" if loose else ""
     return Verdict(True, f"CONFIRMED: {what} ({n} patches{caveat})", isolated, loose)

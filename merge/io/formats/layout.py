@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
+from merge.core.errors import listed
 from merge.io.formats.image import AfmImage
 
 Place = tuple[tuple[float, float], int | None, int | None]  # origin (m), row, col
@@ -19,11 +20,6 @@ MAX_ROTATION = 1.0
 
 class LayoutError(ValueError):
     """The scans cannot be placed as asked; the message says what to give."""
-
-
-def _listed(names: Sequence[str], most: int = 5) -> str:
-    shown = ", ".join(names[:most])
-    return shown + (f" and {len(names) - most} more" if len(names) > most else "")
 
 
 def scan_places(
@@ -49,7 +45,7 @@ def scan_places(
         missing = [n for n, o in zip(label, offsets, strict=True) if o is None]
         if missing:
             raise LayoutError(
-                f"{_listed(missing)} carry no scan offset, so nothing says where they lie: "
+                f"{listed(missing)} carry no scan offset, so nothing says where they lie: "
                 "give the grid and the overlap (--grid ROWSxCOLS --overlap OX,OY)"
             )
         rotated = [
@@ -59,13 +55,13 @@ def scan_places(
         ]
         if rotated:
             raise LayoutError(
-                f"{_listed(rotated)} were scanned rotated in the scan plane: their offsets do "
+                f"{listed(rotated)} were scanned rotated in the scan plane: their offsets do "
                 "not place them; merge scans taken without scan rotation, or give the grid"
             )
         groups: dict[tuple[float, float] | None, list[str]] = {}
         for n, o in zip(label, offsets, strict=True):
             groups.setdefault(o, []).append(n)
-        shared = "; ".join(_listed(g) for g in groups.values() if len(g) > 1)
+        shared = "; ".join(listed(g) for g in groups.values() if len(g) > 1)
         if shared:
             raise LayoutError(
                 f"{shared} share one scan offset, so the offsets do not lay out a mosaic: "
