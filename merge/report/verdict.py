@@ -43,7 +43,8 @@ def verdict(result: MergeResult) -> Verdict:
     if isolated:
         line = (
             f"NOT TRUSTED: {len(isolated)} of {n} patches overlap no other "
-            f"({listed(isolated, 6)}): their places are their offsets, not a measurement; check those files' offsets"
+            f"({listed(isolated, 6)}): their places are their offsets, not a measurement; "
+            "check those files' offsets"
         )
         return Verdict(False, line, isolated, loose)
     if 2 * len(loose) > len(linked):
