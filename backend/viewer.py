@@ -107,9 +107,15 @@ class ClientView:
         self.reset = gui.add_button("Reset camera")
         self.scale = EXAGGERATION[0]
         self.mode = SHOW[0]
-        self.exaggeration.on_update(lambda _: self._changed())
-        self.show.on_update(lambda _: self._changed())
+        self.exaggeration.on_update(self._on_update)
+        self.show.on_update(self._on_update)
         self.reset.on_click(lambda _: on_reset(client))
+
+    async def _on_update(self, _event: Any) -> None:
+        # A coroutine runs on viser's event loop, between one message and the next: the value
+        # read is the one this message set. A plain callback runs in a thread pool, where a
+        # rejected value's put-back can land after, and undo, a sane one sent just behind it.
+        self._changed()
 
     def _changed(self) -> None:
         """Take the controls' values where they are sane; put back the last sane ones
