@@ -14,6 +14,8 @@
   sample stage through Nanonis's coarse motor module too. Options (see
   :func:`hardware.nanonis.open.open_nanonis`): ``landing`` (woodpecker or auto), ``approach``
   (Z- or Z+), ``z_channel``, ``angle``, ``backward_ratio``, ``timeout``, ``motor_group``.
+* The SEM composes with either: ``&sem=sharksem://HOST:PORT`` (``;sem=...`` in ``mcs://``), a
+  TESCAN SEM over SharkSEM (:mod:`hardware.sharksem.open`); ``sim://`` keeps its own SEM.
 """
 
 from __future__ import annotations
@@ -21,7 +23,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 from urllib.parse import parse_qs, urlsplit
 
 from hardware.envelope import ScanEnvelope
@@ -220,16 +222,30 @@ def _open_mcs(config: str, spec: str) -> Microscope:
     urls: dict[str, str] = {}
     for item in filter(None, spec.split(";")):
         key, sep, value = item.partition("=")
-        if not sep or key not in ("stage", "robot") or not value:
-            raise ConfigurationError(f"{config}: expected stage=URL;robot=URL, got {item!r}")
+        if not sep or key not in ("stage", "robot", "sem") or not value:
+            raise ConfigurationError(
+                f"{config}: expected stage=URL;robot=URL[;sem=sharksem://HOST:PORT], got {item!r}"
+            )
         urls[key] = value
-    if set(urls) != {"stage", "robot"}:
+    if not {"stage", "robot"} <= set(urls):
         raise ConfigurationError(f"{config}: both stage=URL and robot=URL are needed")
-    stage = MCSController.open(urls["stage"])
+    sem = None
+    if "sem" in urls:
+        from hardware.sharksem.open import SEMConfigurationError, open_sem
+
+        try:
+            sem = open_sem(urls["sem"])
+        except SEMConfigurationError as exc:
+            raise ConfigurationError(f"{config}: {exc}") from None
+    opened: list[Any] = [sem] if sem is not None else []
     try:
+        stage = MCSController.open(urls["stage"])
+        opened.append(stage)
         robot = MCSController.open(urls["robot"])
+        opened.append(robot)
     except Exception:
-        stage.close()
+        for thing in opened:
+            thing.close()
         raise
     return Microscope(
         description=config,
@@ -241,7 +257,7 @@ def _open_mcs(config: str, spec: str) -> Microscope:
         probe=None,
         loop=None,
         scanner=None,
-        sem=None,
+        sem=sem,
         simulated=False,
-        _closers=(stage, robot),
+        _closers=tuple(opened),
     )

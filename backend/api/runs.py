@@ -29,9 +29,10 @@ from backend.api.schemas import (
     RoiOut,
     RunId,
     RunOut,
+    RunSemOut,
 )
-from backend.api.sem import stored_geometry
-from backend.db.models import MergeJob, PatchRecord, Run, SemImageRecord
+from backend.api.sem import calibration_out, stored_geometry
+from backend.db.models import MergeJob, PatchRecord, Run, SemCalibrationRecord, SemImageRecord
 from backend.db.patch_store import LIVE_GROUP, StoredPatch, read_merge, read_patch
 from backend.services import Services
 from merge.io.png import encode_png
@@ -44,6 +45,14 @@ ABORT_ANSWER = 0.8
 
 
 def _plan(body: PlanIn, services: Services, session: Session) -> Plan:
+    return _plan_on(body, services, session)[0]
+
+
+def _plan_on(
+    body: PlanIn, services: Services, session: Session
+) -> tuple[Plan, SemImageRecord | None]:
+    """The plan, and the SEM image its ROI was drawn on (None: drawn in stage metres)."""
+    sem: SemImageRecord | None = None
     if body.sem_roi is not None:
         sem = session.get(SemImageRecord, body.sem_roi.sem_id)
         if sem is None:
@@ -60,7 +69,8 @@ def _plan(body: PlanIn, services: Services, session: Session) -> Plan:
     else:  # the schema already refuses this
         raise HTTPException(422, "give roi (stage metres) or sem_roi (SEM pixels)")
     patch = PatchSpec(body.patch.width, body.patch.height, body.patch.pixels)
-    return plan_mosaic(roi, patch, body.overlap, limits=services.limits, line_rate=body.line_rate)
+    plan = plan_mosaic(roi, patch, body.overlap, limits=services.limits, line_rate=body.line_rate)
+    return plan, sem
 
 
 def _patch_out(p: PatchRecord) -> PatchOut:
@@ -125,7 +135,35 @@ def run_out(run: Run, services: Services, session: Session, *, patches: bool) ->
         merges=list(merges),
         rescan=RescanIn(enabled=run.rescan_enabled, max_tries=run.rescan_max_tries),
         rescans=[RescanOut.model_validate(r) for r in run.rescans or []],
+        sem=_sem_out(run, session),
         patches=[_patch_out(p) for p in run.patches] if patches else None,
+    )
+
+
+def _sem_out(run: Run, session: Session) -> RunSemOut | None:
+    """What placed the SEM image the run was drawn on (its calibration, when one did)."""
+    if run.sem_id is None:
+        return None
+    record = (
+        session.get(SemCalibrationRecord, run.sem_calibration_id)
+        if run.sem_calibration_id is not None
+        else None
+    )
+    if record is None:
+        return RunSemOut(
+            sem_id=run.sem_id,
+            calibration_id=run.sem_calibration_id,
+            rotation_deg=None,
+            scale=None,
+            residual_px=None,
+        )
+    found = calibration_out(record)
+    return RunSemOut(
+        sem_id=run.sem_id,
+        calibration_id=record.id,
+        rotation_deg=found.rotation_deg,
+        scale=found.scale,
+        residual_px=found.residual_px,
     )
 
 
@@ -178,7 +216,7 @@ def create_run(
     body: PlanIn, services: ServicesDep, session: SessionDep, operator: OperatorDep
 ) -> RunOut:
     """Plan a mosaic and create its run (state ``planned``); start it with ``/start``."""
-    plan = _plan(body, services, session)
+    plan, sem = _plan_on(body, services, session)
     run = Run(
         state=RunState.PLANNED.value,
         roi_x=plan.roi.x,
@@ -200,6 +238,8 @@ def create_run(
         instrument=services.microscope.description,
         message=f"planned by {operator}",
         data_file="",
+        sem_id=sem.id if sem is not None else None,
+        sem_calibration_id=sem.calibration_id if sem is not None else None,
     )
     run.patches = [
         PatchRecord(index=p.index, row=p.row, col=p.col, origin_x=p.origin[0], origin_y=p.origin[1])

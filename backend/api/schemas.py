@@ -274,6 +274,19 @@ class PatchShapeOut(BaseModel):
     pixels: tuple[int, int] = Field(description="[nx, ny] pixels per patch")
 
 
+class RunSemOut(BaseModel):
+    """The SEM image a run's ROI was drawn on, and what placed that image on the stage."""
+
+    sem_id: int
+    calibration_id: int | None = Field(
+        description="the SEM-to-stage calibration that placed the image; None: the image's "
+        "own metadata or the nominal geometry placed it"
+    )
+    rotation_deg: float | None = Field(description="the calibration's rotation, degrees")
+    scale: tuple[float, float] | None = Field(description="its metres per pixel (columns, rows)")
+    residual_px: float | None
+
+
 class RunOut(BaseModel):
     id: int
     state: str
@@ -299,6 +312,9 @@ class RunOut(BaseModel):
     merges: list[int]
     rescan: RescanIn
     rescans: list[RescanOut] = Field(description="every re-scan decided: patch, try, reason")
+    sem: RunSemOut | None = Field(
+        default=None, description="the SEM image the ROI was drawn on (None: drawn in metres)"
+    )
     patches: list[PatchOut] | None = None
 
 
@@ -333,6 +349,9 @@ class SemOut(BaseModel):
     rotation_deg: float = Field(description="the image's scan rotation, degrees")
     sem_stage: tuple[float, float, float] | None = Field(
         default=None, description="where the SEM's own stage stood (x, y, z), metres"
+    )
+    calibration_id: int | None = Field(
+        default=None, description="the SEM-to-stage calibration that placed it (None: none)"
     )
 
 

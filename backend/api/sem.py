@@ -16,10 +16,24 @@ from backend.api.schemas import CalibrateIn, CalibrationOut, SemAcquireIn, SemId
 from backend.db.models import SemCalibrationRecord, SemImageRecord
 from backend.sem_calibration import Calibration, CalibrationError
 from backend.sem_files import TiffError, pixel_map, read_sem_tiff, save_pixels, sem_path
+from hardware.errors import ProcedureError
+from hardware.mcs_axis import TravelError
+from hardware.nanonis.errors import NanonisError
 from hardware.protocols import SEMImage
+from hardware.sharksem.errors import SharkSEMError, SharkSEMTimeout
+from hardware.smaract_errors import MCSError
 from merge.io.png import encode_png
 
 router = APIRouter(prefix="/api/sem", tags=["sem"])
+
+#: What an instrument's link or procedure raises: the SEM's, the stage's, the controller's.
+INSTRUMENT_ERRORS = (SharkSEMError, MCSError, NanonisError, ProcedureError)
+
+
+def instrument_failed(exc: Exception, doing: str) -> HTTPException:
+    """A 502 (504 for a time-out) saying what failed while ``doing``; nothing was stored."""
+    code = 504 if isinstance(exc, SharkSEMTimeout) else 502
+    return HTTPException(code, f"{doing} failed, nothing was stored: {exc}")
 
 
 def stored_geometry(r: SemImageRecord, pixels: np.ndarray | None = None) -> SEMImage:
@@ -50,6 +64,7 @@ def sem_out(r: SemImageRecord) -> SemOut:
         matrix=((float(m[0, 0]), float(m[0, 1])), (float(m[1, 0]), float(m[1, 1]))),
         rotation_deg=r.rotation,
         sem_stage=(stage[0], stage[1], stage[2]) if stage is not None and len(stage) == 3 else None,
+        calibration_id=r.calibration_id,
     )
 
 
@@ -62,6 +77,7 @@ def _store(
     geometry: SEMImage,
     rotation: float = 0.0,
     sem_stage: tuple[float, float, float] | None = None,
+    calibration_id: int | None = None,
 ) -> SemImageRecord:
     """File first, then the row (no row without its file); the file is named by the row."""
     ny, nx = pixels.shape
@@ -77,6 +93,7 @@ def _store(
         matrix=[[float(v) for v in row] for row in geometry.map],
         rotation=rotation,
         sem_stage=list(sem_stage) if sem_stage is not None else None,
+        calibration_id=calibration_id,
     )
     session.add(record)
     session.flush()
@@ -108,6 +125,8 @@ def acquire(
         )
     except ValueError as exc:
         raise HTTPException(422, str(exc)) from None
+    except INSTRUMENT_ERRORS as exc:
+        raise instrument_failed(exc, "the SEM image") from None
     size = (frame.pixel_size, frame.pixel_size)
     record_in_force = _in_force(session, services)
     if record_in_force is not None:  # where the calibration says
@@ -134,6 +153,7 @@ def acquire(
         geometry=geometry,
         rotation=frame.rotation,
         sem_stage=frame.stage,
+        calibration_id=record_in_force.id if record_in_force is not None else None,
     )
     services.events.emit(
         "sem", f"SEM image {record.id} acquired ({operator})", data={"sem": record.id}
@@ -214,6 +234,14 @@ def calibrate_sem(
             )
     except CalibrationError as exc:
         raise HTTPException(422, f"calibration refused: {exc}") from None
+    except TravelError as exc:
+        raise HTTPException(
+            422,
+            f"step: a calibration move would leave the stage's travel ({exc}); give a "
+            "smaller step or move the stage towards the middle of its travel first",
+        ) from None
+    except INSTRUMENT_ERRORS as exc:
+        raise instrument_failed(exc, "the SEM calibration") from None
     except ValueError as exc:
         raise HTTPException(409, str(exc)) from None
     record = SemCalibrationRecord(

@@ -78,6 +78,11 @@ class Run(Base):
     rescan_max_tries: Mapped[int] = mapped_column(Integer, default=2)
     #: every re-scan: ``{"index", "try", "reason"}``, in the order they were decided
     rescans: Mapped[list[dict[str, Any]]] = mapped_column(JSON, default=list)
+    #: the SEM image its ROI was drawn on, and the SEM-to-stage calibration that placed that
+    #: image (ids of ``sem_images`` and ``sem_calibrations``); None: not drawn on one, or
+    #: placed by the image's own metadata or the nominal geometry
+    sem_id: Mapped[int | None] = mapped_column(Integer, nullable=True)
+    sem_calibration_id: Mapped[int | None] = mapped_column(Integer, nullable=True)
 
     patches: Mapped[list[PatchRecord]] = relationship(
         back_populates="run", order_by="PatchRecord.index", cascade="all, delete-orphan"
@@ -180,6 +185,8 @@ class SemImageRecord(Base):
     rotation: Mapped[float] = mapped_column(Float, default=0.0)
     #: where the SEM's own stage stood (x, y, z metres), when the image says
     sem_stage: Mapped[list[float] | None] = mapped_column(JSON, nullable=True)
+    #: the SEM-to-stage calibration an acquired frame was placed through (None: none)
+    calibration_id: Mapped[int | None] = mapped_column(Integer, nullable=True)
 
 
 class SemCalibrationRecord(Base):

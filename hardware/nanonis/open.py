@@ -14,6 +14,8 @@ Options (query, every one checked at start-up):
 ``backward_ratio`` backward over forward scan speed (default 1).
 ``timeout``        seconds to wait for a response (default 5).
 ``motor_group``    the coarse motor module's group (default 0).
+``sem``            ``sharksem://HOST:PORT``: a TESCAN SEM over SharkSEM
+                   (:mod:`hardware.sharksem.open`). Absent: no SEM (images are uploaded).
 =================  ==========================================================================
 """
 
@@ -36,6 +38,8 @@ from hardware.nanonis.roles import (
 )
 from hardware.nanonis.scanner import NanonisScanner
 from hardware.protocols import PositionerAxis
+from hardware.sharksem.open import SEMConfigurationError, open_sem
+from hardware.sharksem.sem import TescanSEM
 from hardware.smaract_errors import MCSError
 from hardware.smaract_mcs import MCSController
 
@@ -48,6 +52,7 @@ OPTIONS = (
     "backward_ratio",
     "timeout",
     "motor_group",
+    "sem",
 )
 
 
@@ -101,9 +106,17 @@ def open_nanonis(config: str) -> Microscope:
         )
 
     stage: MCSController | None = None
+    sem: TescanSEM | None = None
+    if "sem" in query:
+        try:
+            sem = open_sem(query["sem"])
+        except SEMConfigurationError as exc:
+            raise ConfigurationError(f"{config}: {exc}") from None
     try:
         client = NanonisClient.open(host, port, timeout=timeout)
     except NanonisError as exc:
+        if sem is not None:
+            sem.close()
         raise ConfigurationError(f"{config}: {exc}") from None
     try:
         high, low = client.z_limits()
@@ -127,6 +140,8 @@ def open_nanonis(config: str) -> Microscope:
             stage_y = NanonisMotorAxis(client, 1, group=int(group))
     except (NanonisError, MCSError) as exc:
         client.close()
+        if sem is not None:
+            sem.close()
         raise ConfigurationError(f"{config}: {exc}") from None
     return Microscope(
         description=config,
@@ -138,8 +153,8 @@ def open_nanonis(config: str) -> Microscope:
         probe=probe,
         loop=loop,
         scanner=scanner,
-        sem=None,
+        sem=sem,
         simulated=False,
         approach=(lambda: auto_approach(client, loop, probe)) if landing == "auto" else None,
-        _closers=(client,) if stage is None else (client, stage),
+        _closers=tuple(c for c in (client, stage, sem) if c is not None),
     )

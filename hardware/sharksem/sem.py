@@ -14,12 +14,13 @@ from __future__ import annotations
 
 import contextlib
 import math
+from collections.abc import Callable
 
 import numpy as np
 from numpy.typing import NDArray
 
 from hardware.protocols import SEMFrame
-from hardware.sharksem.client import SharkSEMClient
+from hardware.sharksem.client import PORT, SharkSEMClient
 from hardware.sharksem.errors import SharkSEMError, SharkSEMProtocolError
 from hardware.sharksem.wire import decode
 
@@ -50,9 +51,32 @@ class TescanSEM:
         The open link (:meth:`SharkSEMClient.open`).
     """
 
-    def __init__(self, client: SharkSEMClient) -> None:
-        self.client = client
+    def __init__(
+        self, client: SharkSEMClient, *, reopen: Callable[[], SharkSEMClient] | None = None
+    ) -> None:
+        self._client = client
+        self._reopen = reopen
         self._frames = 0
+
+    @classmethod
+    def connect(cls, host: str, port: int = PORT, *, timeout: float = 10.0) -> TescanSEM:
+        """Open both links to the SEM at ``host:port``; a link that breaks later is opened
+        again at the next request (the SEM's software restarted, a cable put back)."""
+
+        def reopen() -> SharkSEMClient:
+            return SharkSEMClient.open(host, port, timeout=timeout)
+
+        return cls(reopen(), reopen=reopen)
+
+    @property
+    def client(self) -> SharkSEMClient:
+        """The link, opened again if it broke and this SEM knows where it is."""
+        if self._client.broken is not None and self._reopen is not None:
+            self._client = self._reopen()
+        return self._client
+
+    def close(self) -> None:
+        self._client.close()
 
     def version(self) -> str:
         return str(self.client.call("TcpGetVersion", reply="s")[0])
@@ -122,10 +146,11 @@ class TescanSEM:
         try:
             image = self._collect(frame_id, pixels * pixels)
         except SharkSEMError as exc:
-            if self.client.broken is None:  # the beam stopped, then the data link given up:
+            link = self._client  # as it is: not opened again here
+            if link.broken is None:  # the beam stopped, then the data link given up:
                 with contextlib.suppress(SharkSEMError):  # what follows is out of step
-                    self.client.call("ScStopScan")
-                self.client.fail(f"frame {frame_id}: {exc}")
+                    link.call("ScStopScan")
+                link.fail(f"frame {frame_id}: {exc}")
             raise
         self.client.call("ScStopScan")
         return SEMFrame(
