@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -32,8 +32,11 @@ MIN_CLARITY = 12.0
 MAX_RIVAL = 0.8
 #: Pixels around a predicted shift its peak is looked for in.
 NEAR = 8.0
-#: The fit's RMS residual, pixels, past which a calibration is refused.
-MAX_RESIDUAL = 0.5
+#: The fit's RMS residual past which a calibration is refused: this fraction of the moves'
+#: RMS length (a stage that went elsewhere, a sample that slipped), never under
+#: :data:`MIN_RESIDUAL` pixels (what the stage's sensor errors alone leave in a small field).
+MAX_RESIDUAL = 0.02
+MIN_RESIDUAL = 0.5
 #: Pixels an image must shift by, at least, for a move to measure anything.
 MIN_SHIFT = 2.0
 
@@ -206,11 +209,19 @@ class Calibration:
 
 
 def fit_matrix(
-    moves: Sequence[tuple[float, float]], shifts: Sequence[Shift]
+    moves: Sequence[tuple[float, float]],
+    shifts: Sequence[Shift],
+    *,
+    intercept: bool = True,
 ) -> tuple[FloatArray, float, FloatArray]:
     """The 2 x 2 map from pixel steps to stage metres that best explains each stage ``move``
-    (metres) by the image ``shift`` it made (``move = matrix @ shift``), its RMS residual in
-    pixels, and the standard deviations of its entries (metres per pixel)."""
+    (metres) by the image ``shift`` it made (``move = matrix @ shift + c``), its RMS residual
+    in pixels, and the standard deviations of its entries (metres per pixel).
+
+    With ``intercept`` the constant ``c`` is fitted too: every move starts where the stage's
+    sensor read the start, so the sensor's error there (an encoder's periodic error, tens of
+    nanometres) is common to all of them and would otherwise tilt the map; it needs four
+    moves at least."""
     m = np.asarray(moves, dtype=np.float64)
     d = np.array([[s.columns, s.rows] for s in shifts], dtype=np.float64)
     directions = m / np.maximum(np.linalg.norm(m, axis=1, keepdims=True), 1e-300)
@@ -219,12 +230,17 @@ def fit_matrix(
         raise CalibrationError(
             "the moves must go along two directions at least (x and y), each seen in the image"
         )
-    solution, *_ = np.linalg.lstsq(d, m, rcond=None)  # d @ matrix.T = m
-    matrix: FloatArray = np.asarray(solution.T, dtype=np.float64)
-    predicted = np.linalg.solve(matrix, m.T).T  # the shifts the fit expects, pixels
+    if intercept and len(m) < 4:
+        raise CalibrationError(f"{len(m)} moves: four at least (along x and y, both ways)")
+    design = np.column_stack([d, np.ones(len(d))]) if intercept else d
+    solution, *_ = np.linalg.lstsq(design, m, rcond=None)  # design @ [matrix.T; c] = m
+    matrix: FloatArray = np.asarray(solution[:2].T, dtype=np.float64)
+    constant = solution[2] if intercept else np.zeros(2)
+    predicted = np.linalg.solve(matrix, (m - constant).T).T  # the shifts the fit expects, px
     residual = float(np.sqrt(np.mean(np.sum((predicted - d) ** 2, axis=1))))
-    variance = float(np.sum((d @ matrix.T - m) ** 2)) / max(2 * len(m) - 4, 1)
-    spread = np.sqrt(np.diag(np.linalg.pinv(d.T @ d)) * variance)
+    unknowns = design.shape[1]
+    variance = float(np.sum((design @ solution - m) ** 2)) / max(2 * (len(m) - unknowns), 1)
+    spread = np.sqrt(np.diag(np.linalg.pinv(design.T @ design))[:2] * variance)
     sigma: FloatArray = np.vstack([spread, spread])  # each row of the matrix alike
     return matrix, residual, sigma
 
@@ -236,11 +252,15 @@ def calibrate(
     anchor: tuple[tuple[float, float], tuple[float, float]],
     stage: tuple[float, float] = (0.0, 0.0),
     field: float | None = None,
+    returned: Sequence[FloatArray] | None = None,
 ) -> Calibration:
     """The calibration from a ``reference`` image and images ``moved`` after known stage
     moves (each ``(move, image)``, the move in metres from the reference's stage position).
     ``anchor`` is one point known in both frames: ``((column, row), (x, y))``, in the
-    reference image, taken with the sample stage at ``stage``.
+    reference image, taken with the sample stage at ``stage``. ``returned``: an image taken
+    back at the reference's stage position after each move (in the order the moves were
+    made); what they show moved is drift (charging), taken out of each move's shift as the
+    mean of the returns either side of it.
 
     Raises :class:`CalibrationError` when an image has too little structure to tell its
     shift (a peak less clear than :data:`MIN_CLARITY`), when it repeats itself (a rival peak
@@ -257,7 +277,9 @@ def calibrate(
         near = None
         if len(found) >= 2:
             try:
-                trial, _, _ = fit_matrix([moved[j][0] for j in found], list(found.values()))
+                trial, _, _ = fit_matrix(
+                    [moved[j][0] for j in found], list(found.values()), intercept=False
+                )
                 predicted = np.linalg.solve(trial, np.asarray(move))
                 near = (float(predicted[0]), float(predicted[1]))
             except (CalibrationError, np.linalg.LinAlgError):
@@ -291,11 +313,19 @@ def calibrate(
                 "moved too little for this field"
             )
         found[k] = shift
-    shifts = [found[k] for k in range(len(moved))]
+    drift = _drift(reference, returned, len(moved))
+    shifts = [
+        replace(found[k], columns=found[k].columns - drift[k][0], rows=found[k].rows - drift[k][1])
+        for k in range(len(moved))
+    ]
     matrix, residual, sigma = fit_matrix([m for m, _ in moved], shifts)
-    if residual > MAX_RESIDUAL:
+    lengths = [math.hypot(s.columns, s.rows) for s in shifts]
+    allowed = max(
+        MIN_RESIDUAL, MAX_RESIDUAL * math.sqrt(sum(v * v for v in lengths) / len(lengths))
+    )
+    if residual > allowed:
         raise CalibrationError(
-            f"the moves disagree by {residual:.2f} px RMS (more than {MAX_RESIDUAL}): the stage "
+            f"the moves disagree by {residual:.2f} px RMS (more than {allowed:.2f}): the stage "
             "did not go where it was told, or the sample charged between images"
         )
     (column, row), (x, y) = anchor
@@ -309,3 +339,39 @@ def calibrate(
         field,
         tuple(shifts),
     )
+
+
+#: Pixels the image may have moved between two returns to the start, at most: past it the
+#: sample drifts too fast (charging) or the stage does not come back, and no map is trusted.
+MAX_DRIFT = 3.0
+
+
+def _drift(
+    reference: FloatArray, returned: Sequence[FloatArray] | None, count: int
+) -> list[tuple[float, float]]:
+    """The drift (columns, rows) at each of ``count`` moves: the mean of the returns to the
+    start either side of it (none given: none)."""
+    if returned is None:
+        return [(0.0, 0.0)] * count
+    if len(returned) != count:
+        raise ValueError(f"{len(returned)} images taken back at the start for {count} moves")
+    out = []
+    before = (0.0, 0.0)
+    for k, image in enumerate(returned):
+        back = phase_shift(reference, image, near=before)
+        if back.clarity < MIN_CLARITY:
+            raise CalibrationError(
+                f"back at the start after move {k + 1}, the image does not correlate with the "
+                "first: the sample changed under the beam (contamination, charging)"
+            )
+        now = (back.columns, back.rows)
+        if math.hypot(now[0] - before[0], now[1] - before[1]) > MAX_DRIFT:
+            raise CalibrationError(
+                f"back at the start after move {k + 1}, the image had moved by "
+                f"({now[0] - before[0]:.1f}, {now[1] - before[1]:.1f}) px since the return "
+                "before: the sample drifts (charging) or the stage does not come back; let it "
+                "settle, lower the dose or use a conductive area"
+            )
+        out.append(((before[0] + now[0]) / 2, (before[1] + now[1]) / 2))
+        before = now
+    return out

@@ -138,6 +138,7 @@ def _open_sim(config: str, query: dict[str, list[str]]) -> Microscope:
             seed=int(query.get("seed", ["0"])[-1]),
             geometry=_sem_geometry(config, query),
             stage=afm.stage_position,
+            sensor_scale=afm.stage_sensor_scale,
         ),
         simulated=True,
         sim=afm,

@@ -2,11 +2,12 @@
 
 The procedure (:func:`measure`): with the tip withdrawn and no run on the instrument, an SEM
 frame at the stage's position, then one after each of :data:`MOVES` (the sample stage moved by
-a step along x and y, both ways, and twice as far), the stage back where it was; the moves as
-the stage's sensors measured them and the image shifts give the map
-(:func:`backend.sem_calibration.calibrate`). Its offset needs one point known in both frames:
-the operator's ``anchor`` (the tip seen in the reference image, at the sample point under the
-tip), else the SEM's field centred over the tip's raster (its nominal mounting).
+one to six steps along x and y, both ways) and one back at the start after each (what moved
+there is drift, charging, taken out of the moves); the moves as the stage's sensors measured
+them and the image shifts give the map (:func:`backend.sem_calibration.calibrate`). Its offset
+needs one point known in both frames: the operator's ``anchor`` (the tip seen in the reference
+image, at the sample point under the tip), else the SEM's field centred over the tip's raster
+(its nominal mounting).
 
 A frame taken later is placed through the calibration in force (:func:`place_frame`): the same
 scan geometry scaled to its pixel, turned by any change of the scan rotation since, its field's
@@ -25,8 +26,14 @@ from hardware.microscope import Microscope
 from hardware.protocols import SEMFrame, SEMImage
 from hardware.raster import wait_stopped
 
-#: Stage moves of the calibration, in steps along (x, y).
-MOVES = ((1, 0), (-1, 0), (0, 1), (0, -1), (2, 0), (0, 2))
+#: Stage moves of the calibration, in steps along (x, y): one to six steps along each axis,
+#: both ways. Many lengths, so that the stage's sensor errors (an encoder's periodic error)
+#: at the moves' ends average out rather than tilt the map.
+MOVES = tuple(
+    (k * sx, k * sy) for k in (1, 2, 3, 4, 5, 6) for sx, sy in ((1, 0), (-1, 0), (0, 1), (0, -1))
+)
+#: The default step, as a fraction of the field of view (the longest move: half of it).
+STEP = 1 / 12
 
 
 def stage_position(m: Microscope) -> tuple[float, float]:
@@ -64,17 +71,23 @@ def measure(
     start = stage_position(m)
     reference = sem.acquire(field=field, pixels=pixels, dwell=dwell, detector=detector)
     moved: list[tuple[tuple[float, float], np.ndarray]] = []
+    returned: list[np.ndarray] = []
     try:
         for kx, ky in MOVES:
             at = _move(m, (start[0] + kx * step, start[1] + ky * step))
             frame = sem.acquire(field=field, pixels=pixels, dwell=dwell, detector=detector)
             moved.append(((at[0] - start[0], at[1] - start[1]), frame.pixels))
+            _move(m, start)  # and back: what moved meanwhile is drift
+            back = sem.acquire(field=field, pixels=pixels, dwell=dwell, detector=detector)
+            returned.append(back.pixels)
     finally:
         _move(m, start)
     if anchor is None:  # the field's centre over the lab origin: the sample point -start
         middle = (pixels - 1) / 2
         anchor = ((middle, middle), (-start[0], -start[1]))
-    found = calibrate(reference.pixels, moved, anchor=anchor, stage=start, field=field)
+    found = calibrate(
+        reference.pixels, moved, anchor=anchor, stage=start, field=field, returned=returned
+    )
     record = [[move[0], move[1], shift.columns, shift.rows]
               for (move, _), shift in zip(moved, found.shifts, strict=True)]  # fmt: skip
     return found, reference.rotation, record

@@ -139,8 +139,8 @@ class AnchorIn(Strict):
 
 class CalibrateIn(Strict):
     """An SEM-to-stage calibration to run: frames of ``field`` metres, ``pixels`` a side,
-    before and after stage moves of ``step`` (default a tenth of the field), along x and y
-    both ways and twice as far."""
+    before and after stage moves of one to four ``step`` (default a twelfth of the field)
+    along x and y both ways, and back at the start after each."""
 
     field: PositiveMetres = Field(default=20e-6, le=1e-3)
     pixels: int = Field(default=256, ge=64, le=2048)
@@ -151,8 +151,10 @@ class CalibrateIn(Strict):
 
 
 class CalibrationOut(BaseModel):
-    """The SEM-to-stage calibration: ``sample = matrix @ (column, row) + offset`` for a frame
-    like its reference, taken with the stage at ``stage``."""
+    """The SEM-to-stage calibration: with the stage at ``s``, pixel ``(column, row)`` of a
+    frame like its reference shows sample point ``offset - s + matrix @ ((column, row) - c)``,
+    ``c`` the field's central pixel; equivalently ``origin + matrix @ (column, row)`` with the
+    stage at ``stage``."""
 
     id: int
     created_at: datetime
@@ -162,7 +164,13 @@ class CalibrationOut(BaseModel):
     rotation_deg: float = Field(description="of the image's columns from the stage's +x")
     scale: tuple[float, float] = Field(description="metres per pixel along columns, rows")
     shear: float = Field(description="cosine of the angle between the pixel axes")
-    offset: tuple[float, float]
+    offset: tuple[float, float] = Field(
+        description="where the field's centre lies in the stage's frame (metres): the sample "
+        "point under it with the stage at 0"
+    )
+    origin: tuple[float, float] = Field(
+        description="the sample point of pixel (0, 0) with the stage at ``stage`` (metres)"
+    )
     matrix: tuple[tuple[float, float], tuple[float, float]]
     stage: tuple[float, float]
     residual_px: float

@@ -9,7 +9,7 @@ import numpy as np
 from fastapi import APIRouter, File, Form, HTTPException, Response, UploadFile
 from sqlalchemy import select
 
-from backend.acquisition.sem_stage import measure, place_frame, stage_position
+from backend.acquisition.sem_stage import STEP, measure, place_frame, stage_position
 from backend.api.deps import OperatorDep, ServicesDep, SessionDep
 from backend.api.responses import NPY, PNG_RESPONSES, npy_response
 from backend.api.schemas import CalibrateIn, CalibrationOut, SemAcquireIn, SemId, SemOut
@@ -185,6 +185,8 @@ def _calibration(r: SemCalibrationRecord) -> Calibration:
 def calibration_out(r: SemCalibrationRecord) -> CalibrationOut:
     c = _calibration(r)
     m, sd = c.matrix, c.sigma
+    middle = (r.pixels - 1) / 2
+    centre = c.to_stage(middle, middle, at=(0.0, 0.0))
     return CalibrationOut(
         id=r.id,
         created_at=r.created_at,
@@ -194,7 +196,8 @@ def calibration_out(r: SemCalibrationRecord) -> CalibrationOut:
         rotation_deg=c.rotation_deg,
         scale=c.scale,
         shear=c.shear,
-        offset=c.offset,
+        offset=centre,
+        origin=c.offset,
         matrix=((m[0, 0], m[0, 1]), (m[1, 0], m[1, 1])),
         stage=c.stage,
         residual_px=r.residual_px,
@@ -216,7 +219,7 @@ def calibrate_sem(
     m = services.microscope
     if m.sem is None:
         raise HTTPException(409, "this instrument has no SEM driver to calibrate")
-    step = body.step if body.step is not None else body.field / 10
+    step = body.step if body.step is not None else body.field * STEP
     anchor = None
     if body.anchor is not None:
         a = body.anchor

@@ -80,7 +80,14 @@ def _serve_sem(afm: Any, *, host: str, port: int, seed: int) -> Any:
 
     try:
         server = SharkSEMServer(
-            SimulatedSEM(afm.surface, seed=seed, stage=afm.stage_position), host=host, port=port
+            SimulatedSEM(
+                afm.surface,
+                seed=seed,
+                stage=afm.stage_position,
+                sensor_scale=afm.stage_sensor_scale,
+            ),
+            host=host,
+            port=port,
         )
     except OSError:
         return None

@@ -190,6 +190,11 @@ class SimulatedAFM:
         out: FloatArray = self._drift_v * t
         return out
 
+    @property
+    def stage_sensor_scale(self) -> float:
+        """How the sample stage's sensors scale a true length (1 + their scale error)."""
+        return 1.0 + self.stage_device.params.sensor_scale_error
+
     def stage_position(self) -> tuple[float, float]:
         """Where the sample stage truly is now (x, y metres): a lab point shows the sample
         point this far behind it (what the SEM sees move)."""

@@ -41,6 +41,11 @@ class SimulatedSEM:
     stage : callable, optional
         The sample stage's true position (x, y metres), whose moves the SEM sees the sample
         make; default fixed at the origin.
+    sensor_scale : float
+        How the stage's position sensors scale a true length (1 + their scale error). The
+        geometry is given in the stage's frame as its sensors read it (the frame every
+        position is commanded and recorded in, so the map a calibration can find): the
+        SEM's true scale over the sample is ``geometry.scale / sensor_scale``.
     """
 
     def __init__(
@@ -52,7 +57,11 @@ class SimulatedSEM:
         seed: int = 0,
         geometry: SEMGeometry | None = None,
         stage: Callable[[], tuple[float, float]] | None = None,
+        sensor_scale: float = 1.0,
     ) -> None:
+        if not 0.9 < sensor_scale < 1.1:
+            raise ValueError(f"sensor_scale must be within 10 % of 1, got {sensor_scale}")
+        self.sensor_scale = sensor_scale
         self.surface = surface
         self.geometry = geometry or SEMGeometry()
         self.stage = stage or (lambda: (0.0, 0.0))
@@ -82,8 +91,9 @@ class SimulatedSEM:
         ox, oy = self.geometry.offset
         self.geometry = replace(self.geometry, offset=(ox + step[0], oy + step[1]))
         sx, sy = self.stage()  # a lab point shows the sample point the stage put there
-        seen = replace(self.geometry, offset=(self.geometry.offset[0] - sx,
-                                              self.geometry.offset[1] - sy))  # fmt: skip
+        k = self.sensor_scale  # the geometry in the stage's readings, rendered in true metres
+        g = self.geometry
+        seen = replace(g, scale=g.scale / k, offset=(g.offset[0] / k - sx, g.offset[1] / k - sy))
         image = render_frame(
             self, seen, field=field, pixels=pixels, scan_rotation=scan_rotation, dwell=dwell
         )
@@ -93,7 +103,8 @@ class SimulatedSEM:
 
     def true_map(self) -> dict[str, object]:
         """The SEM's true geometry over the stage, as ``GET /api/instrument/sim/sem`` gives
-        it: rotation (degrees), scale and the field centre's lab position (metres)."""
+        it: rotation (degrees), scale and the field centre's lab position (metres), in the
+        stage's frame as its sensors read it."""
         g = self.geometry
         return {"rotation_deg": g.rotation, "scale": g.scale, "offset": list(g.offset)}
 

@@ -83,10 +83,59 @@ def test_a_calibration_that_cannot_be_trusted_is_refused_with_why() -> None:
     wrong = [  # the stage went 3 µm where it was told 2
         ((2e-6, 0.0), _frame(sem, geometry, (2e-6, 0.0))),
         ((0.0, 2e-6), _frame(sem, geometry, (0.0, 2e-6))),
+        ((0.0, -2e-6), _frame(sem, geometry, (0.0, -2e-6))),
         ((-2e-6, 0.0), _frame(sem, geometry, (-3e-6, 0.0))),
+        ((4e-6, 0.0), _frame(sem, geometry, (4e-6, 0.0))),
     ]
     with pytest.raises(CalibrationError, match="disagree"):
         calibrate(reference, wrong, anchor=anchor)
     one_way = [(m, _frame(sem, geometry, m)) for m in ((2e-6, 0.0), (4e-6, 0.0))]
     with pytest.raises(CalibrationError, match="two directions"):
         calibrate(reference, one_way, anchor=anchor)
+
+
+def test_drift_and_the_stages_sensor_errors_are_taken_out() -> None:
+    """Frames back at the start measure the charging drift (a random walk of 15 nm a frame);
+    the fitted constant takes the sensor's error at the start; moves of many lengths average
+    its periodic error at their ends: the map within the issue's bounds all the same."""
+    sem = SimulatedSEM(FoldedSurface(seed=5, tile=20.48e-6), noise=0.03, seed=4)
+    geometry = SEMGeometry(rotation=3.0, scale=1.025)
+    rng = np.random.default_rng(7)
+    start = (1.3e-6, -0.7e-6)
+
+    def sensor(x: float) -> float:  # an encoder's periodic error, 25 nm over 4 µm
+        return x + 25e-9 * np.sin(2 * np.pi * x / 4e-6)
+
+    drift = np.zeros(2)
+
+    def frame(at: tuple[float, float]) -> np.ndarray:
+        drift[:] += rng.normal(0.0, 15e-9, 2)  # charging: a random walk, 15 nm a frame
+        shifted = replace(geometry, offset=(drift[0], drift[1]))
+        return _frame(sem, shifted, at)
+
+    step = FIELD / 12
+    reference = frame(start)
+    moved, returned = [], []
+    for k in range(1, 7):
+        for sx, sy in ((1, 0), (-1, 0), (0, 1), (0, -1)):
+            at = (start[0] + k * step * sx, start[1] + k * step * sy)
+            read = (sensor(at[0]) - sensor(start[0]), sensor(at[1]) - sensor(start[1]))
+            moved.append((read, frame(at)))
+            returned.append(frame(start))
+    anchor = (((PIXELS - 1) / 2, (PIXELS - 1) / 2), (-start[0], -start[1]))
+    found = calibrate(reference, moved, anchor=anchor, field=FIELD, returned=returned)
+    assert found.rotation_deg == pytest.approx(3.0, abs=0.05)
+    assert found.scale == pytest.approx((1.025 * PITCH, 1.025 * PITCH), rel=1e-3)
+    # what the returns measured: the walk the frames took (a pixel and more by the end)
+    assert np.hypot(*drift) > 0.5 * PITCH
+
+
+def test_the_returns_refuse_a_sample_that_drifts_too_fast() -> None:
+    sem = SimulatedSEM(FoldedSurface(seed=5), noise=0.03, seed=4)
+    geometry = SEMGeometry(rotation=1.0, scale=1.0)
+    moves = [(2e-6, 0.0), (-2e-6, 0.0), (0.0, 2e-6), (0.0, -2e-6)]
+    moved = [(m, _frame(sem, geometry, m)) for m in moves]
+    reference = _frame(sem, geometry, (0.0, 0.0))
+    away = [_frame(sem, geometry, (k * 0.4e-6, 0.0)) for k in range(1, 5)]  # 5 px a frame
+    with pytest.raises(CalibrationError, match="drifts"):
+        calibrate(reference, moved, anchor=((0.0, 0.0), (0.0, 0.0)), returned=away)
