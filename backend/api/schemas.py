@@ -139,7 +139,7 @@ class AnchorIn(Strict):
 
 class CalibrateIn(Strict):
     """An SEM-to-stage calibration to run: frames of ``field`` metres, ``pixels`` a side,
-    before and after stage moves of one to four ``step`` (default a twelfth of the field)
+    before and after stage moves of one to six ``step`` (default a twelfth of the field)
     along x and y both ways, and back at the start after each."""
 
     field: PositiveMetres = Field(default=20e-6, le=1e-3)
