@@ -282,6 +282,17 @@ def calibration_in_force(services: ServicesDep, session: SessionDep) -> Calibrat
     return calibration_out(record)
 
 
+@router.get("/calibrations", response_model=list[CalibrationOut])
+def calibrations(services: ServicesDep, session: SessionDep) -> list[CalibrationOut]:
+    """This instrument's SEM calibrations, newest (the one in force) first."""
+    records = session.scalars(
+        select(SemCalibrationRecord)
+        .where(SemCalibrationRecord.instrument == services.microscope.description)
+        .order_by(SemCalibrationRecord.id.desc())
+    ).all()
+    return [calibration_out(r) for r in records]
+
+
 @router.post("/upload", status_code=201, response_model=SemOut)
 def upload(
     services: ServicesDep,

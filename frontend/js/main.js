@@ -162,6 +162,39 @@ $("sem-acquire").addEventListener("click", () =>
   }),
 );
 
+/** The SEM-to-stage calibration in force, in words (or why there is none). */
+function calibrationText(c) {
+  if (!c) return "SEM calibration: none — acquired images are placed by the SEM's nominal pixel size and scan rotation";
+  const when = new Date(c.created_at).toLocaleString();
+  return (
+    `SEM calibration #${c.id} (${when}, ${c.actor}, ${um(c.field)} field): ` +
+    `${c.rotation_deg.toFixed(3)}°, ${nm(c.scale[0])} × ${nm(c.scale[1])} a pixel, ` +
+    `shear ${c.shear.toFixed(4)}, residual ${c.residual_px.toFixed(2)} px`
+  );
+}
+
+async function loadCalibration() {
+  const all = await get("/api/sem/calibrations"); // newest, the one in force, first
+  $("sem-calibration").textContent = calibrationText(all[0]);
+}
+
+$("sem-calibrate").addEventListener("click", () =>
+  userAct(async () => {
+    const field = Number($("sem-field").value) * 1e-6;
+    $("sem-calibrate").disabled = true;
+    $("sem-calibration").textContent = "SEM calibration: measuring (the sample stage moves; the tip stays withdrawn) …";
+    try {
+      const found = await post("/api/sem/calibrate", { field, pixels: 256 });
+      $("sem-calibration").textContent = calibrationText(found);
+    } catch (err) {
+      await act(loadCalibration);
+      throw err;
+    } finally {
+      $("sem-calibrate").disabled = false;
+    }
+  }),
+);
+
 $("sem-upload").addEventListener("change", (e) =>
   userAct(async () => {
     const file = e.target.files[0];
@@ -252,6 +285,13 @@ function renderRun() {
   $("run-patch").textContent = run.current_patch ?? "—";
   $("run-step").textContent = run.current_step ?? (run.state === "running" ? "between steps" : "—");
   $("run-message").textContent = run.message || "";
+  const drawn = run.sem;
+  $("run-sem").textContent = !drawn
+    ? "stage coordinates"
+    : `SEM image ${drawn.sem_id}, ` +
+      (drawn.calibration_id
+        ? `calibration #${drawn.calibration_id} (${drawn.rotation_deg.toFixed(3)}°, residual ${drawn.residual_px.toFixed(2)} px)`
+        : "placed by its own metadata (no calibration)");
   if (run.state === "running" && !state.startedAt) state.startedAt = { t: Date.now(), stored };
   tick();
 }
@@ -396,6 +436,8 @@ function onEvent(event) {
     markQuality($("patch-grid"), event.data.patch, event.data.passed ? "ok" : "failed", event.data.reason);
   } else if (event.kind === "rescan" && mine) {
     markQuality($("patch-grid"), event.data.patch, event.data.quality || "rescanned", event.data.reason);
+  } else if (event.kind === "sem" && event.data.calibration) {
+    act(loadCalibration);
   } else if (event.kind === "fault" || event.kind === "simulation") {
     act(loadInstrument);
   }
@@ -432,6 +474,7 @@ async function start() {
   $("token").value = token();
   $("token").addEventListener("change", (e) => setToken(e.target.value));
   await act(loadInstrument);
+  await act(loadCalibration);
   await act(() => refreshRuns());
   const latest = await act(() => get("/api/events/latest"));
   state.lastEvent = latest ? latest.id : 0; // the page already shows what happened before

@@ -3,7 +3,6 @@ SEM image, ROI drawn with the mouse, plan, run to completion, merge, preview, 3D
 
 from __future__ import annotations
 
-import shutil
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -12,11 +11,8 @@ import httpx
 import pytest
 
 from backend.server_process import AUTH, TOKEN, ServerProcess, free_port
+from tests.frontend.conftest import CHROMIUM, _draw_small_roi, _shot, _state, _wait
 
-playwright_api = pytest.importorskip("playwright.sync_api")
-
-CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
-SHOTS = Path(__file__).resolve().parents[1] / "screenshots"
 pytestmark = [
     pytest.mark.slow,
     pytest.mark.skipif(not Path(CHROMIUM).exists(), reason="needs Debian's chromium"),
@@ -33,61 +29,6 @@ def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ServerProcess]:
     ).start()
     yield process
     process.stop()
-
-
-@pytest.fixture(scope="module")
-def browser() -> Iterator[Any]:
-    with playwright_api.sync_playwright() as p:
-        b = p.chromium.launch(
-            executable_path=CHROMIUM,
-            headless=True,
-            args=[
-                "--no-sandbox",
-                "--disable-gpu",
-                "--disable-quic",
-                "--no-first-run",
-                "--disable-background-networking",
-                "--disable-component-update",
-                "--disable-sync",
-            ],
-        )
-        yield b
-        b.close()
-
-
-@pytest.fixture
-def page(browser: Any, server: ServerProcess) -> Iterator[tuple[Any, list[str]]]:
-    # Playwright's wait_for_function evaluates its predicate with eval, which the pages'
-    # Content-Security-Policy forbids: these tests lift it (one test below keeps it)
-    context = browser.new_context(viewport={"width": 1280, "height": 800}, bypass_csp=True)
-    pg = context.new_page()
-    errors: list[str] = []
-    pg.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
-    pg.on("pageerror", lambda e: errors.append(str(e)))
-    pg.goto(server.url + "/")
-    pg.fill("#token", TOKEN)
-    pg.press("#token", "Tab")  # change event: the token is kept
-    yield pg, errors
-    context.close()
-
-
-def _state(pg: Any) -> str:
-    """What the page says, for a failure message."""
-    ids = ["message", "plan-error", "run-state", "run-message", "merge-state", "merge-error"]
-    return "; ".join(f"#{i}: {pg.inner_text('#' + i)!r}" for i in ids)
-
-
-def _wait(pg: Any, condition: str, timeout: float = 120_000) -> None:
-    try:
-        pg.wait_for_function(condition, timeout=timeout)
-    except playwright_api.TimeoutError:
-        _shot(pg, "failure")
-        raise AssertionError(f"never true: {condition} ({_state(pg)})") from None
-
-
-def _shot(pg: Any, name: str) -> None:
-    SHOTS.mkdir(exist_ok=True)
-    pg.screenshot(path=str(SHOTS / f"{name}.png"), full_page=True)
 
 
 def test_a_mosaic_from_roi_to_merged_preview(
@@ -159,15 +100,6 @@ def test_a_mosaic_from_roi_to_merged_preview(
     assert len(viewer["nodes"]["raw"]) == expected["count"]
     assert len(viewer["nodes"]["merged"]) == 1
     assert errors == [], errors
-
-
-def _draw_small_roi(pg: Any) -> None:
-    """Drag a small ROI on the SEM image shown."""
-    box = pg.locator("#sem-canvas").bounding_box()
-    pg.mouse.move(box["x"] + 300, box["y"] + 200)
-    pg.mouse.down()
-    pg.mouse.move(box["x"] + 360, box["y"] + 260)
-    pg.mouse.up()
 
 
 def _plan_an_impossible_overlap(pg: Any) -> None:

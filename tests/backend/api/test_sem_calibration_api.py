@@ -113,3 +113,12 @@ def test_an_roi_drawn_around_a_feature_lands_on_it_only_through_the_calibration(
         misses[calibrated] = np.hypot(*(centre - _truly_at(truth, column, row, pitch))) / size
     assert misses[True] < 0.02, misses
     assert misses[False] > 0.05, misses
+
+
+def test_the_calibrations_are_listed_newest_first(turned: Server) -> None:
+    server = turned
+    assert server.client.get("/api/sem/calibrations").json() == []
+    ids = [server.post("/api/sem/calibrate", {"field": 20e-6}).json()["id"] for _ in range(2)]
+    listed = server.client.get("/api/sem/calibrations").json()
+    assert [c["id"] for c in listed] == ids[::-1]
+    assert server.client.get("/api/sem/calibration").json()["id"] == ids[-1]
