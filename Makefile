@@ -68,6 +68,7 @@ bench: install
 	$(BIN)/python benchmarks/nanonis_bench.py
 	$(BIN)/python benchmarks/server_bench.py
 	$(BIN)/python benchmarks/safety_bench.py
+	$(BIN)/python benchmarks/sem_bench.py
 	$(BIN)/python benchmarks/viewer_bench.py
 	$(BIN)/python benchmarks/live_bench.py
 

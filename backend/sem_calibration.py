@@ -147,7 +147,8 @@ class Calibration:
     elsewhere.
 
     matrix : (2, 2) metres per pixel step along the image's columns and rows.
-    offset : sample position (metres) of pixel (0, 0)'s centre at ``stage``.
+    offset : sample position (metres) of pixel (0, 0)'s centre at ``stage``, as the SEM saw it
+        at the end of the calibration (the drift the returns to the start measured taken in).
     stage : the sample stage's position the offset holds for, metres.
     residual_px : RMS misfit of the moves it was fitted to, pixels.
     sigma : standard deviations of the matrix's four entries, metres per pixel.
@@ -313,7 +314,7 @@ def calibrate(
                 "moved too little for this field"
             )
         found[k] = shift
-    drift = _drift(reference, returned, len(moved))
+    drift, since = _drift(reference, returned, len(moved))
     shifts = [
         replace(found[k], columns=found[k].columns - drift[k][0], rows=found[k].rows - drift[k][1])
         for k in range(len(moved))
@@ -329,7 +330,9 @@ def calibrate(
             "did not go where it was told, or the sample charged between images"
         )
     (column, row), (x, y) = anchor
-    offset = np.array([x, y]) - matrix @ np.array([column, row])
+    # the anchor holds in the reference; the image has drifted by ``since`` pixels by the
+    # last return: the offset as it is now, at the end of the calibration
+    offset = np.array([x, y]) - matrix @ (np.array([column, row]) + np.asarray(since))
     return Calibration(
         matrix,
         (float(offset[0]), float(offset[1])),
@@ -348,11 +351,11 @@ MAX_DRIFT = 3.0
 
 def _drift(
     reference: FloatArray, returned: Sequence[FloatArray] | None, count: int
-) -> list[tuple[float, float]]:
-    """The drift (columns, rows) at each of ``count`` moves: the mean of the returns to the
-    start either side of it (none given: none)."""
+) -> tuple[list[tuple[float, float]], tuple[float, float]]:
+    """The drift (columns, rows) at each of ``count`` moves (the mean of the returns to the
+    start either side of it) and at the last return; none given: none."""
     if returned is None:
-        return [(0.0, 0.0)] * count
+        return [(0.0, 0.0)] * count, (0.0, 0.0)
     if len(returned) != count:
         raise ValueError(f"{len(returned)} images taken back at the start for {count} moves")
     out = []
@@ -374,4 +377,4 @@ def _drift(
             )
         out.append(((before[0] + now[0]) / 2, (before[1] + now[1]) / 2))
         before = now
-    return out
+    return out, before

@@ -44,7 +44,8 @@ def stage_position(m: Microscope) -> tuple[float, float]:
     return x, y
 
 
-def _move(m: Microscope, target: tuple[float, float]) -> tuple[float, float]:
+def move_stage_to(m: Microscope, target: tuple[float, float]) -> tuple[float, float]:
+    """Move the sample stage to ``target`` (metres), wait until it stops; where it reads."""
     m.stage_x.move_to(target[0])
     m.stage_y.move_to(target[1])
     wait_stopped(m.stage_x)
@@ -74,14 +75,14 @@ def measure(
     returned: list[np.ndarray] = []
     try:
         for kx, ky in MOVES:
-            at = _move(m, (start[0] + kx * step, start[1] + ky * step))
+            at = move_stage_to(m, (start[0] + kx * step, start[1] + ky * step))
             frame = sem.acquire(field=field, pixels=pixels, dwell=dwell, detector=detector)
             moved.append(((at[0] - start[0], at[1] - start[1]), frame.pixels))
-            _move(m, start)  # and back: what moved meanwhile is drift
+            move_stage_to(m, start)  # and back: what moved meanwhile is drift
             back = sem.acquire(field=field, pixels=pixels, dwell=dwell, detector=detector)
             returned.append(back.pixels)
     finally:
-        _move(m, start)
+        move_stage_to(m, start)
     if anchor is None:  # the field's centre over the lab origin: the sample point -start
         middle = (pixels - 1) / 2
         anchor = ((middle, middle), (-start[0], -start[1]))
