@@ -262,3 +262,15 @@ class SEM(Protocol):
         """One square frame of ``field`` metres across, ``pixels`` a side, ``dwell`` seconds a
         pixel, on ``detector``, with its geometry as the SEM reports it."""
         ...
+
+    def view_field(self) -> float:
+        """The field of view across, metres."""
+        ...
+
+    def scan_rotation(self) -> float:
+        """The scan rotation, degrees counter-clockwise."""
+        ...
+
+    def stage_position(self) -> tuple[float, float, float, float, float]:
+        """The SEM's own stage: x, y, z (metres), rotation and tilt (degrees)."""
+        ...

@@ -363,6 +363,16 @@ class SemOut(BaseModel):
     )
 
 
+class SemStateOut(BaseModel):
+    """What the SEM reports now."""
+
+    field: float = Field(description="field of view across, metres")
+    scan_rotation_deg: float
+    stage: tuple[float, float, float] = Field(description="the SEM's own stage x, y, z, metres")
+    stage_rotation_deg: float
+    stage_tilt_deg: float
+
+
 class InstrumentOut(BaseModel):
     description: str
     simulated: bool

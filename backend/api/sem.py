@@ -12,7 +12,14 @@ from sqlalchemy import select
 from backend.acquisition.sem_stage import STEP, measure, place_frame, stage_position
 from backend.api.deps import OperatorDep, ServicesDep, SessionDep
 from backend.api.responses import NPY, PNG_RESPONSES, npy_response
-from backend.api.schemas import CalibrateIn, CalibrationOut, SemAcquireIn, SemId, SemOut
+from backend.api.schemas import (
+    CalibrateIn,
+    CalibrationOut,
+    SemAcquireIn,
+    SemId,
+    SemOut,
+    SemStateOut,
+)
 from backend.db.models import SemCalibrationRecord, SemImageRecord
 from backend.sem_calibration import Calibration, CalibrationError
 from backend.sem_files import TiffError, pixel_map, read_sem_tiff, save_pixels, sem_path
@@ -280,6 +287,23 @@ def calibration_in_force(services: ServicesDep, session: SessionDep) -> Calibrat
     if record is None:
         raise HTTPException(404, "no SEM calibration yet: run POST /api/sem/calibrate")
     return calibration_out(record)
+
+
+@router.get("/microscope", response_model=SemStateOut)
+def microscope_state(services: ServicesDep) -> SemStateOut:
+    """What the SEM reports now: its field of view, scan rotation and own stage."""
+    sem = services.microscope.sem
+    if sem is None:
+        raise HTTPException(409, "this instrument has no SEM driver")
+    try:
+        field, rotation = sem.view_field(), sem.scan_rotation()
+        x, y, z, turned, tilt = sem.stage_position()
+    except INSTRUMENT_ERRORS as exc:
+        raise instrument_failed(exc, "reading the SEM") from None
+    return SemStateOut(
+        field=field, scan_rotation_deg=rotation, stage=(x, y, z), stage_rotation_deg=turned,
+        stage_tilt_deg=tilt,
+    )  # fmt: skip
 
 
 @router.get("/calibrations", response_model=list[CalibrationOut])

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+import threading
 from collections.abc import Callable
 
 import numpy as np
@@ -57,6 +58,7 @@ class TescanSEM:
         self._client = client
         self._reopen = reopen
         self._frames = 0
+        self._frame_lock = threading.Lock()  # one frame at a time: its commands in order
 
     @classmethod
     def connect(cls, host: str, port: int = PORT, *, timeout: float = 10.0) -> TescanSEM:
@@ -118,6 +120,10 @@ class TescanSEM:
     ) -> SEMFrame:
         """One ``pixels`` x ``pixels`` frame of ``field`` metres across, ``dwell`` seconds a
         pixel, on ``detector``; its geometry as the SEM reports it."""
+        with self._frame_lock:
+            return self._acquire(field=field, pixels=pixels, dwell=dwell, detector=detector)
+
+    def _acquire(self, *, field: float, pixels: int, dwell: float, detector: str) -> SEMFrame:
         if not 8 <= pixels <= 8192:
             raise ValueError(f"pixels must be in 8..8192, got {pixels}")
         if not (math.isfinite(dwell) and 1e-8 <= dwell <= 1e-3):

@@ -66,6 +66,10 @@ class SimulatedSEM:
         self.geometry = geometry or SEMGeometry()
         self.stage = stage or (lambda: (0.0, 0.0))
         self.frames = 0
+        self.field = 50e-6
+        self.rotation = 0.0
+        #: the SEM's own stage (x, y, z metres, rotation, tilt degrees): it does not move here
+        self.sem_stage = (0.0, 0.0, 0.01, 0.0, 0.0)
         self.noise = noise
         self.detector = np.asarray(detector, dtype=np.float64)
         self.rng = np.random.default_rng(seed)
@@ -77,7 +81,7 @@ class SimulatedSEM:
         pixels: int,
         dwell: float = 1e-6,
         detector: str = "SE",
-        scan_rotation: float = 0.0,
+        scan_rotation: float | None = None,
     ) -> SEMFrame:
         """A frame through its true :attr:`geometry`, the sample where the stage put it, the
         field's centre crept by charging since the last frame (a random walk of
@@ -87,6 +91,8 @@ class SimulatedSEM:
         if detector.upper() not in ("SE", "BSE", "INBEAM"):
             raise ValueError(f"no detector {detector!r}: SE, BSE or InBeam")
         self.frames += 1
+        self.field = field
+        scan_rotation = self.rotation if scan_rotation is None else scan_rotation
         step = self.rng.normal(0.0, CHARGING_STEP, 2)
         ox, oy = self.geometry.offset
         self.geometry = replace(self.geometry, offset=(ox + step[0], oy + step[1]))
@@ -98,8 +104,17 @@ class SimulatedSEM:
             self, seen, field=field, pixels=pixels, scan_rotation=scan_rotation, dwell=dwell
         )
         return SEMFrame(
-            image, field / pixels, scan_rotation, (0.0, 0.0, 0.01), field, dwell, detector
+            image, field / pixels, scan_rotation, self.sem_stage[:3], field, dwell, detector
         )
+
+    def view_field(self) -> float:
+        return self.field
+
+    def scan_rotation(self) -> float:
+        return self.rotation
+
+    def stage_position(self) -> tuple[float, float, float, float, float]:
+        return self.sem_stage
 
     def true_map(self) -> dict[str, object]:
         """The SEM's true geometry over the stage, as ``GET /api/instrument/sim/sem`` gives

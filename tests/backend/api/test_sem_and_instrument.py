@@ -194,5 +194,7 @@ def test_the_simulated_sem_is_rotated_and_scaled_against_the_stage(tmp_path: Pat
         r = server.post("/api/sem/acquire", {"field": 8e-6, "pixels": 64, "dwell": 2e-6})
         assert r.status_code == 201, r.text
         assert server.client.get("/api/instrument/sim/sem").json()["offset"] != truth["offset"]
+        state = server.client.get("/api/sem/microscope").json()
+        assert state["field"] == 8e-6 and len(state["stage"]) == 3
     with pytest.raises(ConfigurationError, match="sem_scale"):
         open_microscope("sim://?sem_scale=5")

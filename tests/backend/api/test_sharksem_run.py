@@ -89,3 +89,13 @@ def test_an_sem_fault_is_a_clear_502_and_the_next_frame_comes_on_a_new_link(rig:
     r = server.post("/api/sem/acquire", {"field": FIELD, "pixels": 128})
     assert r.status_code == 201, r.text
     assert np.asarray(r.json()["matrix"]).shape == (2, 2)
+
+
+def test_the_sem_reports_its_field_rotation_and_stage(rig: Rig) -> None:
+    server = rig.server
+    rig.sem.stage = (1e-3, -2e-3, 0.012)
+    assert server.post("/api/sem/acquire", {"field": 12e-6, "pixels": 64}).status_code == 201
+    state = server.client.get("/api/sem/microscope").json()
+    assert state["field"] == pytest.approx(12e-6)
+    assert state["stage"] == pytest.approx([1e-3, -2e-3, 0.012])
+    assert state["scan_rotation_deg"] == 0.0
