@@ -125,18 +125,17 @@ class SimulatedSEM:
 
     def grab(self, *, centre: tuple[float, float], field: float, pixels: int) -> SEMImage:
         """An image ``field`` metres wide, ``pixels`` square, centred on ``centre`` (stage),
-        as a perfectly calibrated SEM would place it."""
+        as a perfectly calibrated SEM would take and place it (no rotation, no scale error,
+        no charging): the sample as the tests' ground truth sees it."""
         if not field > 0:
             raise ValueError(f"field must be positive, got {field}")
         if not 8 <= pixels <= 4096:
             raise ValueError(f"pixels must be in 8..4096, got {pixels}")
+        perfect = SEMGeometry(rotation=0.0, scale=1.0, offset=centre)
+        signal = render_frame(self, perfect, field=field, pixels=pixels)
         pitch = field / pixels
         # row 0 the top line, as an SEM shows it: rows go down the stage's y
         origin = (centre[0] - field / 2 + pitch / 2, centre[1] + field / 2 - pitch / 2)
-        x = origin[0] + np.arange(pixels) * pitch
-        y = origin[1] - np.arange(pixels) * pitch
-        xx, yy = np.meshgrid(x, y)
-        signal = self.signal(xx, yy, self.noise)
         matrix = ((pitch, 0.0), (0.0, -pitch))
         return SEMImage(pixels=signal, origin=origin, pixel_size=(pitch, pitch), matrix=matrix)
 
