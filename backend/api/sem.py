@@ -6,7 +6,7 @@ from pathlib import Path
 from typing import Annotated
 
 import numpy as np
-from fastapi import APIRouter, File, Form, HTTPException, Response, UploadFile
+from fastapi import APIRouter, File, Form, HTTPException, Query, Response, UploadFile
 from sqlalchemy import select
 
 from backend.acquisition.sem_stage import STEP, measure, place_frame, stage_position
@@ -135,7 +135,7 @@ def acquire(
     except INSTRUMENT_ERRORS as exc:
         raise instrument_failed(exc, "the SEM image") from None
     size = (frame.pixel_size, frame.pixel_size)
-    record_in_force = _in_force(session, services)
+    record_in_force = _in_force(session, services, body.field)
     if record_in_force is not None:  # where the calibration says
         geometry = place_frame(
             frame,
@@ -168,14 +168,32 @@ def acquire(
     return sem_out(record)
 
 
-def _in_force(session: SessionDep, services: ServicesDep) -> SemCalibrationRecord | None:
-    """The newest calibration of this instrument."""
-    return session.scalars(
+#: A calibration serves frames whose field is within this factor of its own first (an SEM's
+#: scale and rotation change a little with magnification); failing those, the newest.
+NEAR_FIELD = 2.0
+
+
+def _in_force(
+    session: SessionDep, services: ServicesDep, field: float | None = None
+) -> SemCalibrationRecord | None:
+    """The calibration in force on this instrument: for frames of ``field``, the newest
+    measured within :data:`NEAR_FIELD` of it, else the newest."""
+    newest = (
         select(SemCalibrationRecord)
         .where(SemCalibrationRecord.instrument == services.microscope.description)
         .order_by(SemCalibrationRecord.id.desc())
         .limit(1)
-    ).first()
+    )
+    if field is not None:
+        near = session.scalars(
+            newest.where(
+                SemCalibrationRecord.field >= field / NEAR_FIELD,
+                SemCalibrationRecord.field <= field * NEAR_FIELD,
+            )
+        ).first()
+        if near is not None:
+            return near
+    return session.scalars(newest).first()
 
 
 def _calibration(r: SemCalibrationRecord) -> Calibration:
@@ -281,9 +299,16 @@ def calibrate_sem(
 
 
 @router.get("/calibration", response_model=CalibrationOut)
-def calibration_in_force(services: ServicesDep, session: SessionDep) -> CalibrationOut:
-    """The SEM-to-stage calibration acquired frames are placed through (the newest)."""
-    record = _in_force(session, services)
+def calibration_in_force(
+    services: ServicesDep,
+    session: SessionDep,
+    field: Annotated[
+        float | None, Query(gt=0, le=1e-3, description="for frames of this field, metres")
+    ] = None,
+) -> CalibrationOut:
+    """The SEM-to-stage calibration acquired frames are placed through: the newest, or for
+    frames of ``field`` the newest measured within a factor of two of it (else the newest)."""
+    record = _in_force(session, services, field)
     if record is None:
         raise HTTPException(404, "no SEM calibration yet: run POST /api/sem/calibrate")
     return calibration_out(record)

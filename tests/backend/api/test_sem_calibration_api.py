@@ -122,3 +122,16 @@ def test_the_calibrations_are_listed_newest_first(turned: Server) -> None:
     listed = server.client.get("/api/sem/calibrations").json()
     assert [c["id"] for c in listed] == ids[::-1]
     assert server.client.get("/api/sem/calibration").json()["id"] == ids[-1]
+
+
+def test_a_frame_is_placed_by_the_calibration_nearest_its_field(turned: Server) -> None:
+    server = turned
+    wide = server.post("/api/sem/calibrate", {"field": 30e-6}).json()["id"]
+    narrow = server.post("/api/sem/calibrate", {"field": 12e-6}).json()["id"]
+    near = server.client.get("/api/sem/calibration", params={"field": 40e-6}).json()
+    assert near["id"] == wide
+    assert server.client.get("/api/sem/calibration").json()["id"] == narrow
+    image = server.post("/api/sem/acquire", {"field": 40e-6, "pixels": 64}).json()
+    assert image["calibration_id"] == wide
+    image = server.post("/api/sem/acquire", {"field": 200e-6, "pixels": 64}).json()
+    assert image["calibration_id"] == narrow  # none near: the newest
