@@ -137,7 +137,22 @@ def phase_shift(
     a, b = np.asarray(before, dtype=np.float64), np.asarray(after, dtype=np.float64)
     if a.shape != b.shape or a.ndim != 2 or min(a.shape) < 16:
         raise ValueError(f"need two 2-D images of one shape, 16 px at least: {a.shape}, {b.shape}")
-    return _refine(a, b, _correlate(a, b, near))
+    if near is None:
+        return _refine(a, b, _correlate(a, b))
+    # a shift expected: correlate where the two overlap there (a window over the whole of
+    # both would weigh half of each against what the other does not hold)
+    ic, ir = round(near[0]), round(near[1])
+    ny, nx = a.shape
+    if ny - abs(ir) < 16 or nx - abs(ic) < 16:
+        raise CalibrationError(
+            f"a shift of ({near[0]:.0f}, {near[1]:.0f}) px leaves the {nx} x {ny} px frames "
+            "less than 16 px in common: use smaller moves"
+        )
+    rows_a, rows_b = slice(max(0, -ir), ny - max(0, ir)), slice(max(0, ir), ny - max(0, -ir))
+    cols_a, cols_b = slice(max(0, -ic), nx - max(0, ic)), slice(max(0, ic), nx - max(0, -ic))
+    rest = _correlate(a[rows_a, cols_a], b[rows_b, cols_b], (near[0] - ic, near[1] - ir))
+    start = replace(rest, columns=rest.columns + ic, rows=rest.rows + ir)
+    return _refine(a, b, start)
 
 
 @dataclass(frozen=True)
