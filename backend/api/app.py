@@ -21,7 +21,7 @@ from starlette.routing import Match
 from backend.acquisition.control import Conflict, NotFound
 from backend.acquisition.planner import PlanError
 from backend.acquisition.state import TransitionError
-from backend.api import events, instrument, merges, runs, sem, uploads
+from backend.api import correlative, events, instrument, merges, runs, sem, uploads
 from backend.api.deps import UNAUTHORISED, bearer_matches, require_operator
 from backend.api.guard import CHANGES, Gate, content_security_policy, loopback_names, safe_errors
 from backend.db.space import StorageFull, full_message, is_full
@@ -139,7 +139,7 @@ def create_app(settings: Settings | None = None, *, services: Services | None = 
     ):
         app.add_exception_handler(exc_type, handler(status))
 
-    for module in (uploads, runs, merges, instrument, sem, events):
+    for module in (uploads, runs, merges, correlative, instrument, sem, events):
         app.include_router(module.router)
     guarded = [r for r in app.routes if isinstance(r, APIRoute) and _needs_token(r.dependant)]
 

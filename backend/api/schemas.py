@@ -388,3 +388,53 @@ class InstrumentOut(BaseModel):
 
 class ErrorOut(BaseModel):
     detail: Any
+
+
+class RegistrationIn(Strict):
+    """Register a merge's mosaic onto a stored SEM image."""
+
+    sem: int = Field(gt=0, le=MAX_ID, description="the SEM image's id (GET /api/sem)")
+    affine: bool = Field(default=False, description="fit shear and two scales too")
+
+
+class TransformOut(BaseModel):
+    """``T_sem_mosaic``: ``p' = scale R(rotation) p + offset``, stage metres: where the SEM
+    image (through its own pixel-to-stage map) shows the mosaic's point ``p``."""
+
+    rotation_deg: float
+    scale: float
+    offset: tuple[float, float]
+
+
+class RegistrationSigmaOut(BaseModel):
+    rotation_deg: float
+    scale: float
+    offset: tuple[float, float] = Field(description="metres (about the stage's origin)")
+    centre: float = Field(description="where the mosaic's centre lands, metres")
+
+
+class CalibrationCheckOut(BaseModel):
+    """How far the SEM-to-stage calibration that placed the image is off where the mosaic
+    lies, against what it stated."""
+
+    id: int
+    displacement_px: float = Field(description="the registration's shift of the mosaic's centre")
+    stated_px: float = Field(description="the calibration's uncertainty there, SEM pixels")
+
+
+class RegistrationOut(BaseModel):
+    id: int
+    created_at: datetime
+    merge_id: int
+    sem_id: int
+    transform: TransformOut
+    affine: list[list[float]] | None
+    sigma: RegistrationSigmaOut
+    score: float = Field(description="correlation of the fitted SE contrast with the image")
+    rival: float = Field(description="the best match elsewhere, over the best")
+    overlap: float
+    accepted: bool
+    reason: str | None
+    weights: list[float] = Field(description="SE contrast: constant, tilt, slope x, slope y")
+    calibration: CalibrationCheckOut | None
+    actor: str

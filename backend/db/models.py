@@ -212,6 +212,35 @@ class SemCalibrationRecord(Base):
     actor: Mapped[str] = mapped_column(String(100))
 
 
+class SemRegistrationRecord(Base):
+    """A merged mosaic registered onto an SEM image (:mod:`merge.correlative`):
+    ``T_sem_mosaic`` maps a mosaic point (stage metres) to where the image shows it."""
+
+    __tablename__ = "sem_registrations"
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    created_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
+    merge_id: Mapped[int] = mapped_column(Integer, index=True)
+    sem_id: Mapped[int] = mapped_column(Integer)
+    rotation_deg: Mapped[float] = mapped_column(Float)
+    scale: Mapped[float] = mapped_column(Float)
+    offset: Mapped[list[float]] = mapped_column(JSON)
+    #: the general affine map ``[A | t]`` (2 x 3) when one was asked for
+    affine: Mapped[list[list[float]] | None] = mapped_column(JSON, nullable=True)
+    #: standard deviations: rotation_deg, scale, offset [x, y], centre (metres)
+    sigma: Mapped[dict[str, Any]] = mapped_column(JSON)
+    score: Mapped[float] = mapped_column(Float)
+    rival: Mapped[float] = mapped_column(Float)
+    overlap: Mapped[float] = mapped_column(Float)
+    accepted: Mapped[bool] = mapped_column(Boolean)
+    reason: Mapped[str | None] = mapped_column(String(500), nullable=True)
+    #: the SE contrast's fitted weights (constant, tilt, slope x, slope y)
+    weights: Mapped[list[float]] = mapped_column(JSON)
+    #: the SEM-to-stage calibration that placed the SEM image, if one did
+    calibration_id: Mapped[int | None] = mapped_column(Integer, nullable=True)
+    actor: Mapped[str] = mapped_column(String(100))
+
+
 class Calibration(Base):
     """A calibration of one axis or instrument quantity (e.g. a fine-mode gain)."""
 

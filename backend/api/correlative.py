@@ -1,0 +1,235 @@
+"""A merge's mosaic on an SEM image: registered (:mod:`merge.correlative`), overlaid."""
+
+from __future__ import annotations
+
+import math
+from typing import Annotated, Any
+
+import numpy as np
+from fastapi import APIRouter, HTTPException, Query, Response
+from sqlalchemy import select
+
+from backend.api.deps import OperatorDep, ServicesDep, SessionDep
+from backend.api.merges import _result
+from backend.api.responses import PNG_RESPONSES
+from backend.api.schemas import (
+    CalibrationCheckOut,
+    JobId,
+    RegistrationIn,
+    RegistrationOut,
+    RegistrationSigmaOut,
+    TransformOut,
+)
+from backend.api.sem import _calibration, _pixels, stored_geometry
+from backend.db.models import SemCalibrationRecord, SemImageRecord, SemRegistrationRecord
+from merge.correlative import RegistrationError, SEMView, Similarity, register_to_sem
+from merge.io.overlay import overlay_rgb
+from merge.io.png import encode_png
+
+router = APIRouter(tags=["sem registration"])
+
+#: How far from the placement a calibrated SEM image is searched: rotation (degrees), scale,
+#: and shift (SEM pixels, 0.3 µm at least).
+CALIBRATED_SEARCH = (1.0, 0.02, 20)
+
+
+def _view(record: SemImageRecord) -> SEMView:
+    image = stored_geometry(record)
+    return SEMView(_pixels(record), image.origin, np.asarray(image.map))
+
+
+def _grid(doc: dict[str, Any]) -> tuple[tuple[float, float], tuple[float, float]]:
+    origin = (float(doc["origin"][0]), float(doc["origin"][1]))
+    pixel = (float(doc["pixel_size"][0]), float(doc["pixel_size"][1]))
+    return origin, pixel
+
+
+def _check(
+    record: SemRegistrationRecord, session: SessionDep, view: SEMView, middle: np.ndarray
+) -> CalibrationCheckOut | None:
+    """How far the calibration that placed the image is off at the mosaic's centre."""
+    if record.calibration_id is None:
+        return None
+    found = session.get(SemCalibrationRecord, record.calibration_id)
+    if found is None:
+        return None
+    t = Similarity(record.rotation_deg, record.scale, (record.offset[0], record.offset[1]))
+    pixel = view.pixel
+    shift = float(np.hypot(*(t.apply(middle) - middle))) / pixel
+    calibration = _calibration(found)
+    # its uncertainty there: the residual of its fit, and its matrix's uncertainty carried
+    # from the image's centre out to the mosaic's (both in this image's pixels)
+    reference_pixel = found.field / found.pixels
+    at = view.to_pixel(middle)
+    reach = float(np.hypot(*(at - (np.asarray(view.pixels.shape[::-1]) - 1) / 2)))
+    spread = float(np.sqrt(np.sum(np.asarray(calibration.sigma) ** 2))) / reference_pixel
+    stated = math.hypot(found.residual_px * reference_pixel / pixel, reach * spread)
+    return CalibrationCheckOut(id=found.id, displacement_px=shift, stated_px=stated)
+
+
+def registration_out(
+    record: SemRegistrationRecord, session: SessionDep, view: SEMView, middle: np.ndarray
+) -> RegistrationOut:
+    sigma = record.sigma
+    return RegistrationOut(
+        id=record.id,
+        created_at=record.created_at,
+        merge_id=record.merge_id,
+        sem_id=record.sem_id,
+        transform=TransformOut(
+            rotation_deg=record.rotation_deg,
+            scale=record.scale,
+            offset=(record.offset[0], record.offset[1]),
+        ),
+        affine=record.affine,
+        sigma=RegistrationSigmaOut(
+            rotation_deg=sigma["rotation_deg"],
+            scale=sigma["scale"],
+            offset=(sigma["offset"][0], sigma["offset"][1]),
+            centre=sigma["centre"],
+        ),
+        score=record.score,
+        rival=record.rival,
+        overlap=record.overlap,
+        accepted=record.accepted,
+        reason=record.reason,
+        weights=list(record.weights),
+        calibration=_check(record, session, view, middle),
+        actor=record.actor,
+    )
+
+
+def _middle(heights: np.ndarray, doc: dict[str, Any]) -> np.ndarray:
+    origin, pixel = _grid(doc)
+    ny, nx = heights.shape
+    out: np.ndarray = np.asarray(origin) + np.array([nx - 1, ny - 1]) * np.asarray(pixel) / 2
+    return out
+
+
+def _sem_record(session: SessionDep, sem_id: int) -> SemImageRecord:
+    record = session.get(SemImageRecord, sem_id)
+    if record is None:
+        raise HTTPException(404, f"sem: no SEM image {sem_id}: list them with GET /api/sem")
+    return record
+
+
+def _finite(value: float) -> float:
+    return value if math.isfinite(value) else -1.0
+
+
+@router.post(
+    "/api/merges/{job_id}/sem-registration", status_code=201, response_model=RegistrationOut
+)
+def register(
+    job_id: JobId,
+    body: RegistrationIn,
+    services: ServicesDep,
+    session: SessionDep,
+    operator: OperatorDep,
+) -> RegistrationOut:
+    """Register the merge's mosaic onto SEM image ``sem``: where the image shows the mosaic
+    (``transform``), how sure, and whether the match can be trusted (``accepted``, else the
+    ``reason``). A plain route: the search runs in a worker thread, never on the event loop."""
+    heights, doc = _result(session, job_id)
+    sem = _sem_record(session, body.sem)
+    view = _view(sem)
+    origin, pixel = _grid(doc)
+    rotation, scale, shift = 5.0, 0.05, None  # the defaults: a nominally placed image
+    if sem.calibration_id is not None:  # placed through a calibration: look near it
+        rotation, scale, shift_px = CALIBRATED_SEARCH
+        shift = max(shift_px * view.pixel, 0.3e-6)
+    try:
+        found = register_to_sem(
+            heights,
+            view,
+            origin=origin,
+            pixel_size=pixel,
+            affine=body.affine,
+            search_rotation=rotation,
+            search_scale=scale,
+            search_shift=shift,
+        )
+    except RegistrationError as exc:
+        raise HTTPException(422, f"sem: {exc}") from None
+    t = found.transform
+    record = SemRegistrationRecord(
+        merge_id=job_id,
+        sem_id=sem.id,
+        rotation_deg=t.rotation_deg,
+        scale=t.scale,
+        offset=[t.offset[0], t.offset[1]],
+        affine=found.affine.tolist() if found.affine is not None else None,
+        sigma={
+            "rotation_deg": _finite(found.sigma_rotation_deg),
+            "scale": _finite(found.sigma_scale),
+            "offset": [_finite(v) for v in found.sigma_offset],
+            "centre": _finite(found.sigma_here),
+        },
+        score=found.score,
+        rival=found.rival,
+        overlap=found.overlap,
+        accepted=found.accepted,
+        reason=found.reason,
+        weights=list(found.weights),
+        calibration_id=sem.calibration_id,
+        actor=operator,
+    )
+    session.add(record)
+    session.commit()
+    said = "registered" if found.accepted else f"not registered ({found.reason})"
+    services.events.emit(
+        "sem",
+        f"merge {job_id} {said} onto SEM image {sem.id} ({operator}): {t.rotation_deg:.3f}°, "
+        f"scale {t.scale:.4f}, score {found.score:.2f}",
+        data={"registration": record.id, "merge": job_id, "accepted": found.accepted},
+    )
+    return registration_out(record, session, view, _middle(heights, doc))
+
+
+def _last(session: SessionDep, job_id: int, *, accepted: bool = False) -> SemRegistrationRecord:
+    query = select(SemRegistrationRecord).where(SemRegistrationRecord.merge_id == job_id)
+    if accepted:
+        query = query.where(SemRegistrationRecord.accepted.is_(True))
+    record = session.scalars(query.order_by(SemRegistrationRecord.id.desc()).limit(1)).first()
+    if record is None:
+        what = "accepted registration" if accepted else "registration"
+        raise HTTPException(
+            404,
+            f"merge {job_id} has no {what} onto an SEM image: POST "
+            f'/api/merges/{job_id}/sem-registration with {{"sem": <id>}}',
+        )
+    return record
+
+
+@router.get("/api/merges/{job_id}/sem-registration", response_model=RegistrationOut)
+def last_registration(job_id: JobId, session: SessionDep) -> RegistrationOut:
+    """The merge's last registration onto an SEM image."""
+    record = _last(session, job_id)
+    heights, doc = _result(session, job_id)
+    return registration_out(
+        record, session, _view(_sem_record(session, record.sem_id)), _middle(heights, doc)
+    )
+
+
+@router.get(
+    "/api/merges/{job_id}/sem-overlay.png", response_class=Response, responses=PNG_RESPONSES
+)
+def sem_overlay(
+    job_id: JobId,
+    session: SessionDep,
+    opacity: Annotated[float, Query(ge=0, le=1, description="0: the SEM, 1: the heights")] = 0.5,
+) -> Response:
+    """The mosaic in the AFM colours over the SEM image it was last registered on (an
+    accepted registration), at the SEM's own pixels around it."""
+    record = _last(session, job_id, accepted=True)
+    heights, doc = _result(session, job_id)
+    origin, pixel = _grid(doc)
+    view = _view(_sem_record(session, record.sem_id))
+    t = Similarity(record.rotation_deg, record.scale, (record.offset[0], record.offset[1]))
+    try:
+        rgb = overlay_rgb(
+            heights, view, origin=origin, pixel_size=pixel, transform=t, opacity=opacity
+        )
+    except ValueError as exc:
+        raise HTTPException(422, str(exc)) from None
+    return Response(encode_png(rgb), media_type="image/png")

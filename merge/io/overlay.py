@@ -1,0 +1,105 @@
+"""A topography over the SEM image it was registered on (:mod:`merge.correlative`): the SEM's
+grey levels around the mosaic, the heights in the AFM colour map blended over them where the
+registration puts them. Pure: arrays in, an RGB picture out."""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy import ndimage
+
+from merge.correlative import SEMView, Similarity
+from merge.io.preview import afm_colors
+
+FloatArray = NDArray[np.float64]
+UInt8Array = NDArray[np.uint8]
+
+
+def heights_on_sem(
+    heights: FloatArray,
+    sem: SEMView,
+    *,
+    origin: tuple[float, float],
+    pixel_size: tuple[float, float],
+    transform: Similarity,
+    box: tuple[int, int, int, int] | None = None,
+) -> FloatArray:
+    """The heights resampled on the SEM image's pixels (bilinear; NaN where the mosaic does
+    not reach), the mosaic placed where ``transform`` (``T_sem_mosaic``) puts it. ``box``:
+    columns and rows ``(c0, r0, columns, rows)`` of the SEM image to fill (default: all)."""
+    h = np.asarray(heights, dtype=np.float64)
+    rows_n, cols_n = np.asarray(sem.pixels).shape
+    c0, r0, nc, nr = box if box is not None else (0, 0, cols_n, rows_n)
+    cols, rows = np.meshgrid(
+        c0 + np.arange(nc, dtype=np.float64), r0 + np.arange(nr, dtype=np.float64)
+    )
+    mosaic = transform.invert(sem.to_stage(cols, rows))
+    i = (mosaic[..., 1] - origin[1]) / pixel_size[1]
+    j = (mosaic[..., 0] - origin[0]) / pixel_size[0]
+    ny, nx = h.shape
+    inside = (i >= 0) & (i <= ny - 1) & (j >= 0) & (j <= nx - 1)
+    valid = np.isfinite(h)
+    filled = np.where(valid, h, 0.0)
+    ii, jj = np.clip(i, 0, ny - 1), np.clip(j, 0, nx - 1)
+    out: FloatArray = ndimage.map_coordinates(filled, [ii, jj], order=1)
+    measured = ndimage.map_coordinates(valid.astype(np.float64), [ii, jj], order=0) > 0.5
+    out[~(inside & measured)] = np.nan
+    return out
+
+
+def footprint_box(
+    sem: SEMView,
+    corners: FloatArray,
+    transform: Similarity,
+    *,
+    margin: float = 0.15,
+) -> tuple[int, int, int, int]:
+    """The SEM pixels around where ``transform`` puts the mosaic's ``corners`` (4, 2 stage
+    metres), widened by ``margin`` of its size each way and clipped to the image."""
+    seen = sem.to_pixel(transform.apply(corners))
+    lo, hi = seen.min(axis=0), seen.max(axis=0)
+    pad = margin * float((hi - lo).max())
+    rows_n, cols_n = np.asarray(sem.pixels).shape
+    c0, r0 = max(0, int(lo[0] - pad)), max(0, int(lo[1] - pad))
+    c1, r1 = min(cols_n, int(hi[0] + pad) + 1), min(rows_n, int(hi[1] + pad) + 1)
+    if c1 - c0 < 2 or r1 - r0 < 2:
+        raise ValueError("the mosaic lies outside the SEM image")
+    return c0, r0, c1 - c0, r1 - r0
+
+
+def overlay_rgb(
+    heights: FloatArray,
+    sem: SEMView,
+    *,
+    origin: tuple[float, float],
+    pixel_size: tuple[float, float],
+    transform: Similarity,
+    opacity: float = 0.5,
+    margin: float = 0.15,
+) -> UInt8Array:
+    """The SEM image around the mosaic in grey (1-99 % stretched), the heights in the AFM
+    colour map blended over it with ``opacity`` (0: the SEM alone, 1: the heights alone)
+    where the mosaic lies. Returns ``(rows, columns, 3)`` uint8, row 0 the SEM's top line."""
+    if not 0.0 <= opacity <= 1.0:
+        raise ValueError(f"opacity must be in 0..1, got {opacity}")
+    h = np.asarray(heights, dtype=np.float64)
+    ny, nx = h.shape
+    corners = np.asarray(origin) + np.array(
+        [[0, 0], [nx - 1, 0], [0, ny - 1], [nx - 1, ny - 1]]
+    ) * np.asarray(pixel_size)
+    box = footprint_box(sem, corners, transform, margin=margin)
+    c0, r0, nc, nr = box
+    grey = np.asarray(sem.pixels, dtype=np.float64)[r0 : r0 + nr, c0 : c0 + nc]
+    lo, hi = np.percentile(grey, [1, 99])
+    grey01 = np.clip((grey - lo) / max(hi - lo, 1e-300), 0.0, 1.0)
+    out = np.repeat(grey01[..., None], 3, axis=-1) * 255.0
+    placed = heights_on_sem(
+        h, sem, origin=origin, pixel_size=pixel_size, transform=transform, box=box
+    )
+    covered = np.isfinite(placed)
+    if covered.any():
+        z_lo, z_hi = np.percentile(placed[covered], [1, 99])
+        colours = afm_colors((placed - z_lo) / max(z_hi - z_lo, 1e-300)).astype(np.float64)
+        out[covered] = (1 - opacity) * out[covered] + opacity * colours[covered]
+    result: UInt8Array = np.clip(out + 0.5, 0, 255).astype(np.uint8)
+    return result

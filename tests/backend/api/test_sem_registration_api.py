@@ -1,0 +1,83 @@
+"""A merged mosaic registered onto an SEM image through the API, on the simulated SEM whose
+rotation, scale and offset against the stage are hidden from the image's placement."""
+
+from __future__ import annotations
+
+import io
+import math
+from collections.abc import Iterator
+from typing import Any
+
+import numpy as np
+import pytest
+
+from tests.backend.api.conftest import Server, open_server, plan
+
+FIELD, PIXELS = 20e-6, 1024
+
+
+@pytest.fixture(scope="module")
+def merged(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Server, dict[str, Any]]]:
+    """A 3 x 3 mosaic merged, and an SEM image taken before it (the stage at its origin)."""
+    for server in open_server(tmp_path_factory.mktemp("registration")):
+        image = server.post("/api/sem/acquire", {"field": FIELD, "pixels": PIXELS}).json()
+        run = server.create(plan(size=2.6e-6, patch=1.2e-6, pixels=(64, 64)))
+        server.post(f"/api/runs/{run['id']}/start")
+        assert server.wait_state(run["id"], "completed", timeout=300)["state"] == "completed"
+        job = server.post(f"/api/runs/{run['id']}/merges", {"method": "default"}).json()
+        assert server.wait_merge(job["id"], timeout=300)["state"] == "done"
+        yield server, {"sem": image, "merge": job["id"]}
+
+
+def _truth(server: Server, sem: dict[str, Any], points: np.ndarray) -> np.ndarray:
+    """Where the image, placed by its nominal pixel, shows stage points: through the
+    simulator's true SEM map."""
+    truth = server.client.get("/api/instrument/sim/sem").json()
+    a = math.radians(truth["rotation_deg"])
+    turn = truth["scale"] * np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
+    uv = np.linalg.solve(turn, (points - np.asarray(truth["offset"])).T).T
+    pitch, middle = FIELD / PIXELS, (PIXELS - 1) / 2
+    pixel = np.column_stack([uv[:, 0] / pitch + middle, -uv[:, 1] / pitch + middle])
+    out: np.ndarray = pixel @ np.asarray(sem["matrix"]).T + np.asarray(sem["origin"])
+    return out
+
+
+def test_the_mosaic_is_registered_onto_the_sem_image_and_overlaid(
+    merged: tuple[Server, dict[str, Any]],
+) -> None:
+    server, made = merged
+    job, sem = made["merge"], made["sem"]
+    r = server.post(f"/api/merges/{job}/sem-registration", {"sem": sem["id"]})
+    assert r.status_code == 201, r.text
+    found = r.json()
+    assert found["accepted"], found["reason"]
+    doc = server.client.get(f"/api/merges/{job}/mosaic.json").json()
+    heights = np.load(io.BytesIO(server.client.get(f"/api/merges/{job}/mosaic.npy").content))
+    (ox, oy), (px, py) = doc["origin"], doc["pixel_size"]
+    ny, nx = heights.shape
+    corners = np.array(
+        [[ox, oy], [ox + nx * px, oy], [ox, oy + ny * py], [ox + nx * px, oy + ny * py]]
+    )
+    t = found["transform"]
+    a = math.radians(t["rotation_deg"])
+    turn = t["scale"] * np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
+    placed = corners @ turn.T + np.asarray(t["offset"])
+    misplaced = np.hypot(*(placed - _truth(server, sem, corners)).T) / (FIELD / PIXELS)
+    assert misplaced.max() < 1.0, misplaced
+    assert abs(t["rotation_deg"] + 3.0) < 0.1 and found["calibration"] is None
+    assert server.client.get(f"/api/merges/{job}/sem-registration").json()["id"] == found["id"]
+    png = server.client.get(f"/api/merges/{job}/sem-overlay.png", params={"opacity": 0.6})
+    assert png.status_code == 200 and png.content[:8] == b"\x89PNG\r\n\x1a\n"
+    assert server.client.get(f"/api/merges/{job}/sem-overlay.png?opacity=2").status_code == 422
+
+
+def test_registration_asks_for_what_exists(merged: tuple[Server, dict[str, Any]]) -> None:
+    server, made = merged
+    r = server.post(f"/api/merges/{made['merge']}/sem-registration", {"sem": 999})
+    assert r.status_code == 404 and "GET /api/sem" in r.json()["detail"]
+    r = server.post("/api/merges/999/sem-registration", {"sem": made["sem"]["id"]})
+    assert r.status_code == 404
+    r = server.post(f"/api/merges/{made['merge']}/sem-registration", {})
+    assert r.status_code == 422 and "sem" in r.text
+    r = server.client.post(f"/api/merges/{made['merge']}/sem-registration", json={"sem": 1})
+    assert r.status_code == 401
