@@ -69,6 +69,7 @@ bench: install
 	$(BIN)/python benchmarks/server_bench.py
 	$(BIN)/python benchmarks/safety_bench.py
 	$(BIN)/python benchmarks/sem_bench.py
+	$(BIN)/python benchmarks/correlative_bench.py
 	$(BIN)/python benchmarks/viewer_bench.py
 	$(BIN)/python benchmarks/live_bench.py
 
