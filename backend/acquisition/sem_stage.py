@@ -130,3 +130,41 @@ def place_frame(
         size,
         ((rows[0][0], rows[0][1]), (rows[1][0], rows[1][1])),
     )
+
+
+def adjusted(
+    calibration: Calibration,
+    *,
+    pixels_then: int,
+    image_origin: tuple[float, float],
+    image_matrix: np.ndarray,
+    image_pixels: int,
+    t_matrix: np.ndarray,
+    t_offset: tuple[float, float],
+) -> Calibration:
+    """The calibration corrected by a registration: an image it placed (``image_origin``,
+    ``image_matrix``, ``image_pixels`` a side) showed the sample point ``p`` where it said
+    ``T(p) = t_matrix @ p + t_offset`` (a similarity, :mod:`merge.correlative`). The map's
+    matrix is turned and scaled by ``T``'s inverse, the lab point its field's centre looks at
+    moved so that the image would have been placed right."""
+    if calibration.field is None:
+        raise ValueError("a calibration without its field of view cannot be adjusted")
+    inverse = np.linalg.inv(np.asarray(t_matrix, dtype=np.float64))
+    middle_then = (pixels_then - 1) / 2
+    centre_lab = np.asarray(calibration.to_stage(middle_then, middle_then)) + np.asarray(
+        calibration.stage
+    )
+    middle = (image_pixels - 1) / 2
+    image_m = np.asarray(image_matrix, dtype=np.float64)
+    stage_then = centre_lab - np.asarray(image_origin) - image_m @ np.array([middle, middle])
+    new_centre = inverse @ (centre_lab - stage_then - np.asarray(t_offset)) + stage_then
+    matrix = inverse @ calibration.matrix
+    offset = new_centre - np.asarray(calibration.stage) - matrix @ np.array([middle_then] * 2)
+    return Calibration(
+        matrix,
+        (float(offset[0]), float(offset[1])),
+        calibration.residual_px,
+        calibration.sigma,
+        calibration.stage,
+        calibration.field,
+    )

@@ -9,18 +9,20 @@ import numpy as np
 from fastapi import APIRouter, HTTPException, Query, Response
 from sqlalchemy import select
 
+from backend.acquisition.sem_stage import adjusted
 from backend.api.deps import OperatorDep, ServicesDep, SessionDep
-from backend.api.merges import _result
+from backend.api.merges import merge_result
 from backend.api.responses import PNG_RESPONSES
 from backend.api.schemas import (
     CalibrationCheckOut,
+    CalibrationOut,
     JobId,
     RegistrationIn,
     RegistrationOut,
     RegistrationSigmaOut,
     TransformOut,
 )
-from backend.api.sem import _calibration, _pixels, stored_geometry
+from backend.api.sem import calibration_of, calibration_out, sem_pixels, stored_geometry
 from backend.db.models import SemCalibrationRecord, SemImageRecord, SemRegistrationRecord
 from merge.correlative import RegistrationError, SEMView, Similarity, register_to_sem
 from merge.io.overlay import overlay_rgb
@@ -35,7 +37,7 @@ CALIBRATED_SEARCH = (1.0, 0.02, 20)
 
 def _view(record: SemImageRecord) -> SEMView:
     image = stored_geometry(record)
-    return SEMView(_pixels(record), image.origin, np.asarray(image.map))
+    return SEMView(sem_pixels(record), image.origin, np.asarray(image.map))
 
 
 def _grid(doc: dict[str, Any]) -> tuple[tuple[float, float], tuple[float, float]]:
@@ -56,7 +58,7 @@ def _check(
     t = Similarity(record.rotation_deg, record.scale, (record.offset[0], record.offset[1]))
     pixel = view.pixel
     shift = float(np.hypot(*(t.apply(middle) - middle))) / pixel
-    calibration = _calibration(found)
+    calibration = calibration_of(found)
     # its uncertainty there: the residual of its fit, and its matrix's uncertainty carried
     # from the image's centre out to the mosaic's (both in this image's pixels)
     reference_pixel = found.field / found.pixels
@@ -130,7 +132,7 @@ def register(
     """Register the merge's mosaic onto SEM image ``sem``: where the image shows the mosaic
     (``transform``), how sure, and whether the match can be trusted (``accepted``, else the
     ``reason``). A plain route: the search runs in a worker thread, never on the event loop."""
-    heights, doc = _result(session, job_id)
+    heights, doc = merge_result(session, job_id)
     sem = _sem_record(session, body.sem)
     view = _view(sem)
     origin, pixel = _grid(doc)
@@ -205,7 +207,7 @@ def _last(session: SessionDep, job_id: int, *, accepted: bool = False) -> SemReg
 def last_registration(job_id: JobId, session: SessionDep) -> RegistrationOut:
     """The merge's last registration onto an SEM image."""
     record = _last(session, job_id)
-    heights, doc = _result(session, job_id)
+    heights, doc = merge_result(session, job_id)
     return registration_out(
         record, session, _view(_sem_record(session, record.sem_id)), _middle(heights, doc)
     )
@@ -222,7 +224,7 @@ def sem_overlay(
     """The mosaic in the AFM colours over the SEM image it was last registered on (an
     accepted registration), at the SEM's own pixels around it."""
     record = _last(session, job_id, accepted=True)
-    heights, doc = _result(session, job_id)
+    heights, doc = merge_result(session, job_id)
     origin, pixel = _grid(doc)
     view = _view(_sem_record(session, record.sem_id))
     t = Similarity(record.rotation_deg, record.scale, (record.offset[0], record.offset[1]))
@@ -233,3 +235,61 @@ def sem_overlay(
     except ValueError as exc:
         raise HTTPException(422, str(exc)) from None
     return Response(encode_png(rgb), media_type="image/png")
+
+
+@router.post(
+    "/api/merges/{job_id}/sem-registration/apply", status_code=201, response_model=CalibrationOut
+)
+def apply_registration(
+    job_id: JobId, services: ServicesDep, session: SessionDep, operator: OperatorDep
+) -> CalibrationOut:
+    """Correct the SEM-to-stage calibration that placed the registered image by what the
+    merge's last accepted registration measured there: a new calibration, in force from now
+    on (the old one kept), logged."""
+    record = _last(session, job_id, accepted=True)
+    sem = _sem_record(session, record.sem_id)
+    found = (
+        session.get(SemCalibrationRecord, sem.calibration_id)
+        if sem.calibration_id is not None
+        else None
+    )
+    if found is None:
+        raise HTTPException(
+            409,
+            f"SEM image {sem.id} was not placed through a calibration (its own metadata or "
+            "its nominal pixel placed it): calibrate the SEM first (POST /api/sem/calibrate)",
+        )
+    t = Similarity(record.rotation_deg, record.scale, (record.offset[0], record.offset[1]))
+    image = stored_geometry(sem)
+    better = adjusted(
+        calibration_of(found),
+        pixels_then=found.pixels,
+        image_origin=image.origin,
+        image_matrix=np.asarray(image.map),
+        image_pixels=sem.width,
+        t_matrix=t.matrix,
+        t_offset=t.offset,
+    )
+    new = SemCalibrationRecord(
+        instrument=found.instrument,
+        field=found.field,
+        pixels=found.pixels,
+        scan_rotation=found.scan_rotation,
+        matrix=better.matrix.tolist(),
+        offset=list(better.offset),
+        stage=list(better.stage),
+        residual_px=found.residual_px,
+        sigma=better.sigma.tolist(),
+        moves=[],  # none made: adjusted from registration ``record.id``
+        actor=operator,
+    )
+    session.add(new)
+    session.commit()
+    out = calibration_out(new)
+    services.events.emit(
+        "sem",
+        f"SEM calibration {found.id} adjusted by merge {job_id}'s registration {record.id} "
+        f"({operator}): now calibration {new.id}, {out.rotation_deg:.3f}°",
+        data={"calibration": new.id, "from": found.id, "registration": record.id},
+    )
+    return out

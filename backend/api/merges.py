@@ -130,7 +130,7 @@ def cancel_merge(
     return merge_out(_job(session, job_id))
 
 
-def _result(session: SessionDep, job_id: int) -> tuple[Any, dict[str, Any]]:
+def merge_result(session: SessionDep, job_id: int) -> tuple[Any, dict[str, Any]]:
     job = _job(session, job_id)
     if job.state != "done" or not job.result_group:
         raise HTTPException(
@@ -152,7 +152,7 @@ def _result(session: SessionDep, job_id: int) -> tuple[Any, dict[str, Any]]:
 )
 def mosaic_npy(job_id: JobId, session: SessionDep) -> Response:
     """The merged height map (``mosaic.npy`` of DESIGN.md): metres, NaN where uncovered."""
-    heights, _ = _result(session, job_id)
+    heights, _ = merge_result(session, job_id)
     return npy_response(heights, f"merge{job_id}-mosaic.npy")
 
 
@@ -160,7 +160,7 @@ def mosaic_npy(job_id: JobId, session: SessionDep) -> Response:
 def mosaic_json(job_id: JobId, session: SessionDep) -> JSONResponse:
     """The result document (``mosaic.json`` of DESIGN.md): grid, per-patch transforms and
     quality report."""
-    _, document = _result(session, job_id)
+    _, document = merge_result(session, job_id)
     return JSONResponse(document)
 
 
@@ -171,7 +171,7 @@ def mosaic_preview(
     size: Annotated[int, Query(ge=32, le=2048, description="longer side, pixels")] = 480,
 ) -> Response:
     """The merged mosaic as a picture, with a nm colour bar and a scale bar."""
-    heights, doc = _result(session, job_id)
+    heights, doc = merge_result(session, job_id)
     origin = (float(doc["origin"][0]), float(doc["origin"][1]))
     pixel = (float(doc["pixel_size"][0]), float(doc["pixel_size"][1]))
     return png_response([("MERGED", height_map(heights, origin, pixel))], size=size)
@@ -200,7 +200,7 @@ def mosaic_export(job_id: JobId, fmt: str, session: SessionDep) -> Response:
             404,
             f"no export .{fmt}: use mosaic.npy, mosaic.json or mosaic.{{{','.join(EXPORT_TYPES)}}}",
         )
-    heights, doc = _result(session, job_id)
+    heights, doc = merge_result(session, job_id)
     origin = (float(doc["origin"][0]), float(doc["origin"][1]))
     pixel = (float(doc["pixel_size"][0]), float(doc["pixel_size"][1]))
     with tempfile.TemporaryDirectory() as tmp:

@@ -139,7 +139,7 @@ def acquire(
     if record_in_force is not None:  # where the calibration says
         geometry = place_frame(
             frame,
-            calibration=_calibration(record_in_force),
+            calibration=calibration_of(record_in_force),
             pixels_then=record_in_force.pixels,
             rotation_then=record_in_force.scan_rotation,
             stage_now=stage_position(services.microscope),
@@ -196,7 +196,7 @@ def _in_force(
     return session.scalars(newest).first()
 
 
-def _calibration(r: SemCalibrationRecord) -> Calibration:
+def calibration_of(r: SemCalibrationRecord) -> Calibration:
     return Calibration(
         np.asarray(r.matrix, dtype=np.float64),
         (r.offset[0], r.offset[1]),
@@ -208,7 +208,7 @@ def _calibration(r: SemCalibrationRecord) -> Calibration:
 
 
 def calibration_out(r: SemCalibrationRecord) -> CalibrationOut:
-    c = _calibration(r)
+    c = calibration_of(r)
     m, sd = c.matrix, c.sigma
     middle = (r.pixels - 1) / 2
     centre = c.to_stage(middle, middle, at=(0.0, 0.0))
@@ -425,7 +425,7 @@ def read_sem(sem_id: SemId, session: SessionDep) -> SemOut:
     return sem_out(_record(session, sem_id))
 
 
-def _pixels(record: SemImageRecord) -> np.ndarray:
+def sem_pixels(record: SemImageRecord) -> np.ndarray:
     try:
         pixels: np.ndarray = np.load(Path(record.file), allow_pickle=False)
     except OSError as exc:
@@ -436,7 +436,7 @@ def _pixels(record: SemImageRecord) -> np.ndarray:
 @router.get("/{sem_id}/image.png", response_class=Response, responses=PNG_RESPONSES)
 def sem_png(sem_id: SemId, session: SessionDep) -> Response:
     """The SEM image in grey levels (1-99 % stretched), full resolution, for drawing ROIs."""
-    pixels = _pixels(_record(session, sem_id))
+    pixels = sem_pixels(_record(session, sem_id))
     lo, hi = np.percentile(pixels, [1, 99])
     grey = (np.clip((pixels - lo) / max(hi - lo, 1e-12), 0, 1) * 255 + 0.5).astype(np.uint8)
     return Response(encode_png(np.repeat(grey[..., None], 3, axis=-1)), media_type="image/png")
@@ -448,4 +448,4 @@ def sem_png(sem_id: SemId, session: SessionDep) -> Response:
     responses={200: {"content": {NPY: {}}, "description": "grey levels (ny, nx)"}},
 )
 def sem_image(sem_id: SemId, session: SessionDep) -> Response:
-    return npy_response(_pixels(_record(session, sem_id)), f"sem{sem_id}.npy")
+    return npy_response(sem_pixels(_record(session, sem_id)), f"sem{sem_id}.npy")
