@@ -213,6 +213,24 @@ def last_registration(job_id: JobId, session: SessionDep) -> RegistrationOut:
     )
 
 
+@router.get("/api/merges/{job_id}/sem-registrations", response_model=list[RegistrationOut])
+def registrations(job_id: JobId, session: SessionDep) -> list[RegistrationOut]:
+    """Every registration of the merge onto an SEM image, the last first."""
+    records = session.scalars(
+        select(SemRegistrationRecord)
+        .where(SemRegistrationRecord.merge_id == job_id)
+        .order_by(SemRegistrationRecord.id.desc())
+    ).all()
+    if not records:
+        merge_result(session, job_id)  # a merge that is not there, or not done: its 404
+        return []
+    heights, doc = merge_result(session, job_id)
+    middle = _middle(heights, doc)
+    return [
+        registration_out(r, session, _view(_sem_record(session, r.sem_id)), middle) for r in records
+    ]
+
+
 @router.get(
     "/api/merges/{job_id}/sem-overlay.png", response_class=Response, responses=PNG_RESPONSES
 )

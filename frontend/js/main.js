@@ -291,7 +291,7 @@ function renderRun() {
     : `SEM image ${drawn.sem_id}, ` +
       (drawn.calibration_id
         ? `calibration #${drawn.calibration_id} (${drawn.rotation_deg.toFixed(3)}°, residual ${drawn.residual_px.toFixed(2)} px)`
-        : "placed by its own metadata (no calibration)");
+        : "placed without a calibration (its metadata or nominal pixel)");
   if (run.state === "running" && !state.startedAt) state.startedAt = { t: Date.now(), stored };
   tick();
 }
@@ -375,9 +375,68 @@ function renderMerge(job) {
     $("dl-npy").href = `/api/merges/${j.id}/mosaic.npy`;
     $("dl-json").href = `/api/merges/${j.id}/mosaic.json`;
     $("merge-result").hidden = false;
+    act(async () => {
+      const done = await get(`/api/merges/${j.id}/sem-registrations`); // the last first
+      if (done.length) return showRegistration(done[0]);
+      $("registration").textContent = "";
+      $("overlay-box").hidden = true;
+      $("apply-registration").hidden = true;
+    });
   }
   plotResiduals($("residual-plot"), state.residuals);
 }
+
+// -- the mosaic on the SEM image ------------------------------------------------------------
+
+function registrationText(r) {
+  const t = r.transform;
+  const placed = `${t.rotation_deg.toFixed(3)}° ± ${r.sigma.rotation_deg.toFixed(3)}, scale ${t.scale.toFixed(4)}, score ${r.score.toFixed(2)}`;
+  if (!r.accepted) return `Not registered on SEM image ${r.sem_id}: ${r.reason} (${placed})`;
+  const check = r.calibration
+    ? ` The calibration #${r.calibration.id} that placed the image is off by ${r.calibration.displacement_px.toFixed(2)} px here (it stated ± ${r.calibration.stated_px.toFixed(2)} px).`
+    : " The image was placed without a calibration.";
+  return `Registered on SEM image ${r.sem_id}: ${placed}, the mosaic's centre ± ${nm(r.sigma.centre)}.${check}`;
+}
+
+function showOverlay() {
+  const opacity = $("overlay-blink").checked ? state.blinkOn ? 1 : 0 : Number($("overlay-opacity").value);
+  $("sem-overlay").src = `/api/merges/${state.job.id}/sem-overlay.png?opacity=${opacity}&v=${state.registration}`;
+}
+
+function showRegistration(r) {
+  state.registration = r.id;
+  $("registration").textContent = registrationText(r);
+  $("apply-registration").hidden = !(r.accepted && r.calibration);
+  $("overlay-box").hidden = !r.accepted;
+  if (r.accepted) showOverlay();
+}
+
+$("register-sem").addEventListener("click", () =>
+  userAct(async () => {
+    if (!sem.image) throw new Error("Acquire or upload an SEM image of this place first (above).");
+    $("registration").textContent = "Registering …";
+    showRegistration(await post(`/api/merges/${state.job.id}/sem-registration`, { sem: sem.image.meta.id }));
+  }),
+);
+
+$("apply-registration").addEventListener("click", () =>
+  userAct(async () => {
+    const found = await post(`/api/merges/${state.job.id}/sem-registration/apply`);
+    $("sem-calibration").textContent = calibrationText(found);
+    $("apply-registration").hidden = true;
+  }),
+);
+
+$("overlay-opacity").addEventListener("change", showOverlay);
+$("overlay-blink").addEventListener("change", () => {
+  clearInterval(state.blink);
+  if ($("overlay-blink").checked) {
+    state.blink = setInterval(() => {
+      state.blinkOn = !state.blinkOn;
+      showOverlay();
+    }, 700);
+  } else showOverlay();
+});
 
 // -- instrument -------------------------------------------------------------------------------
 

@@ -90,6 +90,18 @@ def test_a_mosaic_from_roi_to_merged_preview(
     assert "done" in pg.inner_text("#merge-state")
     _shot(pg, "3-merged")
 
+    # the mosaic registered on the SEM image it was drawn on, and overlaid
+    pg.click("#register-sem")
+    _wait(pg, "document.querySelector('#registration').textContent.startsWith('Registered')")
+    overlay = "document.querySelector('#sem-overlay')"
+    pg.wait_for_function(f"{overlay}.complete && {overlay}.naturalWidth > 0")
+    assert "opacity=0.5" in str(pg.get_attribute("#sem-overlay", "src"))
+    pg.locator("#overlay-opacity").evaluate(
+        "e => { e.value = '0.9'; e.dispatchEvent(new Event('change')); }"
+    )
+    pg.wait_for_function(f"{overlay}.src.includes('opacity=0.9') && {overlay}.complete")
+    _shot(pg, "5-overlay")
+
     # the 3D viewer holds one node per stored patch and the merged mosaic
     viewer: dict[str, Any] = {}
     for _ in range(100):
