@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import math
+import tempfile
+from pathlib import Path
 from typing import Annotated, Any
 
 import numpy as np
@@ -11,7 +13,7 @@ from sqlalchemy import select
 
 from backend.acquisition.sem_stage import adjusted
 from backend.api.deps import OperatorDep, ServicesDep, SessionDep
-from backend.api.merges import merge_result
+from backend.api.merges import merge_result, with_registration
 from backend.api.responses import PNG_RESPONSES
 from backend.api.schemas import (
     CalibrationCheckOut,
@@ -25,7 +27,8 @@ from backend.api.schemas import (
 from backend.api.sem import calibration_of, calibration_out, sem_pixels, stored_geometry
 from backend.db.models import SemCalibrationRecord, SemImageRecord, SemRegistrationRecord
 from merge.correlative import RegistrationError, SEMView, Similarity, register_to_sem
-from merge.io.overlay import overlay_rgb
+from merge.io.formats import export_heights
+from merge.io.overlay import overlay_rgb, sem_on_mosaic
 from merge.io.png import encode_png
 
 router = APIRouter(tags=["sem registration"])
@@ -311,3 +314,39 @@ def apply_registration(
         data={"calibration": new.id, "from": found.id, "registration": record.id},
     )
     return out
+
+
+@router.get(
+    "/api/merges/{job_id}/mosaic-sem.{fmt}",
+    response_class=Response,
+    responses={200: {"content": {t: {} for t in ("application/x-gwyddion", "image/tiff")}}},
+)
+def mosaic_with_sem(job_id: JobId, fmt: str, session: SessionDep) -> Response:
+    """The merged mosaic with the SEM image it was last registered on, resampled on the
+    mosaic's grid: a ``.gwy`` of two channels (heights, SEM signal) or a two-page ``.tif``;
+    the registration in the file's metadata (``.gwy``)."""
+    types = {"gwy": "application/x-gwyddion", "tif": "image/tiff"}
+    if fmt not in types:
+        raise HTTPException(404, f"no export mosaic-sem.{fmt}: use mosaic-sem.gwy or .tif")
+    record = _last(session, job_id, accepted=True)
+    heights, doc = merge_result(session, job_id)
+    doc = with_registration(session, job_id, doc)
+    origin, pixel = _grid(doc)
+    view = _view(_sem_record(session, record.sem_id))
+    t = Similarity(record.rotation_deg, record.scale, (record.offset[0], record.offset[1]))
+    signal = sem_on_mosaic(view, heights.shape, origin=origin, pixel_size=pixel, transform=t)
+    with tempfile.TemporaryDirectory() as tmp:
+        path = export_heights(
+            Path(tmp) / f"mosaic.{fmt}",
+            heights,
+            pixel_size=pixel,
+            origin=origin,
+            document=doc,
+            channels=[(f"SEM image {record.sem_id}", signal, "")],
+        )
+        body = path.read_bytes()
+    return Response(
+        body,
+        media_type=types[fmt],
+        headers={"Content-Disposition": f'attachment; filename="merge{job_id}-mosaic-sem.{fmt}"'},
+    )

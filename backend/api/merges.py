@@ -8,12 +8,13 @@ from typing import Annotated, Any
 
 from fastapi import APIRouter, HTTPException, Query, Response
 from fastapi.responses import JSONResponse
+from sqlalchemy import select
 
 from backend.api.deps import OperatorDep, ServicesDep, SessionDep
 from backend.api.responses import NPY, PNG_RESPONSES, height_map, npy_response, png_response
 from backend.api.runs import get_run
 from backend.api.schemas import JobId, MergeIn, MergeOut, MergeParams, RunId
-from backend.db.models import MergeJob, Run
+from backend.db.models import MergeJob, Run, SemRegistrationRecord
 from backend.db.patch_store import read_merge
 from merge import MergeConfig
 from merge.io.formats import export_heights
@@ -156,12 +157,40 @@ def mosaic_npy(job_id: JobId, session: SessionDep) -> Response:
     return npy_response(heights, f"merge{job_id}-mosaic.npy")
 
 
+def with_registration(session: SessionDep, job_id: int, document: dict[str, Any]) -> dict[str, Any]:
+    """The result document with the merge's last accepted registration onto an SEM image
+    (``sem_registration``: the SEM image, ``T_sem_mosaic``, its uncertainty and score)."""
+    record = session.scalars(
+        select(SemRegistrationRecord)
+        .where(SemRegistrationRecord.merge_id == job_id)
+        .where(SemRegistrationRecord.accepted.is_(True))
+        .order_by(SemRegistrationRecord.id.desc())
+        .limit(1)
+    ).first()
+    if record is None:
+        return document
+    registration = {
+        "id": record.id,
+        "sem_id": record.sem_id,
+        "transform": {
+            "rotation_deg": record.rotation_deg,
+            "scale": record.scale,
+            "offset": record.offset,
+        },
+        "affine": record.affine,
+        "sigma": record.sigma,
+        "score": record.score,
+        "calibration_id": record.calibration_id,
+    }
+    return {**document, "sem_registration": registration}
+
+
 @router.get("/api/merges/{job_id}/mosaic.json")
 def mosaic_json(job_id: JobId, session: SessionDep) -> JSONResponse:
     """The result document (``mosaic.json`` of DESIGN.md): grid, per-patch transforms and
-    quality report."""
+    quality report, and the last accepted registration onto an SEM image."""
     _, document = merge_result(session, job_id)
-    return JSONResponse(document)
+    return JSONResponse(with_registration(session, job_id, document))
 
 
 @router.get("/api/merges/{job_id}/preview.png", response_class=Response, responses=PNG_RESPONSES)
@@ -201,6 +230,7 @@ def mosaic_export(job_id: JobId, fmt: str, session: SessionDep) -> Response:
             f"no export .{fmt}: use mosaic.npy, mosaic.json or mosaic.{{{','.join(EXPORT_TYPES)}}}",
         )
     heights, doc = merge_result(session, job_id)
+    doc = with_registration(session, job_id, doc)
     origin = (float(doc["origin"][0]), float(doc["origin"][1]))
     pixel = (float(doc["pixel_size"][0]), float(doc["pixel_size"][1]))
     with tempfile.TemporaryDirectory() as tmp:

@@ -103,3 +103,29 @@ def overlay_rgb(
         out[covered] = (1 - opacity) * out[covered] + opacity * colours[covered]
     result: UInt8Array = np.clip(out + 0.5, 0, 255).astype(np.uint8)
     return result
+
+
+def sem_on_mosaic(
+    sem: SEMView,
+    shape: tuple[int, int],
+    *,
+    origin: tuple[float, float],
+    pixel_size: tuple[float, float],
+    transform: Similarity,
+) -> FloatArray:
+    """The SEM image resampled on the mosaic's grid (``shape`` rows along +y from
+    ``origin``; bilinear, NaN where the image does not reach): each mosaic point takes the
+    SEM's signal where ``transform`` (``T_sem_mosaic``) says the image shows it."""
+    ny, nx = shape
+    cols, rows = np.meshgrid(np.arange(nx, dtype=np.float64), np.arange(ny, dtype=np.float64))
+    points = np.stack([origin[0] + cols * pixel_size[0], origin[1] + rows * pixel_size[1]], -1)
+    at = sem.to_pixel(transform.apply(points))
+    image = np.asarray(sem.pixels, dtype=np.float64)
+    rows_n, cols_n = image.shape
+    inside = (at[..., 0] >= 0) & (at[..., 0] <= cols_n - 1)
+    inside &= (at[..., 1] >= 0) & (at[..., 1] <= rows_n - 1)
+    out: FloatArray = ndimage.map_coordinates(
+        image, [np.clip(at[..., 1], 0, rows_n - 1), np.clip(at[..., 0], 0, cols_n - 1)], order=1
+    )
+    out[~inside] = np.nan
+    return out

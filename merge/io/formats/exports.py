@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import struct
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -92,22 +93,28 @@ def export_heights(
     origin: tuple[float, float] = (0.0, 0.0),
     document: dict[str, Any] | None = None,
     title: str = "Height",
+    channels: Sequence[tuple[str, FloatArray, str]] = (),
 ) -> Path:
     """Write ``heights`` (metres, rows along +y, NaN = no data) in the format of ``path``'s
-    suffix; ``document`` (e.g. a merge's ``mosaic.json``) goes along as metadata."""
+    suffix; ``document`` (e.g. a merge's ``mosaic.json``) goes along as metadata.
+    ``channels`` (``(title, values, unit)`` on the heights' grid, e.g. the SEM image the
+    mosaic was registered on): more channels of a ``.gwy``, more pages of a ``.tif``; the
+    other formats hold one map and refuse them."""
     out = Path(path)
     suffix = out.suffix.lower()
     h = np.asarray(heights)  # a memory-mapped mosaic stays mapped
     if h.ndim != 2 or not _any_finite(h):
         raise FormatError(f"{out}: nothing to export (need a 2-D map with finite heights)")
     doc = document or {}
+    if channels and suffix not in (".gwy", ".tif", ".tiff"):
+        raise FormatError(f"{out}: a {suffix} file holds one map: export .gwy or .tif")
     if suffix == ".gwy":
         meta = {
             "Software": "mosaic-afm",
             **{
                 k: json.dumps(v)
                 for k, v in doc.items()
-                if k in ("method", "parameters", "iterations", "converged")
+                if k in ("method", "parameters", "iterations", "converged", "sem_registration")
             },
         }
         if "patches" in doc:
@@ -124,9 +131,10 @@ def export_heights(
             origin=origin,
             title=title,
             metadata=meta,
+            channels=channels,
         )
     elif suffix in (".tif", ".tiff"):
-        write_tiff(out, h, pixel_size=pixel_size)
+        write_tiff(out, h, pixel_size=pixel_size, pages=[(t, v) for t, v, _ in channels])
     elif suffix == ".png":
         mosaic = Mosaic(h, origin, pixel_size, np.isfinite(h).astype(np.int32))
         out.write_bytes(

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import re
 import struct
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -224,10 +225,13 @@ def write_gwy(
     origin: tuple[float, float] = (0.0, 0.0),
     title: str = "Height",
     metadata: dict[str, str] | None = None,
+    channels: Sequence[tuple[str, FloatArray, str]] = (),
 ) -> None:
     """Write one height field (metres, rows along +y; any array, a memory-mapped one read a
     block of rows at a time) and string metadata, as Gwyddion opens it. Missing heights (NaN)
     are written as the lowest height and marked in the field's mask (1 = masked).
+    ``channels``: more fields on the same grid, each ``(title, values, unit)`` (e.g. an SEM
+    image resampled on the mosaic's grid), NaN written as their lowest value.
 
     The file is serialised here, not through gwyfile, which builds all of it in memory (five
     copies of a mosaic's heights); a field of more than 4 GB cannot be held by the format and
@@ -254,6 +258,15 @@ def write_gwy(
     if metadata:
         meta = b"".join(_text(k, str(v)) for k, v in metadata.items())
         parts.append((_name("/0/meta") + b"o" + _object("GwyContainer", meta), b"", ""))
+    extra: dict[str, tuple[FloatArray, float]] = {}
+    for k, (name, values, unit) in enumerate(channels, start=1):
+        v = np.asarray(values, dtype=np.float64)
+        if v.shape != h.shape:
+            raise FormatError(f"{path}: channel {name!r} is {v.shape}, the heights {h.shape}")
+        finite = np.isfinite(v)
+        extra[f"extra{k}"] = (v, float(v[finite].min()) if finite.any() else 0.0)
+        parts.append((_name(f"/{k}/data") + b"o", field.head(unit), f"extra{k}"))
+        parts.append((_text(f"/{k}/data/title", name), b"", ""))
     size = sum(len(a) + len(b) + (8 * nx * ny if kind else 0) for a, b, kind in parts)
     if size > MAX_OBJECT:
         raise FormatError(
@@ -265,6 +278,12 @@ def write_gwy(
         for key, head, kind in parts:
             out.write(key + head)
             for lo, hi in blocks if kind else ():
+                if kind in extra:
+                    more, lowest = extra[kind]
+                    block = more[lo:hi][::-1]
+                    values = np.where(np.isfinite(block), block, lowest)
+                    out.write(np.ascontiguousarray(values, dtype="<f8").tobytes())
+                    continue
                 block = np.asarray(h[lo:hi], dtype=np.float64)[::-1]
                 if kind == "data":
                     values = np.where(np.isfinite(block), block, fill)

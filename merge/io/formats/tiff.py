@@ -9,7 +9,7 @@ project's rows-along-+y on the way in and out.
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -31,11 +31,19 @@ MAX_DECODED = 3 * 4096 * 4096
 STRIP_BYTES = 4 << 20
 
 
-def write_tiff(path: str | Path, heights: FloatArray, *, pixel_size: tuple[float, float]) -> None:
+def write_tiff(
+    path: str | Path,
+    heights: FloatArray,
+    *,
+    pixel_size: tuple[float, float],
+    pages: Sequence[tuple[str, FloatArray]] = (),
+) -> None:
     """Float32 heights in metres; X/YResolution in pixels per centimetre (so the size is
     there for any reader), and the exact pitch in the description; BigTIFF from
     :data:`BIGTIFF_FROM` bytes of heights. Written in strips of :data:`STRIP_BYTES`, top row
-    first, each converted as it goes: a memory-mapped mosaic is never copied whole."""
+    first, each converted as it goes: a memory-mapped mosaic is never copied whole.
+    ``pages``: more pages on the same grid after the heights, each ``(name, values)`` (e.g.
+    an SEM image resampled on the mosaic's grid), float32, their name in the description."""
     import tifffile
 
     h = np.asarray(heights)  # a memory map stays mapped
@@ -49,18 +57,32 @@ def write_tiff(path: str | Path, heights: FloatArray, *, pixel_size: tuple[float
         for lo, hi in bands:
             yield np.asarray(h[lo:hi][::-1], dtype="<f4").tobytes()
 
-    tifffile.imwrite(
-        str(path),
-        strips(),
-        shape=(ny, nx),
-        dtype="<f4",
-        rowsperstrip=rows,
-        bigtiff=4 * ny * nx >= BIGTIFF_FROM,
-        resolution=(1e-2 / pixel_size[0], 1e-2 / pixel_size[1]),
-        resolutionunit="CENTIMETER",
-        description=f"mosaic-afm heights m pixel_size {pixel_size[0]!r} {pixel_size[1]!r}",
-        metadata=None,
-    )
+    resolution = (1e-2 / pixel_size[0], 1e-2 / pixel_size[1])
+    pitch = f"pixel_size {pixel_size[0]!r} {pixel_size[1]!r}"
+    with tifffile.TiffWriter(
+        str(path), bigtiff=4 * ny * nx * (1 + len(pages)) >= BIGTIFF_FROM
+    ) as tif:
+        tif.write(
+            strips(),
+            shape=(ny, nx),
+            dtype="<f4",
+            rowsperstrip=rows,
+            resolution=resolution,
+            resolutionunit="CENTIMETER",
+            description=f"mosaic-afm heights m {pitch}",
+            metadata=None,
+        )
+        for name, values in pages:
+            v = np.asarray(values)
+            if v.shape != (ny, nx):
+                raise FormatError(f"{path}: page {name!r} is {v.shape}, the heights {(ny, nx)}")
+            tif.write(
+                np.ascontiguousarray(v[::-1], dtype="<f4"),
+                resolution=resolution,
+                resolutionunit="CENTIMETER",
+                description=f"mosaic-afm {name} {pitch}",
+                metadata=None,
+            )
 
 
 def check_declared(page: Any, name: str, *, limit: int) -> None:

@@ -6,6 +6,7 @@ from __future__ import annotations
 import io
 import math
 from collections.abc import Iterator
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -125,3 +126,36 @@ def test_a_registration_corrects_a_calibration_that_is_off(tmp_path: Any) -> Non
                 assert r.status_code == 201, r.text
                 assert r.json()["rotation_deg"] == pytest.approx(good["rotation_deg"], abs=0.05)
         assert shifts[1] < 1.0, shifts
+
+
+def test_the_exports_keep_the_sem_image_beside_the_heights(
+    merged: tuple[Server, dict[str, Any]], tmp_path: Path
+) -> None:
+    import tifffile
+
+    from merge.io.formats.gwy import read_gwy
+
+    server, made = merged
+    job = made["merge"]
+    r = server.post(f"/api/merges/{job}/sem-registration", {"sem": made["sem"]["id"]})
+    assert r.json()["accepted"]
+    doc = server.client.get(f"/api/merges/{job}/mosaic.json").json()
+    assert doc["sem_registration"]["id"] == r.json()["id"]
+    heights = np.load(io.BytesIO(server.client.get(f"/api/merges/{job}/mosaic.npy").content))
+    gwy = tmp_path / "both.gwy"
+    gwy.write_bytes(server.client.get(f"/api/merges/{job}/mosaic-sem.gwy").content)
+    sem_channel = read_gwy(gwy, channel=f"SEM image {made['sem']['id']}")
+    assert sem_channel.heights.shape == heights.shape
+    assert np.isfinite(sem_channel.heights).all() and sem_channel.heights.std() > 0
+    assert read_gwy(gwy).heights.shape == heights.shape  # the heights first
+    tif = tmp_path / "both.tif"
+    tif.write_bytes(server.client.get(f"/api/merges/{job}/mosaic-sem.tif").content)
+    with tifffile.TiffFile(tif) as pages:
+        assert len(pages.pages) == 2
+        second = pages.pages[1].asarray()
+    # the SEM page is the SEM signal where the mosaic lies: its bright fold crests sit on the
+    # heights' slopes, so it correlates with the slope of the heights, not with nothing
+    slope = np.hypot(*np.gradient(np.nan_to_num(heights)))[::-1]
+    assert np.corrcoef(second.ravel(), slope.ravel())[0, 1] > 0.3
+    r = server.client.get(f"/api/merges/{job}/mosaic-sem.png")
+    assert r.status_code == 404 and ".gwy" in r.json()["detail"]
