@@ -12,6 +12,8 @@ import numpy as np
 import tifffile
 from numpy.typing import NDArray
 
+from backend.db.models import SemImageRecord
+from merge.correlative import SEMView
 from merge.io.formats.image import FormatError
 from merge.io.formats.tiff import check_declared
 
@@ -178,3 +180,14 @@ def save_pixels(path: Path, pixels: FloatArray) -> None:
     tmp = path.with_suffix(".tmp.npy")
     np.save(tmp, np.asarray(pixels, dtype=np.float64), allow_pickle=False)
     tmp.replace(path)
+
+
+def sem_view(record: SemImageRecord) -> SEMView:
+    """A stored SEM image with its pixel-to-stage map, as :mod:`merge.correlative` takes it
+    (its pixels read from its file)."""
+    pixels = np.load(Path(record.file), allow_pickle=False)
+    if record.matrix is not None:
+        matrix = np.asarray(record.matrix, dtype=np.float64)
+    else:  # placed before maps were stored: its pixel size along the axes
+        matrix = np.diag([record.pixel_x, record.pixel_y])
+    return SEMView(np.asarray(pixels, dtype=np.float64), (record.origin_x, record.origin_y), matrix)

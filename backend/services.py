@@ -15,18 +15,21 @@ from sqlalchemy.orm import Session, sessionmaker
 from backend.acquisition.planner import InstrumentLimits
 from backend.acquisition.runner import Runner
 from backend.auth import load_or_create_token
-from backend.db.models import MergeJob, Run
+from backend.db.models import MergeJob, Run, SemImageRecord, SemRegistrationRecord
 from backend.db.patch_store import read_merge_detail, read_patch
 from backend.db.session import make_engine, migrate, session_factory
 from backend.events import EventBus
 from backend.live_merge import LiveMergeService
 from backend.merge_jobs import MergeService
+from backend.sem_files import sem_view
 from backend.settings import Settings
 from backend.status_cache import StatusCache
 from backend.viewer import MERGED_BUDGET, HeightMap, Viewer
 from backend.viewer_access import admission
 from hardware.microscope import Microscope, open_microscope
+from merge.correlative import Similarity
 from merge.io.detail import detail_frame
+from merge.io.overlay import sem_on_mosaic
 
 log = logging.getLogger("mosaic_afm.server")
 
@@ -171,6 +174,9 @@ class ViewerFeed:
         elif event["kind"] == "merge" and data.get("state") == "done":
             job_id = int(data["job"])
             self.viewer.submit(lambda: self._mosaic(job_id))
+        elif event["kind"] == "sem" and data.get("accepted") and "registration" in data:
+            registration = int(data["registration"])
+            self.viewer.submit(lambda: self._drape(registration))
         elif event["kind"] == "live" and "patches_merged" in data and event.get("run_id"):
             run_id = int(event["run_id"])
             with self._lock:  # the viewer draws the newest; updates that come meanwhile wait
@@ -218,6 +224,29 @@ class ViewerFeed:
             k,
         )
         self.viewer.show_mosaic(job_id, HeightMap(heights, origin, pixel))
+
+    def _drape(self, registration_id: int) -> None:
+        """The SEM image a merged mosaic was registered on, draped over it in the viewer."""
+        with self.sessions() as session:
+            record = session.get(SemRegistrationRecord, registration_id)
+            job = session.get(MergeJob, record.merge_id) if record is not None else None
+            run = session.get(Run, job.run_id) if job is not None else None
+            sem = session.get(SemImageRecord, record.sem_id) if record is not None else None
+            if record is None or job is None or run is None or sem is None:
+                return
+            if not job.result_group:
+                return
+            path, group = run.file, job.result_group
+            view = sem_view(sem)
+            t = Similarity(record.rotation_deg, record.scale, (record.offset[0], record.offset[1]))
+        heights, k, document = read_merge_detail(path, group, MERGED_BUDGET)
+        origin, pixel = detail_frame(
+            (float(document["origin"][0]), float(document["origin"][1])),
+            (float(document["pixel_size"][0]), float(document["pixel_size"][1])),
+            k,
+        )
+        signal = sem_on_mosaic(view, heights.shape, origin=origin, pixel_size=pixel, transform=t)
+        self.viewer.drape(record.merge_id, HeightMap(heights, origin, pixel), signal)
 
 
 def _auto_merge(merges: MergeService, run_id: int) -> None:

@@ -59,10 +59,12 @@ def decimate(heights: FloatArray, budget: int) -> tuple[FloatArray, int]:
 
 
 def mesh_of(
-    hmap: HeightMap, *, budget: int, zero: float
+    hmap: HeightMap, *, budget: int, zero: float, tint: FloatArray | None = None
 ) -> tuple[NDArray[np.float32], NDArray[np.uint32], NDArray[np.uint8], tuple[float, float]]:
     """Vertices (µm, local to the map's origin; heights relative to ``zero``), triangles
-    over finite cells, vertex colours, and the origin (µm) to place the node at."""
+    over finite cells, vertex colours, and the origin (µm) to place the node at. The colours
+    are the heights' in the AFM colour map, or ``tint``'s in grey (an SEM image on the
+    heights' grid: the SEM draped over the topography)."""
     heights, k = decimate(hmap.heights, budget)
     ny, nx = heights.shape
     (ox, oy), (px, py) = detail_frame(hmap.origin, hmap.pixel_size, k)
@@ -72,8 +74,16 @@ def mesh_of(
     fill = np.where(finite, heights, np.nanmin(heights) if finite.any() else 0.0)
     verts = np.stack([jj * dx, ii * dy, (fill - zero) * UM], axis=-1).reshape(-1, 3)
     faces = grid_triangles(finite)
-    lo, hi = np.nanpercentile(heights, [1, 99]) if finite.any() else (0.0, 1.0)
-    colours = afm_colors((heights - lo) / max(hi - lo, 1e-12)).reshape(-1, 3)
+    if tint is None:
+        lo, hi = np.nanpercentile(heights, [1, 99]) if finite.any() else (0.0, 1.0)
+        colours = afm_colors((heights - lo) / max(hi - lo, 1e-12)).reshape(-1, 3)
+    else:
+        grey, _ = decimate(np.asarray(tint, dtype=np.float64), budget)
+        seen = np.isfinite(grey)
+        lo, hi = np.nanpercentile(grey, [1, 99]) if seen.any() else (0.0, 1.0)
+        level = np.clip(np.nan_to_num((grey - lo) / max(hi - lo, 1e-12)), 0.0, 1.0)
+        colours = np.repeat((level * 255 + 0.5).astype(np.uint8)[..., None], 3, axis=-1)
+        colours = colours.reshape(-1, 3)
     origin = (ox * UM, oy * UM)
     return verts.astype(np.float32), faces.astype(np.uint32), colours, origin
 
@@ -81,6 +91,10 @@ def mesh_of(
 #: The Z exaggeration a viewer offers, and where it starts.
 EXAGGERATION = (1.0, 200.0)
 SHOW = ("both", "raw", "merged")
+#: What colours a merged mosaic: its heights, or the SEM image it was registered on.
+COLOURS = ("height", "SEM")
+#: The name of a mosaic's SEM drape: the mosaic's own, with this after it.
+DRAPED = "-sem"
 
 
 @dataclass(frozen=True)
@@ -104,11 +118,14 @@ class ClientView:
             initial_value=EXAGGERATION[0],
         )  # fmt: skip
         self.show = gui.add_dropdown("Show", SHOW, initial_value=SHOW[0])
+        self.colour = gui.add_dropdown("Colour", COLOURS, initial_value=COLOURS[0])
         self.reset = gui.add_button("Reset camera")
         self.scale = EXAGGERATION[0]
         self.mode = SHOW[0]
+        self.tint = COLOURS[0]
         self.exaggeration.on_update(self._on_update)
         self.show.on_update(self._on_update)
+        self.colour.on_update(self._on_update)
         self.reset.on_click(lambda _: on_reset(client))
 
     async def _on_update(self, _event: Any) -> None:
@@ -131,23 +148,36 @@ class ClientView:
             self.mode = str(mode)
         else:
             self.show.value = self.mode
+        if self.colour.value in COLOURS:
+            self.tint = str(self.colour.value)
+        else:
+            self.colour.value = self.tint
         for node in self.nodes.values():
             self.style(node)
 
     def style(self, node: Any) -> None:
-        merged = node.name.startswith("/merged/")
-        node.visible = self.mode == "both" or self.mode == ("merged" if merged else "raw")
+        name = node.name
+        merged = name.startswith("/merged/")
+        shown = self.mode == "both" or self.mode == ("merged" if merged else "raw")
+        if name.endswith(DRAPED):  # the SEM over a mosaic: in its place, when asked for
+            shown = shown and self.tint == "SEM"
+        elif merged and name + DRAPED in self.nodes:
+            shown = shown and self.tint != "SEM"
+        node.visible = shown
         node.scale = (1.0, 1.0, self.scale)
 
     def put(self, name: str, shown: Shown) -> None:
         node = self.client.scene.add_mesh_trimesh(name, shown.mesh, position=shown.position)
         self.nodes[name] = node
-        self.style(node)
+        for each in self.nodes.values():  # a drape hides the mosaic under it, and back
+            self.style(each)
 
     def drop(self, name: str) -> None:
         node = self.nodes.pop(name, None)
         if node is not None:
             node.remove()
+            for each in self.nodes.values():
+                self.style(each)
 
 
 class Viewer:
@@ -179,6 +209,7 @@ class Viewer:
         self.views: dict[int, ClientView] = {}  # client id -> its view
         self.raw: dict[tuple[int, int], str] = {}  # (run, patch index) -> node name
         self.merged: dict[int, str] = {}  # job id -> node name
+        self.draped: dict[int, str] = {}  # job id -> its SEM drape's node name
         self.live: dict[int, str] = {}  # run id -> its live mosaic's node name
         self.run_id: int | None = None
         self.zero: float | None = None  # heights are shown relative to the first one
@@ -236,13 +267,25 @@ class Viewer:
         """A merged mosaic, beside the raw patches; it replaces the previous one (and the live
         mosaic it was merged from)."""
         with self._lock:
-            for old in [*self.merged.values(), *self.live.values()]:
+            for old in [*self.draped.values(), *self.merged.values(), *self.live.values()]:
                 self._drop(old)
+            self.draped.clear()
             self.merged.clear()
             self.live.clear()
             name = f"/merged/job{job_id}"
             self._put(name, self._beside(hmap), MERGED_BUDGET)
             self.merged[job_id] = name
+
+    def drape(self, job_id: int, hmap: HeightMap, signal: FloatArray) -> None:
+        """The SEM image registered on merged mosaic ``job_id`` (``signal``, on ``hmap``'s
+        grid) as its colours: a node in the mosaic's place, shown to the browsers whose
+        colour is "SEM"."""
+        with self._lock:
+            if job_id not in self.merged:
+                return  # a newer mosaic replaced it
+            name = self.merged[job_id] + DRAPED
+            self._put(name, self._beside(hmap), MERGED_BUDGET, tint=signal)
+            self.draped[job_id] = name
 
     def show_live(self, run_id: int, hmap: HeightMap) -> None:
         """A run's live mosaic, beside its raw patches, growing as the run stores patches."""
@@ -283,6 +326,7 @@ class Viewer:
             return {
                 "raw": sorted(self.raw.values()),
                 "merged": sorted(self.merged.values()),
+                "draped": sorted(self.draped.values()),
                 "live": sorted(self.live.values()),
             }
 
@@ -323,10 +367,14 @@ class Viewer:
             except Exception:  # the viewer must never take the server down
                 log.exception("viewer update failed")
 
-    def _put(self, name: str, hmap: HeightMap, budget: int) -> None:
+    def _put(
+        self, name: str, hmap: HeightMap, budget: int, *, tint: FloatArray | None = None
+    ) -> None:
         import trimesh
 
-        verts, faces, colours, origin = mesh_of(hmap, budget=budget, zero=self.zero or 0.0)
+        verts, faces, colours, origin = mesh_of(
+            hmap, budget=budget, zero=self.zero or 0.0, tint=tint
+        )
         mesh = trimesh.Trimesh(vertices=verts, faces=faces, vertex_colors=colours, process=False)
         shown = Shown(mesh, (origin[0], origin[1], 0.0))
         self.meshes[name] = shown

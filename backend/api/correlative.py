@@ -24,8 +24,9 @@ from backend.api.schemas import (
     RegistrationSigmaOut,
     TransformOut,
 )
-from backend.api.sem import calibration_of, calibration_out, sem_pixels, stored_geometry
+from backend.api.sem import calibration_of, calibration_out, stored_geometry
 from backend.db.models import SemCalibrationRecord, SemImageRecord, SemRegistrationRecord
+from backend.sem_files import sem_view
 from merge.correlative import RegistrationError, SEMView, Similarity, register_to_sem
 from merge.io.formats import export_heights
 from merge.io.overlay import overlay_rgb, sem_on_mosaic
@@ -39,8 +40,10 @@ CALIBRATED_SEARCH = (1.0, 0.02, 20)
 
 
 def _view(record: SemImageRecord) -> SEMView:
-    image = stored_geometry(record)
-    return SEMView(sem_pixels(record), image.origin, np.asarray(image.map))
+    try:
+        return sem_view(record)
+    except OSError as exc:
+        raise HTTPException(404, f"SEM image {record.id}: file not readable ({exc})") from None
 
 
 def _grid(doc: dict[str, Any]) -> tuple[tuple[float, float], tuple[float, float]]:

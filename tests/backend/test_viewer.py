@@ -169,3 +169,32 @@ def test_each_browser_keeps_its_own_settings_and_values_out_of_range_are_ignored
             assert mine.scale == 40.0  # the last sane value kept
     finally:
         viewer.close()
+
+
+def test_the_sem_drapes_a_merged_mosaic_for_the_browsers_that_ask_for_it() -> None:
+    viewer = Viewer(port=free_port())
+    try:
+        heights = np.add.outer(np.arange(8.0), np.arange(8.0)) * 1e-9
+        hmap = HeightMap(heights, (0.0, 0.0), (0.1e-6, 0.1e-6))
+        viewer.show_mosaic(3, hmap)
+        viewer.drape(9, hmap, np.ones((8, 8)))  # not the mosaic shown: nothing
+        viewer.drape(3, hmap, np.arange(64.0).reshape(8, 8))
+        assert viewer.wait_idle()
+        assert viewer.node_names()["draped"] == ["/merged/job3-sem"]
+        page = f"http://127.0.0.1:{API_PORT}"
+        with _browser(viewer.port, origin=page, cookie=None) as socket:
+            _hello(socket)
+            _wait(lambda: len(viewer.views) == 1)
+            view = next(iter(viewer.views.values()))
+            _wait(lambda: "/merged/job3-sem" in view.nodes)
+            mosaic, drape = view.nodes["/merged/job3"], view.nodes["/merged/job3-sem"]
+            assert mosaic.visible and not drape.visible  # heights' colours first
+            update = GuiUpdateMessage(view.colour._impl.uuid, {"value": "SEM"})
+            socket.send(msgspec.msgpack.encode(update.as_serializable_dict()))
+            _wait(lambda: view.tint == "SEM")
+            assert drape.visible and not mosaic.visible
+        viewer.show_mosaic(4, hmap)  # a new merge takes its drape away
+        assert viewer.wait_idle()
+        assert viewer.node_names()["draped"] == []
+    finally:
+        viewer.close()

@@ -101,6 +101,11 @@ def test_a_mosaic_from_roi_to_merged_preview(
     )
     pg.wait_for_function(f"{overlay}.src.includes('opacity=0.9') && {overlay}.complete")
     _shot(pg, "5-overlay")
+    for _ in range(100):  # and the 3D viewer drapes the SEM over the merged mosaic
+        if httpx.get(server.url + "/api/instrument/viewer").json()["nodes"]["draped"]:
+            break
+        pg.wait_for_timeout(100)
+    assert httpx.get(server.url + "/api/instrument/viewer").json()["nodes"]["draped"]
 
     # the 3D viewer holds one node per stored patch and the merged mosaic
     viewer: dict[str, Any] = {}
