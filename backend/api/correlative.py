@@ -34,6 +34,9 @@ from merge.io.png import encode_png
 
 router = APIRouter(tags=["sem registration"])
 
+#: The coverage factor of the calibration's stated uncertainty (an expanded uncertainty, as
+#: metrology states one: about 95 % of placements fall within it).
+COVERAGE = 2.0
 #: How far from the placement a calibrated SEM image is searched: rotation (degrees), scale,
 #: and shift (SEM pixels, 0.3 µm at least).
 CALIBRATED_SEARCH = (1.0, 0.02, 20)
@@ -65,13 +68,14 @@ def _check(
     pixel = view.pixel
     shift = float(np.hypot(*(t.apply(middle) - middle))) / pixel
     calibration = calibration_of(found)
-    # its uncertainty there: the residual of its fit, and its matrix's uncertainty carried
-    # from the image's centre out to the mosaic's (both in this image's pixels)
+    # its uncertainty there: the residual of its fit (the stage's own errors at the moves'
+    # ends), and its matrix's uncertainty carried from the image's centre out to the
+    # mosaic's, in this image's pixels, expanded by the coverage factor
     reference_pixel = found.field / found.pixels
     at = view.to_pixel(middle)
     reach = float(np.hypot(*(at - (np.asarray(view.pixels.shape[::-1]) - 1) / 2)))
     spread = float(np.sqrt(np.sum(np.asarray(calibration.sigma) ** 2))) / reference_pixel
-    stated = math.hypot(found.residual_px * reference_pixel / pixel, reach * spread)
+    stated = COVERAGE * math.hypot(found.residual_px * reference_pixel / pixel, reach * spread)
     return CalibrationCheckOut(id=found.id, displacement_px=shift, stated_px=stated)
 
 

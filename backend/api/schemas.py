@@ -419,7 +419,10 @@ class CalibrationCheckOut(BaseModel):
 
     id: int
     displacement_px: float = Field(description="the registration's shift of the mosaic's centre")
-    stated_px: float = Field(description="the calibration's uncertainty there, SEM pixels")
+    stated_px: float = Field(
+        description="the calibration's expanded uncertainty there (coverage factor 2, about "
+        "95 %), SEM pixels"
+    )
 
 
 class RegistrationOut(BaseModel):

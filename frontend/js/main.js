@@ -393,7 +393,7 @@ function registrationText(r) {
   const placed = `${t.rotation_deg.toFixed(3)}° ± ${r.sigma.rotation_deg.toFixed(3)}, scale ${t.scale.toFixed(4)}, score ${r.score.toFixed(2)}`;
   if (!r.accepted) return `Not registered on SEM image ${r.sem_id}: ${r.reason} (${placed})`;
   const check = r.calibration
-    ? ` The calibration #${r.calibration.id} that placed the image is off by ${r.calibration.displacement_px.toFixed(2)} px here (it stated ± ${r.calibration.stated_px.toFixed(2)} px).`
+    ? ` The calibration #${r.calibration.id} that placed the image is off by ${r.calibration.displacement_px.toFixed(2)} px here (its stated uncertainty, k = 2: ${r.calibration.stated_px.toFixed(2)} px).`
     : " The image was placed without a calibration.";
   return `Registered on SEM image ${r.sem_id}: ${placed}, the mosaic's centre ± ${nm(r.sigma.centre)}.${check}`;
 }
