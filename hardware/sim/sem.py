@@ -2,7 +2,8 @@
 
 Contrast, as an Everhart-Thornley detector sees a surface: the secondary-electron yield grows
 with the local tilt (about ``1 / cos θ``), so edges and slopes are bright; the side-mounted
-detector adds shading (faces turned towards it are brighter); shot noise on top. Pixel
+detector adds shading (faces turned towards it are brighter); convex edges brighten further
+(electrons escape through the side wall too); shot noise on top. Pixel
 ``(col, row)`` of an image lies at stage (sample) position ``origin + (col, -row) * pixel``:
 row 0 is the top line, as an SEM shows it.
 """
@@ -22,6 +23,12 @@ FloatArray = NDArray[np.float64]
 
 #: The charging drift of the field's centre between two frames, metres (a random walk).
 CHARGING_STEP = 3e-9
+#: Edge brightening: secondary electrons escape from within ``SE_ESCAPE`` of a convex edge
+#: (metres); an edge curving by ``SE_DEPTH`` over that range brightens by about
+#: ``EDGE_GAIN`` (the yield of a flat surface is 1).
+SE_ESCAPE = 10e-9
+SE_DEPTH = 5e-9
+EDGE_GAIN = 0.5
 
 
 class SimulatedSEM:
@@ -156,6 +163,11 @@ class SimulatedSEM:
         yield_ = 1.0 / cos_tilt  # tilt contrast: edges bright
         facing = (gx * self.detector[0] + gy * self.detector[1]) * cos_tilt
         out: FloatArray = yield_ * (1.0 - 0.3 * facing)  # faces sloping towards the detector
+        # edge brightening: at a convex edge secondary electrons escape through the side
+        # wall as well as the top, within their escape range of it
+        spacing2 = np.abs(det)
+        laplacian = (np.gradient(h_r, axis=0) + np.gradient(h_c, axis=1)) / spacing2
+        out += EDGE_GAIN * np.tanh(np.maximum(-laplacian, 0.0) * SE_ESCAPE**2 / SE_DEPTH)
         out *= 1.0 + self.rng.normal(0.0, noise, out.shape)
         return out
 

@@ -2,14 +2,18 @@
 
 The SE yield of a surface element grows with its tilt ``θ`` to the beam, about as
 ``1 / cos θ`` (edges and slopes bright); the side-mounted detector collects more from faces
-turned towards it, in proportion to the slope along its direction (shading). The SEM sees the
+turned towards it, in proportion to the slope along its direction (shading); convex edges
+brighten further, electrons escaping through the side wall too. The SEM sees the
 slope over its probe's reach (the ``resolution``), a length no image states: the registration
 picks the one that fits. Neither gain nor
 the detector's direction is known for an image, so the contrast is returned as features whose
-weights a fit finds: ``SE ≈ a0 + a1 (1 / cos θ - 1) + a2 ∂h/∂x + a3 ∂h/∂y``.
+weights a fit finds: ``SE ≈ a0 + a1 (1 / cos θ - 1) + a2 ∂h/∂x + a3 ∂h/∂y + a4 κ``, ``κ``
+the convexity (the curvature where the surface bends down).
 """
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 from numpy.typing import NDArray
@@ -18,7 +22,7 @@ from scipy import ndimage
 FloatArray = NDArray[np.float64]
 
 #: The features :func:`se_features` returns, in order.
-FEATURES = ("tilt", "slope_x", "slope_y")
+FEATURES = ("tilt", "slope_x", "slope_y", "convexity")
 
 
 def se_features(
@@ -46,8 +50,9 @@ def se_features(
 
     Returns
     -------
-    features : (3, ny, nx) array
-        :data:`FEATURES`: ``1 / cos θ - 1`` and the slopes along x and y (dimensionless).
+    features : (4, ny, nx) array
+        :data:`FEATURES`: ``1 / cos θ - 1``, the slopes along x and y, and the convexity (its
+        curvature times the pixel), all dimensionless.
     valid : (ny, nx) bool array
         Where the heights were measured.
     """
@@ -67,7 +72,11 @@ def se_features(
         filled = ndimage.gaussian_filter(filled, resolution, mode="nearest")
     gy, gx = np.gradient(filled, dy, dx)
     tilt = np.sqrt(1.0 + gx**2 + gy**2) - 1.0  # 1 / cos θ - 1
-    out = np.stack([tilt, gx, gy])
+    # convex edges brighten (electrons escape through the side wall too): the curvature
+    # where the surface bends down, over a pixel (dimensionless: heights over the pixel)
+    laplacian = np.gradient(gx, dx, axis=1) + np.gradient(gy, dy, axis=0)
+    convexity = np.maximum(-laplacian, 0.0) * math.sqrt(dx * dy)
+    out = np.stack([tilt, gx, gy, convexity])
     if blur > 0:
         for k in range(len(out)):
             out[k] = ndimage.gaussian_filter(out[k], blur, mode="nearest")

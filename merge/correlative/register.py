@@ -31,7 +31,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import ndimage
 
-from merge.correlative.contrast import se_features
+from merge.correlative.contrast import FEATURES, se_features
 from merge.correlative.correlate import Peak, best_peak, masked_ncc
 
 FloatArray = NDArray[np.float64]
@@ -345,8 +345,9 @@ def _refine(
         values, use = topo.sample(local @ b_mat.T + c, model_images)
         if use.sum() < 64:
             raise RegistrationError("the mosaic covers too little of the SEM image to match")
-        f = values[:3, use]
-        gx, gy = values[3, use], values[4, use]
+        n_f = len(topo.features)
+        f = values[:n_f, use]
+        gx, gy = values[n_f, use], values[n_f + 1, use]
         ux, uy = local[use, 0], local[use, 1]
         residual = seen[use] - (weights[0] + np.tensordot(weights[1:], f, axes=1))
         if affine:  # p_x = b00 ux + b01 uy + cx, p_y = b10 ux + b11 uy + cy
@@ -410,11 +411,7 @@ def _misfit(topo: _Topography, image: FloatArray, points: FloatArray, t: Similar
 
 def _gradients(topo: _Topography, weights: FloatArray) -> FloatArray:
     """The fitted contrast's gradient along the mosaic's x and y, per metre."""
-    model = (
-        weights[1] * topo.features[0]
-        + weights[2] * topo.features[1]
-        + weights[3] * topo.features[2]
-    )
+    model = np.tensordot(weights[1:], topo.features, axes=1)
     gy, gx = np.gradient(model, topo.pixel[1], topo.pixel[0])
     return np.stack([gx, gy])
 
@@ -559,7 +556,9 @@ def register_to_sem(
     radius_m = shift + size * (math.radians(search_rotation) + search_scale) / 2
     best = prior
     rival, first = 0.0, True
-    weights = np.array([1.0, 0.0, 0.0])  # the tilt contrast alone, until weights are fitted
+    # the tilt contrast alone, until weights are fitted
+    weights = np.zeros(len(FEATURES))
+    weights[0] = 1.0
     d_rot = math.degrees(1.0 / max(footprint / step / 2, 4.0))
     rotations = np.arange(-search_rotation, search_rotation + 1e-9, d_rot)
     scales = 1.0 + np.arange(-search_scale, search_scale + 1e-9, d_rot * math.pi / 180)
@@ -643,7 +642,7 @@ def register_to_sem(
     sd_here, sd_worst = float(placed[0]), float(placed.max())
     values, _ = topo.sample(points @ fit.b.T + fit.c, topo.features)
     w = fit.weights
-    model = w[0] + w[1] * values[0] + w[2] * values[1] + w[3] * values[2]
+    model = w[0] + np.tensordot(w[1:], values, axes=1)
     mask = fit.mask
     score = float(np.corrcoef(model[mask], blocks[mask])[0, 1]) if mask.sum() > 2 else 0.0
     affine_map = None
