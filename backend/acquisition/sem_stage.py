@@ -21,7 +21,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from backend.sem_calibration import Calibration, calibrate
+from backend.sem_calibration import MIN_SHIFT, Calibration, CalibrationError, calibrate, phase_shift
 from hardware.microscope import Microscope
 from hardware.protocols import SEMFrame, SEMImage
 from hardware.raster import wait_stopped
@@ -78,6 +78,8 @@ def measure(
             at = move_stage_to(m, (start[0] + kx * step, start[1] + ky * step))
             frame = sem.acquire(field=field, pixels=pixels, dwell=dwell, detector=detector)
             moved.append(((at[0] - start[0], at[1] - start[1]), frame.pixels))
+            if len(moved) == 1:  # the first move tells whether the stage moves the image
+                _moves_the_image(reference.pixels, frame.pixels, at, start)
             move_stage_to(m, start)  # and back: what moved meanwhile is drift
             back = sem.acquire(field=field, pixels=pixels, dwell=dwell, detector=detector)
             returned.append(back.pixels)
@@ -92,6 +94,21 @@ def measure(
     record = [[move[0], move[1], shift.columns, shift.rows]
               for (move, _), shift in zip(moved, found.shifts, strict=True)]  # fmt: skip
     return found, reference.rotation, record
+
+
+def _moves_the_image(
+    reference: np.ndarray, frame: np.ndarray, at: tuple[float, float], start: tuple[float, float]
+) -> None:
+    """Refuse at once, not after every frame, a first move that shifted the image by less
+    than :data:`backend.sem_calibration.MIN_SHIFT` pixels."""
+    shift = phase_shift(reference, frame)
+    moved = math.hypot(shift.columns, shift.rows)
+    if moved < MIN_SHIFT:
+        raise CalibrationError(
+            f"move 1 ({(at[0] - start[0]) * 1e6:.3g}, {(at[1] - start[1]) * 1e6:.3g} µm) "
+            f"shifted the image by {moved:.2f} px: the stage did not move, or moved too little "
+            "for this field"
+        )
 
 
 def _turn(matrix: np.ndarray, degrees: float) -> np.ndarray:
