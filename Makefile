@@ -43,7 +43,7 @@ types: install
 	$(BIN)/mypy
 
 unit: install browser
-	$(BIN)/pytest -n 2 -q
+	$(BIN)/pytest -n 2 -q --durations=20
 
 # System programs the tests use: Debian's chromium for the browser tests (Playwright's own
 # download does not work here) and gwyddion, the oracle of every format's orientation.
