@@ -238,7 +238,7 @@ class ViewerFeed:
                 return
             path, group = run.file, job.result_group
             view = sem_view(sem)
-            t = Similarity(record.rotation_deg, record.scale, (record.offset[0], record.offset[1]))
+            t = Similarity(*record.transform)
         heights, k, document = read_merge_detail(path, group, MERGED_BUDGET)
         origin, pixel = detail_frame(
             (float(document["origin"][0]), float(document["origin"][1])),

@@ -41,11 +41,7 @@ def _nominal(image: np.ndarray) -> SEMView:
 
 
 def _truth(points: np.ndarray, g: SEMGeometry) -> np.ndarray:
-    a = math.radians(g.rotation)
-    turn = g.scale * np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
-    uv = np.linalg.solve(turn, (points - np.asarray(g.offset)).T).T
-    middle = (PIXELS - 1) / 2
-    pixel = np.column_stack([uv[:, 0] / PITCH + middle, -uv[:, 1] / PITCH + middle])
+    pixel = g.frame_pixels(points, field=FIELD, pixels=PIXELS)
     return _nominal(np.zeros((1, 1))).to_stage(pixel[:, 0], pixel[:, 1])
 
 

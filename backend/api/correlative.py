@@ -24,7 +24,7 @@ from backend.api.schemas import (
     RegistrationSigmaOut,
     TransformOut,
 )
-from backend.api.sem import calibration_of, calibration_out, stored_geometry
+from backend.api.sem import calibration_of, calibration_out, calibration_record, stored_geometry
 from backend.db.models import SemCalibrationRecord, SemImageRecord, SemRegistrationRecord
 from backend.sem_files import sem_view
 from merge.correlative import RegistrationError, SEMView, Similarity, register_to_sem
@@ -64,7 +64,7 @@ def _check(
     found = session.get(SemCalibrationRecord, record.calibration_id)
     if found is None:
         return None
-    t = Similarity(record.rotation_deg, record.scale, (record.offset[0], record.offset[1]))
+    t = Similarity(*record.transform)
     pixel = view.pixel
     shift = float(np.hypot(*(t.apply(middle) - middle))) / pixel
     calibration = calibration_of(found)
@@ -255,7 +255,7 @@ def sem_overlay(
     heights, doc = merge_result(session, job_id)
     origin, pixel = _grid(doc)
     view = _view(_sem_record(session, record.sem_id))
-    t = Similarity(record.rotation_deg, record.scale, (record.offset[0], record.offset[1]))
+    t = Similarity(*record.transform)
     try:
         rgb = overlay_rgb(
             heights, view, origin=origin, pixel_size=pixel, transform=t, opacity=opacity
@@ -287,7 +287,7 @@ def apply_registration(
             f"SEM image {sem.id} was not placed through a calibration (its own metadata or "
             "its nominal pixel placed it): calibrate the SEM first (POST /api/sem/calibrate)",
         )
-    t = Similarity(record.rotation_deg, record.scale, (record.offset[0], record.offset[1]))
+    t = Similarity(*record.transform)
     image = stored_geometry(sem)
     better = adjusted(
         calibration_of(found),
@@ -298,17 +298,12 @@ def apply_registration(
         t_matrix=t.matrix,
         t_offset=t.offset,
     )
-    new = SemCalibrationRecord(
+    new = calibration_record(
+        better,
         instrument=found.instrument,
-        field=found.field,
         pixels=found.pixels,
         scan_rotation=found.scan_rotation,
-        matrix=better.matrix.tolist(),
-        offset=list(better.offset),
-        stage=list(better.stage),
-        residual_px=found.residual_px,
-        sigma=better.sigma.tolist(),
-        moves=[],  # none made: adjusted from registration ``record.id``
+        moves=[],  # none made: adjusted from a registration
         actor=operator,
     )
     session.add(new)
@@ -340,7 +335,7 @@ def mosaic_with_sem(job_id: JobId, fmt: str, session: SessionDep) -> Response:
     doc = with_registration(session, job_id, doc)
     origin, pixel = _grid(doc)
     view = _view(_sem_record(session, record.sem_id))
-    t = Similarity(record.rotation_deg, record.scale, (record.offset[0], record.offset[1]))
+    t = Similarity(*record.transform)
     signal = sem_on_mosaic(view, heights.shape, origin=origin, pixel_size=pixel, transform=t)
     with tempfile.TemporaryDirectory() as tmp:
         path = export_heights(

@@ -207,6 +207,34 @@ def calibration_of(r: SemCalibrationRecord) -> Calibration:
     )
 
 
+def calibration_record(
+    c: Calibration,
+    *,
+    instrument: str,
+    pixels: int,
+    scan_rotation: float,
+    moves: list[list[float]],
+    actor: str,
+) -> SemCalibrationRecord:
+    """The row that stores calibration ``c`` (measured on frames of ``pixels`` at
+    ``scan_rotation`` degrees, with its ``moves``; none when derived from another)."""
+    if c.field is None:
+        raise ValueError("a calibration is stored with the field of view it was measured at")
+    return SemCalibrationRecord(
+        instrument=instrument,
+        field=c.field,
+        pixels=pixels,
+        scan_rotation=scan_rotation,
+        matrix=c.matrix.tolist(),
+        offset=list(c.offset),
+        stage=list(c.stage),
+        residual_px=c.residual_px,
+        sigma=c.sigma.tolist(),
+        moves=moves,
+        actor=actor,
+    )
+
+
 def calibration_out(r: SemCalibrationRecord) -> CalibrationOut:
     c = calibration_of(r)
     m, sd = c.matrix, c.sigma
@@ -272,16 +300,11 @@ def calibrate_sem(
         raise instrument_failed(exc, "the SEM calibration") from None
     except ValueError as exc:
         raise HTTPException(409, str(exc)) from None
-    record = SemCalibrationRecord(
+    record = calibration_record(
+        found,
         instrument=m.description,
-        field=body.field,
         pixels=body.pixels,
         scan_rotation=rotation,
-        matrix=found.matrix.tolist(),
-        offset=list(found.offset),
-        stage=list(found.stage),
-        residual_px=found.residual_px,
-        sigma=found.sigma.tolist(),
         moves=moves,
         actor=operator,
     )

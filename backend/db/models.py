@@ -240,6 +240,11 @@ class SemRegistrationRecord(Base):
     calibration_id: Mapped[int | None] = mapped_column(Integer, nullable=True)
     actor: Mapped[str] = mapped_column(String(100))
 
+    @property
+    def transform(self) -> tuple[float, float, tuple[float, float]]:
+        """``T_sem_mosaic`` as (rotation_deg, scale, offset), as ``Similarity`` takes it."""
+        return self.rotation_deg, self.scale, (float(self.offset[0]), float(self.offset[1]))
+
 
 class Calibration(Base):
     """A calibration of one axis or instrument quantity (e.g. a fine-mode gain)."""

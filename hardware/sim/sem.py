@@ -190,6 +190,17 @@ class SEMGeometry:
         c, s = self.scale * np.cos(a), self.scale * np.sin(a)
         return self.offset[0] + c * u - s * v, self.offset[1] + s * u + c * v
 
+    def frame_pixels(self, points: FloatArray, *, field: float, pixels: int) -> FloatArray:
+        """Where a frame of ``field`` metres and ``pixels`` a side (no scan rotation, row 0
+        the top line) shows stage points ``(..., 2)``: its (column, row) pixels, the truth a
+        registration onto such a frame is scored against."""
+        a = np.deg2rad(self.rotation)
+        turn = self.scale * np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+        uv = (np.asarray(points) - np.asarray(self.offset)) @ np.linalg.inv(turn).T
+        pitch, middle = field / pixels, (pixels - 1) / 2
+        out: FloatArray = np.stack([uv[..., 0] / pitch + middle, middle - uv[..., 1] / pitch], -1)
+        return out
+
 
 def render_frame(
     sem: SimulatedSEM,

@@ -12,6 +12,7 @@ from typing import Any
 import numpy as np
 import pytest
 
+from hardware.sim.sem import SEMGeometry
 from tests.backend.api.conftest import Server, open_server, plan
 
 FIELD, PIXELS = 20e-6, 1024
@@ -34,11 +35,8 @@ def _truth(server: Server, sem: dict[str, Any], points: np.ndarray) -> np.ndarra
     """Where the image, placed by its nominal pixel, shows stage points: through the
     simulator's true SEM map."""
     truth = server.client.get("/api/instrument/sim/sem").json()
-    a = math.radians(truth["rotation_deg"])
-    turn = truth["scale"] * np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
-    uv = np.linalg.solve(turn, (points - np.asarray(truth["offset"])).T).T
-    pitch, middle = FIELD / PIXELS, (PIXELS - 1) / 2
-    pixel = np.column_stack([uv[:, 0] / pitch + middle, -uv[:, 1] / pitch + middle])
+    geometry = SEMGeometry(truth["rotation_deg"], truth["scale"], tuple(truth["offset"]))
+    pixel = geometry.frame_pixels(points, field=FIELD, pixels=PIXELS)
     out: np.ndarray = pixel @ np.asarray(sem["matrix"]).T + np.asarray(sem["origin"])
     return out
 
