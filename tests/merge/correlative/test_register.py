@@ -42,8 +42,9 @@ def _truth(points: np.ndarray, geometry: SEMGeometry) -> np.ndarray:
 
 
 def _mosaic(surface: Any, x0: float, y0: float, width: float, height: float) -> np.ndarray:
-    xx, yy = np.meshgrid(x0 + np.arange(round(width / 10e-9)) * 10e-9,
-                         y0 + np.arange(round(height / 10e-9)) * 10e-9)  # fmt: skip
+    xx, yy = np.meshgrid(
+        x0 + np.arange(round(width / 10e-9)) * 10e-9, y0 + np.arange(round(height / 10e-9)) * 10e-9
+    )
     out: np.ndarray = surface.height(xx, yy)
     return out
 
@@ -97,9 +98,16 @@ def test_a_grating_is_registered_from_a_calibrated_prior_and_refused_without_one
         math.sqrt(abs(np.linalg.det(m))),
         (solution[2, 0] + 0.7 * PITCH, solution[2, 1] - 0.5 * PITCH),
     )
-    found = register_to_sem(heights, _nominal(image), origin=where, pixel_size=(10e-9, 10e-9),
-                            prior=prior, search_shift=0.3e-6, search_rotation=0.5,
-                            search_scale=0.01)  # fmt: skip
+    found = register_to_sem(
+        heights,
+        _nominal(image),
+        origin=where,
+        pixel_size=(10e-9, 10e-9),
+        prior=prior,
+        search_shift=0.3e-6,
+        search_rotation=0.5,
+        search_scale=0.01,
+    )
     assert found.accepted, found.reason
     misplaced = np.hypot(*(found.transform.apply(corners) - _truth(corners, HIDDEN)).T) / PITCH
     assert misplaced.max() < 1.0
@@ -145,3 +153,28 @@ def test_masked_correlation_finds_where_a_template_lies(dr: int, dc: int, seed: 
     peak = best_peak(masked_ncc(template, mask, image, radius=8), apart=3)
     assert (round(peak.rows), round(peak.columns)) == (dr, dc)
     assert peak.score == pytest.approx(1.0) and peak.rival < 0.5
+
+
+def test_an_affine_fit_finds_a_sheared_sem(folded: Any) -> None:
+    """An SEM whose scan is sheared (its axes 0.5 degree from square) is found by the affine
+    fit, where the similarity can only average it."""
+    sem = SimulatedSEM(folded, seed=5, geometry=HIDDEN)
+    image = render_frame(sem, HIDDEN, field=FIELD, pixels=PIXELS)
+    shear = math.tan(math.radians(0.5))
+    middle = (PIXELS - 1) / 2
+    sheared = SEMView(
+        image, (-middle * PITCH, middle * PITCH), np.array([[PITCH, shear * -PITCH], [0.0, -PITCH]])
+    )
+    where, size = (-1.5e-6, -2e-6), (4e-6, 5e-6)
+    heights = _mosaic(folded, *where, *size)
+    found = register_to_sem(heights, sheared, origin=where, pixel_size=(10e-9, 10e-9), affine=True)
+    assert found.accepted, found.reason
+    assert found.affine is not None
+    corners = _corners(*where, *size)
+    pixel = HIDDEN.frame_pixels(corners, field=FIELD, pixels=PIXELS)
+    truth = sheared.to_stage(pixel[:, 0], pixel[:, 1])
+    placed = corners @ found.affine[:, :2].T + found.affine[:, 2]
+    affine_error = np.hypot(*(placed - truth).T).max()
+    similar = register_to_sem(heights, sheared, origin=where, pixel_size=(10e-9, 10e-9))
+    similar_error = np.hypot(*(similar.transform.apply(corners) - truth).T).max()
+    assert affine_error < 0.5 * PITCH and affine_error < 0.5 * similar_error
