@@ -28,7 +28,10 @@ class StatusCache:
         self._runs: dict[int, bytes] = {}
         self._versions: dict[int, int] = {}
         self._epoch = 0  # bumped by events of no run: every run document is redone
-        self._instrument: tuple[float, int, bytes] | None = None
+        self._instrument: tuple[float, bytes] | None = None
+        #: bumped by every event: a render of the instrument begun before one is not kept
+        #: (a run's end read as "tip engaged" just before it would outlive the retraction)
+        self._instrument_version = 0
         #: renders under way, by what they render (touched by the event loop only)
         self._renders: dict[Hashable, asyncio.Future[bytes]] = {}
 
@@ -46,6 +49,7 @@ class StatusCache:
         run_id = event.get("run_id")
         with self._lock:
             self._instrument = None
+            self._instrument_version += 1
             if run_id is None:
                 self._epoch += 1
                 self._runs.clear()
@@ -65,13 +69,15 @@ class StatusCache:
                 self._runs[run_id] = body
 
     def instrument(self) -> tuple[bytes | None, int]:
+        """The kept instrument document (None) and the version a new render belongs to."""
         with self._lock:
             kept = self._instrument
             if kept is not None and time.monotonic() - kept[0] < INSTRUMENT_MAX_AGE:
-                return kept[2], self._epoch
-            return None, self._epoch
+                return kept[1], self._instrument_version
+            return None, self._instrument_version
 
-    def keep_instrument(self, epoch: int, body: bytes) -> None:
+    def keep_instrument(self, version: int, body: bytes) -> None:
+        """Keep ``body`` unless an event came since ``version`` was read."""
         with self._lock:
-            if epoch == self._epoch:
-                self._instrument = (time.monotonic(), epoch, body)
+            if version == self._instrument_version:
+                self._instrument = (time.monotonic(), body)

@@ -33,12 +33,12 @@ CRASH_JUMP = 100e-9
 async def instrument(services: ServicesDep) -> Response:
     """State, positions (metres), frequency shift (Hz) and whether it is in the safe state
     (read at most every 0.1 s, however many clients ask)."""
-    body, epoch = services.status.instrument()
+    body, version = services.status.instrument()
     if body is None:
         body = await services.status.render(
-            ("instrument", epoch), lambda: _render_instrument(services)
+            ("instrument", version), lambda: _render_instrument(services)
         )
-        services.status.keep_instrument(epoch, body)
+        services.status.keep_instrument(version, body)
     return Response(body, media_type="application/json")
 
 

@@ -38,3 +38,18 @@ def test_clients_missing_at_once_share_one_render() -> None:
 
     assert asyncio.run(many()) == [b"doc"] * 20
     assert len(calls) == 1
+
+
+def test_an_instrument_status_read_before_a_runs_end_is_not_kept_after_it() -> None:
+    """A render begun while the tip was down and finished after the run's last event would
+    show "tip engaged" for as long as it was kept: it is dropped, whatever run the event was
+    about."""
+    cache = StatusCache()
+    body, version = cache.instrument()
+    assert body is None
+    cache({"run_id": 7, "kind": "run"})  # the run ends (its tip retracted) meanwhile
+    cache.keep_instrument(version, b'{"safe_state": false}')
+    assert cache.instrument()[0] is None
+    _, fresh = cache.instrument()
+    cache.keep_instrument(fresh, b'{"safe_state": true}')
+    assert cache.instrument()[0] == b'{"safe_state": true}'
