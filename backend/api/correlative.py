@@ -56,31 +56,33 @@ def _grid(doc: dict[str, Any]) -> tuple[tuple[float, float], tuple[float, float]
 
 
 def _check(
-    record: SemRegistrationRecord, session: SessionDep, view: SEMView, middle: np.ndarray
+    record: SemRegistrationRecord, session: SessionDep, sem: SemImageRecord, middle: np.ndarray
 ) -> CalibrationCheckOut | None:
-    """How far the calibration that placed the image is off at the mosaic's centre."""
+    """How far the calibration that placed the image is off at the mosaic's centre (from the
+    image's stored geometry: its pixels are not read)."""
     if record.calibration_id is None:
         return None
     found = session.get(SemCalibrationRecord, record.calibration_id)
     if found is None:
         return None
     t = Similarity(*record.transform)
-    pixel = view.pixel
+    image = stored_geometry(sem)
+    pixel = math.sqrt(abs(float(np.linalg.det(image.map))))
     shift = float(np.hypot(*(t.apply(middle) - middle))) / pixel
     calibration = calibration_of(found)
     # its uncertainty there: the residual of its fit (the stage's own errors at the moves'
     # ends), and its matrix's uncertainty carried from the image's centre out to the
     # mosaic's, in this image's pixels, expanded by the coverage factor
     reference_pixel = found.field / found.pixels
-    at = view.to_pixel(middle)
-    reach = float(np.hypot(*(at - (np.asarray(view.pixels.shape[::-1]) - 1) / 2)))
+    at = np.asarray(image.to_pixel(float(middle[0]), float(middle[1])))
+    reach = float(np.hypot(*(at - (np.array([sem.width, sem.height]) - 1) / 2)))
     spread = float(np.sqrt(np.sum(np.asarray(calibration.sigma) ** 2))) / reference_pixel
     stated = COVERAGE * math.hypot(found.residual_px * reference_pixel / pixel, reach * spread)
     return CalibrationCheckOut(id=found.id, displacement_px=shift, stated_px=stated)
 
 
 def registration_out(
-    record: SemRegistrationRecord, session: SessionDep, view: SEMView, middle: np.ndarray
+    record: SemRegistrationRecord, session: SessionDep, sem: SemImageRecord, middle: np.ndarray
 ) -> RegistrationOut:
     sigma = record.sigma
     return RegistrationOut(
@@ -106,7 +108,7 @@ def registration_out(
         accepted=record.accepted,
         reason=record.reason,
         weights=list(record.weights),
-        calibration=_check(record, session, view, middle),
+        calibration=_check(record, session, sem, middle),
         actor=record.actor,
     )
 
@@ -195,7 +197,7 @@ def register(
         f"scale {t.scale:.4f}, score {found.score:.2f}",
         data={"registration": record.id, "merge": job_id, "accepted": found.accepted},
     )
-    return registration_out(record, session, view, _middle(heights, doc))
+    return registration_out(record, session, sem, _middle(heights, doc))
 
 
 def _last(session: SessionDep, job_id: int, *, accepted: bool = False) -> SemRegistrationRecord:
@@ -219,7 +221,7 @@ def last_registration(job_id: JobId, session: SessionDep) -> RegistrationOut:
     record = _last(session, job_id)
     heights, doc = merge_result(session, job_id)
     return registration_out(
-        record, session, _view(_sem_record(session, record.sem_id)), _middle(heights, doc)
+        record, session, _sem_record(session, record.sem_id), _middle(heights, doc)
     )
 
 
@@ -236,9 +238,7 @@ def registrations(job_id: JobId, session: SessionDep) -> list[RegistrationOut]:
         return []
     heights, doc = merge_result(session, job_id)
     middle = _middle(heights, doc)
-    return [
-        registration_out(r, session, _view(_sem_record(session, r.sem_id)), middle) for r in records
-    ]
+    return [registration_out(r, session, _sem_record(session, r.sem_id), middle) for r in records]
 
 
 @router.get(
