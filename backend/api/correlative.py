@@ -19,6 +19,7 @@ from backend.api.schemas import (
     CalibrationCheckOut,
     CalibrationOut,
     JobId,
+    ProfileOut,
     RegistrationIn,
     RegistrationOut,
     RegistrationSigmaOut,
@@ -29,7 +30,7 @@ from backend.db.models import SemCalibrationRecord, SemImageRecord, SemRegistrat
 from backend.sem_files import sem_view
 from merge.correlative import RegistrationError, SEMView, Similarity, register_to_sem
 from merge.io.formats import export_heights
-from merge.io.overlay import overlay_rgb, sem_on_mosaic
+from merge.io.overlay import overlay_rgb, profile, sem_on_mosaic
 from merge.io.png import encode_png
 
 router = APIRouter(tags=["sem registration"])
@@ -352,3 +353,39 @@ def mosaic_with_sem(job_id: JobId, fmt: str, session: SessionDep) -> Response:
         media_type=types[fmt],
         headers={"Content-Disposition": f'attachment; filename="merge{job_id}-mosaic-sem.{fmt}"'},
     )
+
+
+@router.get("/api/merges/{job_id}/sem-profile", response_model=ProfileOut)
+def sem_profile(
+    job_id: JobId,
+    session: SessionDep,
+    x0: Annotated[float, Query(ge=-1, le=1, description="start x, metres (mosaic)")],
+    y0: Annotated[float, Query(ge=-1, le=1, description="start y, metres")],
+    x1: Annotated[float, Query(ge=-1, le=1, description="end x, metres")],
+    y1: Annotated[float, Query(ge=-1, le=1, description="end y, metres")],
+    samples: Annotated[int, Query(ge=2, le=4096)] = 256,
+) -> ProfileOut:
+    """The heights and the SEM signal along a segment drawn across the mosaic, the SEM read
+    where the merge's last accepted registration puts it."""
+    record = _last(session, job_id, accepted=True)
+    heights, doc = merge_result(session, job_id)
+    origin, pixel = _grid(doc)
+    view = _view(_sem_record(session, record.sem_id))
+    try:
+        distance, height, signal = profile(
+            heights,
+            view,
+            (x0, y0),
+            (x1, y1),
+            origin=origin,
+            pixel_size=pixel,
+            transform=Similarity(*record.transform),
+            samples=samples,
+        )
+    except ValueError as exc:
+        raise HTTPException(422, str(exc)) from None
+
+    def listed(values: np.ndarray) -> list[float | None]:
+        return [float(v) if np.isfinite(v) else None for v in values]
+
+    return ProfileOut(distance=distance.tolist(), height=listed(height), sem=listed(signal))

@@ -441,3 +441,12 @@ class RegistrationOut(BaseModel):
     weights: list[float] = Field(description="SE contrast: constant, tilt, slope x, slope y")
     calibration: CalibrationCheckOut | None
     actor: str
+
+
+class ProfileOut(BaseModel):
+    """Heights and SEM signal along a segment of the mosaic (NaN as null where either does
+    not reach)."""
+
+    distance: list[float] = Field(description="along the segment, metres")
+    height: list[float | None] = Field(description="metres")
+    sem: list[float | None] = Field(description="the SEM's signal, its own units")

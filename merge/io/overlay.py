@@ -129,3 +129,46 @@ def sem_on_mosaic(
     )
     out[~inside] = np.nan
     return out
+
+
+def profile(
+    heights: FloatArray,
+    sem: SEMView,
+    start: tuple[float, float],
+    end: tuple[float, float],
+    *,
+    origin: tuple[float, float],
+    pixel_size: tuple[float, float],
+    transform: Similarity,
+    samples: int = 256,
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """The heights and the SEM signal along the segment from ``start`` to ``end`` (mosaic
+    coordinates, stage metres), ``samples`` points: distance along it (metres), heights
+    (metres) and SEM signal, bilinear, NaN where either does not reach."""
+    if not 2 <= samples <= 100_000:
+        raise ValueError(f"samples must be in 2..100000, got {samples}")
+    a, b = np.asarray(start, dtype=np.float64), np.asarray(end, dtype=np.float64)
+    if not (np.isfinite(a).all() and np.isfinite(b).all()) or np.allclose(a, b):
+        raise ValueError("a profile needs two distinct, finite end points")
+    s = np.linspace(0.0, 1.0, samples)
+    points = a + s[:, None] * (b - a)
+    h = np.asarray(heights, dtype=np.float64)
+    ny, nx = h.shape
+    i = (points[:, 1] - origin[1]) / pixel_size[1]
+    j = (points[:, 0] - origin[0]) / pixel_size[0]
+    inside = (i >= 0) & (i <= ny - 1) & (j >= 0) & (j <= nx - 1)
+    valid = np.isfinite(h)
+    ii, jj = np.clip(i, 0, ny - 1), np.clip(j, 0, nx - 1)
+    along: FloatArray = ndimage.map_coordinates(np.where(valid, h, 0.0), [ii, jj], order=1)
+    measured = ndimage.map_coordinates(valid.astype(np.float64), [ii, jj], order=0) > 0.5
+    along[~(inside & measured)] = np.nan
+    at = sem.to_pixel(transform.apply(points))
+    image = np.asarray(sem.pixels, dtype=np.float64)
+    rows_n, cols_n = image.shape
+    seen = (at[:, 0] >= 0) & (at[:, 0] <= cols_n - 1) & (at[:, 1] >= 0) & (at[:, 1] <= rows_n - 1)
+    signal: FloatArray = ndimage.map_coordinates(
+        image, [np.clip(at[:, 1], 0, rows_n - 1), np.clip(at[:, 0], 0, cols_n - 1)], order=1
+    )
+    signal[~seen] = np.nan
+    distance: FloatArray = s * float(np.hypot(*(b - a)))
+    return distance, along, signal

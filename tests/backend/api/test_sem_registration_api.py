@@ -160,3 +160,28 @@ def test_the_exports_keep_the_sem_image_beside_the_heights(
     assert np.corrcoef(second.ravel(), slope.ravel())[0, 1] > 0.3
     r = server.client.get(f"/api/merges/{job}/mosaic-sem.png")
     assert r.status_code == 404 and ".gwy" in r.json()["detail"]
+
+
+def test_a_profile_across_the_mosaic_gives_heights_and_sem_signal(
+    merged: tuple[Server, dict[str, Any]],
+) -> None:
+    server, made = merged
+    job = made["merge"]
+    assert server.post(f"/api/merges/{job}/sem-registration", {"sem": made["sem"]["id"]}).json()[
+        "accepted"
+    ]
+    doc = server.client.get(f"/api/merges/{job}/mosaic.json").json()
+    (ox, oy), (px, py), (ny, nx) = doc["origin"], doc["pixel_size"], doc["shape"]
+    line = {"x0": ox, "y0": oy + ny * py / 2, "x1": ox + nx * px * 1.5, "y1": oy + ny * py / 2}
+    r = server.client.get(f"/api/merges/{job}/sem-profile", params={**line, "samples": 101})
+    assert r.status_code == 200, r.text
+    cut = r.json()
+    assert len(cut["distance"]) == len(cut["height"]) == len(cut["sem"]) == 101
+    assert cut["distance"][-1] == pytest.approx(nx * px * 1.5)
+    heights = [h for h in cut["height"] if h is not None]
+    assert 50 <= len(heights) <= 70 and max(heights) > min(heights)  # the mosaic's two thirds
+    assert all(v is not None for v in cut["sem"])  # the SEM image reaches past the mosaic
+    r = server.client.get(
+        f"/api/merges/{job}/sem-profile", params={**line, "x1": ox, "y1": line["y0"]}
+    )
+    assert r.status_code == 422 and "distinct" in r.json()["detail"]
