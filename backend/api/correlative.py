@@ -13,7 +13,7 @@ from sqlalchemy import select
 
 from backend.acquisition.sem_stage import adjusted
 from backend.api.deps import OperatorDep, ServicesDep, SessionDep
-from backend.api.merges import merge_result, with_registration
+from backend.api.merges import merge_document, merge_result, with_registration
 from backend.api.responses import PNG_RESPONSES
 from backend.api.schemas import (
     CalibrationCheckOut,
@@ -114,11 +114,22 @@ def registration_out(
     )
 
 
-def _middle(heights: np.ndarray, doc: dict[str, Any]) -> np.ndarray:
+def _middle(doc: dict[str, Any]) -> np.ndarray:
+    """The mosaic's centre (stage metres), from its document's grid."""
     origin, pixel = _grid(doc)
-    ny, nx = heights.shape
+    ny, nx = (int(v) for v in doc["shape"])
     out: np.ndarray = np.asarray(origin) + np.array([nx - 1, ny - 1]) * np.asarray(pixel) / 2
     return out
+
+
+def _grid_document(session: SessionDep, job_id: int) -> dict[str, Any]:
+    """A done merge's document with its mosaic's shape, its mosaic read only when a document
+    of an older merge does not say it."""
+    doc = merge_document(session, job_id)
+    if "shape" not in doc:
+        heights, doc = merge_result(session, job_id)
+        doc = {**doc, "shape": list(heights.shape)}
+    return doc
 
 
 def _sem_record(session: SessionDep, sem_id: int) -> SemImageRecord:
@@ -198,7 +209,7 @@ def register(
         f"scale {t.scale:.4f}, score {found.score:.2f}",
         data={"registration": record.id, "merge": job_id, "accepted": found.accepted},
     )
-    return registration_out(record, session, sem, _middle(heights, doc))
+    return registration_out(record, session, sem, _middle({**doc, "shape": list(heights.shape)}))
 
 
 def _last(session: SessionDep, job_id: int, *, accepted: bool = False) -> SemRegistrationRecord:
@@ -220,10 +231,8 @@ def _last(session: SessionDep, job_id: int, *, accepted: bool = False) -> SemReg
 def last_registration(job_id: JobId, session: SessionDep) -> RegistrationOut:
     """The merge's last registration onto an SEM image."""
     record = _last(session, job_id)
-    heights, doc = merge_result(session, job_id)
-    return registration_out(
-        record, session, _sem_record(session, record.sem_id), _middle(heights, doc)
-    )
+    doc = _grid_document(session, job_id)
+    return registration_out(record, session, _sem_record(session, record.sem_id), _middle(doc))
 
 
 @router.get("/api/merges/{job_id}/sem-registrations", response_model=list[RegistrationOut])
@@ -234,11 +243,7 @@ def registrations(job_id: JobId, session: SessionDep) -> list[RegistrationOut]:
         .where(SemRegistrationRecord.merge_id == job_id)
         .order_by(SemRegistrationRecord.id.desc())
     ).all()
-    if not records:
-        merge_result(session, job_id)  # a merge that is not there, or not done: its 404
-        return []
-    heights, doc = merge_result(session, job_id)
-    middle = _middle(heights, doc)
+    middle = _middle(_grid_document(session, job_id))  # not there, or not done: its 404
     return [registration_out(r, session, _sem_record(session, r.sem_id), middle) for r in records]
 
 

@@ -15,7 +15,7 @@ from backend.api.responses import NPY, PNG_RESPONSES, height_map, npy_response, 
 from backend.api.runs import get_run
 from backend.api.schemas import JobId, MergeIn, MergeOut, MergeParams, RunId
 from backend.db.models import MergeJob, Run, SemRegistrationRecord
-from backend.db.patch_store import read_merge
+from backend.db.patch_store import read_merge, read_merge_document
 from merge import MergeConfig
 from merge.io.formats import export_heights
 
@@ -131,7 +131,8 @@ def cancel_merge(
     return merge_out(_job(session, job_id))
 
 
-def merge_result(session: SessionDep, job_id: int) -> tuple[Any, dict[str, Any]]:
+def _stored(session: SessionDep, job_id: int) -> tuple[Path, str]:
+    """The file and group of a done merge's result (404 while it is not done)."""
     job = _job(session, job_id)
     if job.state != "done" or not job.result_group:
         raise HTTPException(
@@ -140,8 +141,23 @@ def merge_result(session: SessionDep, job_id: int) -> tuple[Any, dict[str, Any]]
     run = session.get(Run, job.run_id)
     if run is None:
         raise HTTPException(404, f"the run of merge {job_id} was deleted")
+    return run.file, job.result_group
+
+
+def merge_result(session: SessionDep, job_id: int) -> tuple[Any, dict[str, Any]]:
+    """A done merge's mosaic and document (404 while it is not done, or not readable)."""
+    path, group = _stored(session, job_id)
     try:
-        return read_merge(run.file, job.result_group)
+        return read_merge(path, group)
+    except (KeyError, OSError) as exc:
+        raise HTTPException(404, f"merge {job_id}: result not readable ({exc})") from None
+
+
+def merge_document(session: SessionDep, job_id: int) -> dict[str, Any]:
+    """A done merge's document alone: its grid without reading its mosaic."""
+    path, group = _stored(session, job_id)
+    try:
+        return read_merge_document(path, group)
     except (KeyError, OSError) as exc:
         raise HTTPException(404, f"merge {job_id}: result not readable ({exc})") from None
 

@@ -244,6 +244,15 @@ def read_merge_detail(
         return block_means(g["mosaic"], k), k, json.loads(g.attrs["document"])
 
 
+def read_merge_document(path: Path, group: str) -> dict[str, Any]:
+    """A stored merge result's document alone (its mosaic not read); KeyError if absent."""
+    with locked(path), h5py.File(path, "r") as f:
+        if group not in f or not f[group].attrs.get("complete", False):
+            raise KeyError(f"merge result {group} is not stored in {path.name}")
+        document: dict[str, Any] = json.loads(f[group].attrs["document"])
+        return document
+
+
 def read_merge(path: Path, group: str) -> tuple[FloatArray, dict[str, Any]]:
     """A stored merge result: mosaic heights (metres) and its document; KeyError if absent."""
     with locked(path), h5py.File(path, "r") as f:
