@@ -17,12 +17,20 @@ BoolArray = NDArray[np.bool_]
 class Peak:
     """The best shift (columns, rows; pixels, sub-pixel), its correlation, and the best
     correlation found at least ``apart`` pixels away from it (a rival: the same match
-    elsewhere, as a periodic sample makes)."""
+    elsewhere, as a periodic sample makes). ``ridge``: the rival is joined to the best by a
+    ridge of correlation as high as itself nearly all the way (the structure runs one way
+    only, a lone edge or parallel lines, and the match slides along it), not a peak apart."""
 
     columns: float
     rows: float
     score: float
     rival: float
+    ridge: bool = False
+
+
+#: Along a ridge the correlation between the best and its rival stays above this part of the
+#: rival's.
+RIDGE_LEVEL = 0.9
 
 
 def masked_ncc(
@@ -105,5 +113,12 @@ def best_peak(ncc: FloatArray, *, apart: float) -> Peak:
     yy, xx = np.mgrid[0 : ncc.shape[0], 0 : ncc.shape[1]]
     far = np.hypot(yy - r, xx - c) >= apart
     summits = far & (ncc >= ndimage.maximum_filter(ncc, size=3, mode="nearest"))
-    rival = float(ncc[summits].max()) if summits.any() else -1.0
-    return Peak(c - radius + dc, r - radius + dr, float(ncc[r, c]), rival)
+    if not summits.any():
+        return Peak(c - radius + dc, r - radius + dr, float(ncc[r, c]), -1.0)
+    at = int(np.argmax(np.where(summits, ncc, -np.inf)))
+    rr, rc = np.unravel_index(at, ncc.shape)
+    rival = float(ncc[rr, rc])
+    steps = np.linspace(0.0, 1.0, 2 * int(np.hypot(rr - r, rc - c)) + 2)
+    between = ndimage.map_coordinates(ncc, [r + steps * (rr - r), c + steps * (rc - c)], order=1)
+    ridge = rival > 0 and bool(between.min() >= RIDGE_LEVEL * rival)
+    return Peak(c - radius + dc, r - radius + dr, float(ncc[r, c]), rival, ridge)

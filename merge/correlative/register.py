@@ -185,13 +185,38 @@ def _topography(
     pixel: tuple[float, float],
     blur_m: float,
     reach_m: float = 0.0,
+    *,
+    sample_m: float,
 ) -> _Topography:
-    """The contrast features blurred by ``blur_m`` metres, the slopes seen over ``reach_m``."""
+    """The contrast features blurred by ``blur_m`` metres, the slopes seen over ``reach_m``,
+    for an SEM sampling every ``sample_m`` metres: heights coarser than that are first
+    interpolated (cubic splines) onto a grid as fine, so the slopes the model takes are the
+    surface's at the SEM's scale, not differences over the topography's wider pixels (those
+    bias the match along the detector's direction, by about a tenth of a pixel)."""
+    factor = min(4, math.ceil(math.sqrt(pixel[0] * pixel[1]) / sample_m - 0.05))
+    if factor > 1:
+        heights, pixel = _finer(heights, factor), (pixel[0] / factor, pixel[1] / factor)
     mean_pixel = math.sqrt(pixel[0] * pixel[1])
     features, valid = se_features(
         heights, pixel, blur=blur_m / mean_pixel, resolution=reach_m / mean_pixel
     )
     return _Topography(features, valid, origin, pixel)
+
+
+def _finer(heights: FloatArray, factor: int) -> FloatArray:
+    """``heights`` (ny, nx) on a grid ``factor`` times as fine, the same first and last
+    points (cubic splines; NaN where the nearest height is)."""
+    ny, nx = heights.shape
+    rows = np.arange((ny - 1) * factor + 1) / factor
+    cols = np.arange((nx - 1) * factor + 1) / factor
+    rr, cc = np.meshgrid(rows, cols, indexing="ij")
+    valid = np.isfinite(heights)
+    filled = np.where(valid, heights, float(np.nanmedian(heights)))
+    out: FloatArray = ndimage.map_coordinates(filled, [rr, cc], order=3, mode="nearest")
+    if not valid.all():
+        near = ndimage.map_coordinates(valid.astype(np.float64), [rr, cc], order=0)
+        out[near < 0.5] = np.nan
+    return out
 
 
 def _grid(sem: SEMView, box: tuple[int, int, int, int], step: int) -> FloatArray:
@@ -555,7 +580,7 @@ def register_to_sem(
     step = max(1, int(footprint // COARSE_PIXELS))
     radius_m = shift + size * (math.radians(search_rotation) + search_scale) / 2
     best = prior
-    rival, first = 0.0, True
+    rival, ridge, first = 0.0, False, True
     # the tilt contrast alone, until weights are fitted
     weights = np.zeros(len(FEATURES))
     weights[0] = 1.0
@@ -563,7 +588,7 @@ def register_to_sem(
     rotations = np.arange(-search_rotation, search_rotation + 1e-9, d_rot)
     scales = 1.0 + np.arange(-search_scale, search_scale + 1e-9, d_rot * math.pi / 180)
     while True:
-        topo = _topography(h, origin, pixel_size, 0.5 * pixel * step)
+        topo = _topography(h, origin, pixel_size, 0.5 * pixel * step, sample_m=pixel * step)
         points = _grid(sem, box, step)
         blocks = _blocks(image, box, step)
         radius = min(math.ceil(radius_m / (pixel * step)) + 2, min(blocks.shape) // 2 - 2)
@@ -583,6 +608,7 @@ def register_to_sem(
         )
         if first:  # the widest search tells whether another place matches alike
             rival = peak.rival / peak.score if peak.score > 0 else 1.0
+            ridge = peak.ridge
             first = False
         fitted = _fit_weights(topo, blocks, points, best)
         weights = fitted[1:]
@@ -599,7 +625,12 @@ def register_to_sem(
     points = _grid(sem, box, 1)
     blocks = _blocks(image, box, 1)
     middle = np.asarray(origin) + np.array([nx - 1, ny - 1]) * np.asarray(pixel_size) / 2
-    topos = {k: _topography(h, origin, pixel_size, 0.5 * pixel, k * pixel) for k in REACHES}
+    # the model sees no finer than the coarser of the two images' pixels
+    coarse = max(pixel, math.sqrt(pixel_size[0] * pixel_size[1]))
+    topos = {
+        k: _topography(h, origin, pixel_size, 0.5 * pixel, k * coarse, sample_m=pixel)
+        for k in REACHES
+    }
     tol = 0.005 * pixel
     fit = _refine(
         topos[REACHES[0]],
@@ -630,14 +661,35 @@ def register_to_sem(
         stride=2,
     )
     second = _similarity_of(other.b, other.c)
+    # the topography's own sampling biases the match (the SEM sees what falls between its
+    # heights): the same fit on every other height moves by about that bias (it grows with
+    # the pixel), which the uncertainty takes in
+    sparse = _topography(
+        h[::2, ::2],
+        origin,
+        (2 * pixel_size[0], 2 * pixel_size[1]),
+        0.5 * pixel,
+        ranked[0] * coarse,
+        sample_m=pixel,
+    )
+    coarser = _refine(
+        sparse, blocks, points, found, affine=affine, tolerance=tol, callback=None, steps=6
+    )
+    sampled = _similarity_of(coarser.b, coarser.c)
     # where the mosaic's centre and corners land: how sure, from the fit and from the model
     marks = np.vstack([middle[None], corners])
     sd = _sigmas(fit, marks, affine)
-    model_rot = abs(second.rotation_deg - found.rotation_deg) / 2
-    model_at = np.hypot(*(second.apply(marks) - found.apply(marks)).T) / 2
+    model_rot = math.hypot(
+        (second.rotation_deg - found.rotation_deg) / 2, sampled.rotation_deg - found.rotation_deg
+    )
+    model_at = np.hypot(
+        np.hypot(*(second.apply(marks) - found.apply(marks)).T) / 2,
+        np.hypot(*(sampled.apply(marks) - found.apply(marks)).T),
+    )
+    model_scale = math.hypot((second.scale - found.scale) / 2, sampled.scale - found.scale)
     stat_at = np.hypot(sd[4::2], sd[5::2])
     sd_rot = float(math.hypot(sd[0], model_rot))
-    sd_scale = float(math.hypot(sd[1], abs(second.scale - found.scale) / 2))
+    sd_scale = float(math.hypot(sd[1], model_scale))
     placed = np.hypot(stat_at, model_at)  # (5,) metres: the centre, then the corners
     sd_here, sd_worst = float(placed[0]), float(placed.max())
     values, _ = topo.sample(points @ fit.b.T + fit.c, topo.features)
@@ -654,6 +706,12 @@ def register_to_sem(
         reason = (
             f"the SEM image and the mosaic's contrast correlate by {score:.2f} only "
             f"({MIN_SCORE} at least): too little structure, or not the same place"
+        )
+    elif rival > MAX_RIVAL and ridge:
+        reason = (
+            f"the match slides along the structure (a shift {rival:.0%} as good lies along "
+            "it): the mosaic shows edges or lines one way only; take one that holds a corner "
+            "or a feature both ways"
         )
     elif rival > MAX_RIVAL:
         reason = (

@@ -155,6 +155,26 @@ def test_masked_correlation_finds_where_a_template_lies(dr: int, dc: int, seed: 
     assert peak.score == pytest.approx(1.0) and peak.rival < 0.5
 
 
+def test_a_rival_along_a_ridge_is_told_from_a_rival_apart() -> None:
+    """A lone edge matches all along itself (a ridge of correlation: the match slides); a
+    periodic structure matches again one period away (a peak apart, a dip between)."""
+    rng = np.random.default_rng(3)
+    edge = np.zeros((64, 64))
+    edge[:, 32:] = 1.0
+    mask = np.zeros((64, 64), dtype=bool)
+    mask[16:48, 16:48] = True
+    lone = best_peak(
+        masked_ncc(edge, mask, edge + rng.normal(0, 0.05, edge.shape), radius=10), apart=4
+    )
+    assert lone.rival > 0.9 * lone.score and lone.ridge
+    xx = np.arange(64)[None, :] * np.ones((64, 1))
+    yy = xx.T
+    bumps = np.exp(-(((xx % 8) - 4) ** 2 + ((yy % 40) - 20) ** 2) / 8.0)
+    noisy = bumps + rng.normal(0, 0.05, bumps.shape)
+    periodic = best_peak(masked_ncc(bumps, mask, noisy, radius=10), apart=4)
+    assert periodic.rival > 0.9 * periodic.score and not periodic.ridge
+
+
 def test_an_affine_fit_finds_a_sheared_sem(folded: Any) -> None:
     """An SEM whose scan is sheared (its axes 0.5 degree from square) is found by the affine
     fit, where the similarity can only average it."""
