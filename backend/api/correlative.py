@@ -19,6 +19,7 @@ from backend.api.schemas import (
     CalibrationCheckOut,
     CalibrationOut,
     JobId,
+    OverlayOut,
     ProfileOut,
     RegistrationIn,
     RegistrationOut,
@@ -30,7 +31,7 @@ from backend.db.models import SemCalibrationRecord, SemImageRecord, SemRegistrat
 from backend.sem_files import sem_view
 from merge.correlative import RegistrationError, SEMView, Similarity, register_to_sem
 from merge.io.formats import export_heights
-from merge.io.overlay import overlay_rgb, profile, sem_on_mosaic
+from merge.io.overlay import mosaic_corners, overlay_frame, overlay_rgb, profile, sem_on_mosaic
 from merge.io.png import encode_png
 
 router = APIRouter(tags=["sem registration"])
@@ -269,6 +270,29 @@ def sem_overlay(
     except ValueError as exc:
         raise HTTPException(422, str(exc)) from None
     return Response(encode_png(rgb), media_type="image/png")
+
+
+@router.get("/api/merges/{job_id}/sem-overlay", response_model=OverlayOut)
+def sem_overlay_frame(job_id: JobId, session: SessionDep) -> OverlayOut:
+    """Where :func:`sem_overlay`'s picture lies: its SEM pixels, and the map from its pixels
+    to the mosaic's coordinates (a profile drawn on the picture is asked in those)."""
+    record = _last(session, job_id, accepted=True)
+    doc = _grid_document(session, job_id)
+    origin, pixel = _grid(doc)
+    ny, nx = (int(v) for v in doc["shape"])
+    view = _view(_sem_record(session, record.sem_id))
+    try:
+        box, frame = overlay_frame(
+            view, mosaic_corners((ny, nx), origin, pixel), Similarity(*record.transform)
+        )
+    except ValueError as exc:
+        raise HTTPException(422, str(exc)) from None
+    return OverlayOut(
+        registration_id=record.id,
+        sem_id=record.sem_id,
+        box=box,
+        pixel_to_mosaic=frame.tolist(),
+    )
 
 
 @router.post(

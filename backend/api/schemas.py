@@ -443,6 +443,20 @@ class RegistrationOut(BaseModel):
     actor: str
 
 
+class OverlayOut(BaseModel):
+    """Where the overlay picture lies: its SEM pixels and the map from its pixels to the
+    mosaic's coordinates (to draw a profile on it)."""
+
+    registration_id: int
+    sem_id: int
+    box: tuple[int, int, int, int] = Field(
+        description="the SEM image's pixels it shows: first column, first row, columns, rows"
+    )
+    pixel_to_mosaic: list[list[float]] = Field(
+        description="2 x 3: mosaic (x, y) metres = M @ (column, row, 1) of the picture"
+    )
+
+
 class ProfileOut(BaseModel):
     """Heights and SEM signal along a segment of the mosaic (NaN as null where either does
     not reach)."""

@@ -4,7 +4,7 @@
 import { ApiError, get, post, setToken, token } from "./api.js";
 import { duration, nm, um } from "./format.js";
 import { buildPatchGrid, markQuality, showPatch } from "./patches.js";
-import { plotResiduals } from "./plot.js";
+import { plotProfile, plotResiduals } from "./plot.js";
 import { SemView } from "./sem.js";
 
 const $ = (id) => document.getElementById(id);
@@ -408,8 +408,75 @@ function showRegistration(r) {
   $("registration").textContent = registrationText(r);
   $("apply-registration").hidden = !(r.accepted && r.calibration);
   $("overlay-box").hidden = !r.accepted;
+  state.overlayFrame = null;
+  $("profile-plot").hidden = true;
+  clearLine();
   if (r.accepted) showOverlay();
 }
+
+// a profile line dragged across the overlay: the picture's pixels go to mosaic coordinates
+// by the map the server states for it, and the server cuts heights and SEM signal along it
+
+function clearLine() {
+  const c = $("profile-line");
+  c.getContext("2d").clearRect(0, 0, c.width, c.height);
+}
+
+function drawLine(a, b) {
+  const c = $("profile-line");
+  c.width = c.clientWidth;
+  c.height = c.clientHeight;
+  const ctx = c.getContext("2d");
+  for (const [colour, w] of [["#fff", 3], ["#c00", 1.5]]) {
+    ctx.strokeStyle = colour;
+    ctx.lineWidth = w;
+    ctx.beginPath();
+    ctx.moveTo(a[0], a[1]);
+    ctx.lineTo(b[0], b[1]);
+    ctx.stroke();
+  }
+}
+
+function onPicture(event) {
+  const box = $("profile-line").getBoundingClientRect();
+  return [event.clientX - box.left, event.clientY - box.top];
+}
+
+async function profileAlong(a, b) {
+  const job = state.job.id;
+  state.overlayFrame ??= await get(`/api/merges/${job}/sem-overlay`);
+  const f = state.overlayFrame;
+  const c = $("profile-line");
+  const toMosaic = ([px, py]) => {
+    const col = (px / c.clientWidth) * f.box[2] - 0.5; // the picture's pixel centres
+    const row = (py / c.clientHeight) * f.box[3] - 0.5;
+    const m = f.pixel_to_mosaic;
+    return [m[0][0] * col + m[0][1] * row + m[0][2], m[1][0] * col + m[1][1] * row + m[1][2]];
+  };
+  const [x0, y0] = toMosaic(a);
+  const [x1, y1] = toMosaic(b);
+  const cut = await get(`/api/merges/${job}/sem-profile?x0=${x0}&y0=${y0}&x1=${x1}&y1=${y1}&samples=240`);
+  $("profile-plot").hidden = false;
+  plotProfile($("profile-plot"), cut);
+}
+
+$("profile-line").addEventListener("pointerdown", (event) => {
+  event.preventDefault();
+  $("profile-line").setPointerCapture(event.pointerId);
+  state.lineStart = onPicture(event);
+});
+$("profile-line").addEventListener("pointermove", (event) => {
+  if (state.lineStart) drawLine(state.lineStart, onPicture(event));
+});
+$("profile-line").addEventListener("pointerup", (event) => {
+  const a = state.lineStart;
+  state.lineStart = null;
+  if (!a) return;
+  const b = onPicture(event);
+  if (Math.hypot(b[0] - a[0], b[1] - a[1]) < 4) return clearLine(); // a click, not a line
+  drawLine(a, b);
+  userAct(() => profileAlong(a, b));
+});
 
 $("register-sem").addEventListener("click", () =>
   userAct(async () => {

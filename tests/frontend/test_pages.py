@@ -100,6 +100,23 @@ def test_a_mosaic_from_roi_to_merged_preview(
         "e => { e.value = '0.9'; e.dispatchEvent(new Event('change')); }"
     )
     pg.wait_for_function(f"{overlay}.src.includes('opacity=0.9') && {overlay}.complete")
+    # a profile line dragged across the overlay: heights and SEM signal along it
+    box = pg.locator("#profile-line").bounding_box()
+    assert box is not None
+    with pg.expect_response(lambda r: "/sem-profile" in r.url) as answer:
+        pg.mouse.move(box["x"] + 0.2 * box["width"], box["y"] + 0.5 * box["height"])
+        pg.mouse.down()
+        pg.mouse.move(box["x"] + 0.8 * box["width"], box["y"] + 0.45 * box["height"], steps=5)
+        pg.mouse.up()
+    cut = answer.value.json()
+    assert sum(h is not None for h in cut["height"]) > 100  # the line lies over the mosaic
+    assert all(v is not None for v in cut["sem"])
+    pg.wait_for_function("!document.querySelector('#profile-plot').hidden")
+    inked = pg.locator("#profile-plot").evaluate(
+        "c => { const d = c.getContext('2d').getImageData(0, 0, c.width, c.height).data;"
+        " let n = 0; for (let i = 3; i < d.length; i += 4) n += d[i] > 0; return n; }"
+    )
+    assert inked > 500  # two traces and their labels drawn
     _shot(pg, "5-overlay")
     for _ in range(100):  # and the 3D viewer drapes the SEM over the merged mosaic
         if httpx.get(server.url + "/api/instrument/viewer").json()["nodes"]["draped"]:

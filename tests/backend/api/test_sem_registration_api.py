@@ -185,3 +185,33 @@ def test_a_profile_across_the_mosaic_gives_heights_and_sem_signal(
         f"/api/merges/{job}/sem-profile", params={**line, "x1": ox, "y1": line["y0"]}
     )
     assert r.status_code == 422 and "distinct" in r.json()["detail"]
+
+
+def test_the_overlay_states_where_its_pixels_lie_on_the_mosaic(
+    merged: tuple[Server, dict[str, Any]],
+) -> None:
+    """A line drawn on the overlay picture becomes a line across the mosaic: the picture's
+    pixels map to where the registration puts the mosaic (its centre comes out at the
+    mosaic's centre), and the picture is as large as the box it states."""
+    server, made = merged
+    job = made["merge"]
+    found = server.post(f"/api/merges/{job}/sem-registration", {"sem": made["sem"]["id"]}).json()
+    frame = server.client.get(f"/api/merges/{job}/sem-overlay").json()
+    assert frame["registration_id"] == found["id"] and frame["sem_id"] == made["sem"]["id"]
+    png = server.client.get(f"/api/merges/{job}/sem-overlay.png").content
+    width, height = int.from_bytes(png[16:20], "big"), int.from_bytes(png[20:24], "big")
+    c0, r0, columns, rows = frame["box"]
+    assert (width, height) == (columns, rows)
+    doc = server.client.get(f"/api/merges/{job}/mosaic.json").json()
+    (ox, oy), (px, py), (ny, nx) = doc["origin"], doc["pixel_size"], doc["shape"]
+    middle = np.array([ox + (nx - 1) * px / 2, oy + (ny - 1) * py / 2])
+    t = found["transform"]
+    a = math.radians(t["rotation_deg"])
+    turn = t["scale"] * np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
+    sem = made["sem"]
+    shown = np.linalg.solve(
+        np.asarray(sem["matrix"]), turn @ middle + np.asarray(t["offset"]) - sem["origin"]
+    )  # the SEM pixel that shows the mosaic's centre
+    m = np.asarray(frame["pixel_to_mosaic"])
+    back = m @ np.array([shown[0] - c0, shown[1] - r0, 1.0])
+    assert np.hypot(*(back - middle)) < 1e-12
