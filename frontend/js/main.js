@@ -261,6 +261,7 @@ async function loadRun(id) {
   if (fresh) {
     buildPatchGrid($("patch-grid"), run);
     state.startedAt = null;
+    await showLastMerge(run.id);
   }
   for (const p of run.patches) {
     markQuality($("patch-grid"), p.index, p.quality, p.reason);
@@ -354,6 +355,25 @@ $("merge-cancel").addEventListener("click", () =>
     if (state.job) renderMerge(await post(`/api/merges/${state.job.id}/cancel`));
   }),
 );
+
+/** A run opened (the page loaded, or another run chosen) shows its latest merge, with that
+ * merge's registration and overlay: a reload loses nothing the server holds. */
+async function showLastMerge(runId) {
+  const jobs = await get(`/api/runs/${runId}/merges`);
+  const last = jobs.reduce((a, b) => (!a || b.id > a.id ? b : a), null);
+  if (state.run?.id !== runId) return; // another run was opened meanwhile
+  state.job = null;
+  state.residuals = [];
+  $("merge-result").hidden = true;
+  $("merge-error").textContent = "";
+  if (last) renderMerge(last);
+  else {
+    $("merge-state").textContent = "no merge";
+    $("merge-state").className = "pill";
+    $("merge-progress").value = 0;
+    $("merge-cancel").disabled = true;
+  }
+}
 
 function startMerge(job) {
   state.job = job;

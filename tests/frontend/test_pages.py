@@ -101,6 +101,7 @@ def test_a_mosaic_from_roi_to_merged_preview(
     )
     pg.wait_for_function(f"{overlay}.src.includes('opacity=0.9') && {overlay}.complete")
     # a profile line dragged across the overlay: heights and SEM signal along it
+    pg.locator("#overlay-box").scroll_into_view_if_needed()
     box = pg.locator("#profile-line").bounding_box()
     assert box is not None
     with pg.expect_response(lambda r: "/sem-profile" in r.url) as answer:
@@ -118,6 +119,9 @@ def test_a_mosaic_from_roi_to_merged_preview(
     )
     assert inked > 500  # two traces and their labels drawn
     _shot(pg, "5-overlay")
+    pg.reload()  # a reload shows the run's last merge, its registration and overlay again
+    _wait(pg, "document.querySelector('#registration').textContent.startsWith('Registered')")
+    pg.wait_for_function(f"{overlay}.complete && {overlay}.naturalWidth > 0")
     for _ in range(100):  # and the 3D viewer drapes the SEM over the merged mosaic
         if httpx.get(server.url + "/api/instrument/viewer").json()["nodes"]["draped"]:
             break
