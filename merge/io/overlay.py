@@ -67,6 +67,36 @@ def footprint_box(
     return c0, r0, c1 - c0, r1 - r0
 
 
+def mosaic_corners(
+    shape: tuple[int, int], origin: tuple[float, float], pixel_size: tuple[float, float]
+) -> FloatArray:
+    """The (4, 2) stage points of a mosaic's corner pixels: ``shape`` (rows, columns) from
+    ``origin``, rows along +y."""
+    ny, nx = shape
+    out: FloatArray = np.asarray(origin) + np.array(
+        [[0, 0], [nx - 1, 0], [0, ny - 1], [nx - 1, ny - 1]]
+    ) * np.asarray(pixel_size)
+    return out
+
+
+def overlay_frame(
+    sem: SEMView,
+    corners: FloatArray,
+    transform: Similarity,
+    *,
+    margin: float = 0.15,
+) -> tuple[tuple[int, int, int, int], FloatArray]:
+    """What :func:`overlay_rgb` shows: its box of SEM pixels (:func:`footprint_box`) and the
+    (2, 3) affine map from its pixels ``(column, row, 1)`` (row 0 its top line) to mosaic
+    coordinates (stage metres), for a profile drawn on it."""
+    box = footprint_box(sem, corners, transform, margin=margin)
+    c0, r0 = box[0], box[1]
+    probe = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]])
+    at = transform.invert(sem.to_stage(c0 + probe[:, 0], r0 + probe[:, 1]))
+    out: FloatArray = np.column_stack([at[1] - at[0], at[2] - at[0], at[0]])
+    return box, out
+
+
 def overlay_rgb(
     heights: FloatArray,
     sem: SEMView,
@@ -83,10 +113,7 @@ def overlay_rgb(
     if not 0.0 <= opacity <= 1.0:
         raise ValueError(f"opacity must be in 0..1, got {opacity}")
     h = np.asarray(heights, dtype=np.float64)
-    ny, nx = h.shape
-    corners = np.asarray(origin) + np.array(
-        [[0, 0], [nx - 1, 0], [0, ny - 1], [nx - 1, ny - 1]]
-    ) * np.asarray(pixel_size)
+    corners = mosaic_corners(h.shape, origin, pixel_size)
     box = footprint_box(sem, corners, transform, margin=margin)
     c0, r0, nc, nr = box
     grey = np.asarray(sem.pixels, dtype=np.float64)[r0 : r0 + nr, c0 : c0 + nc]
