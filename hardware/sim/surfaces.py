@@ -129,6 +129,88 @@ class Chessboard:
         return out
 
 
+def tip_profile(r: FloatArray, radius: float, half_angle: float) -> FloatArray:
+    """How far above its apex a tip's side lies at horizontal distance ``r`` (metres) from its
+    axis: a sphere of ``radius`` at the apex, continued by the tangent cone of ``half_angle``
+    (degrees from the axis) past ``r = radius cos(half_angle)``."""
+    theta = math.radians(half_angle)
+    rr = np.abs(np.asarray(r, dtype=np.float64))
+    joint = radius * math.cos(theta)
+    sphere = radius - np.sqrt(np.maximum(radius**2 - np.minimum(rr, joint) ** 2, 0.0))
+    cone = radius * (1.0 - math.sin(theta)) + (rr - joint) / math.tan(theta)
+    out: FloatArray = np.where(rr <= joint, sphere, cone)
+    return out
+
+
+@dataclass(frozen=True)
+class TipDrawnChessboard:
+    """A TGX1-like grating as an AFM tip draws it: raised squares with vertical walls, imaged
+    by a tip of apex ``tip_radius`` on a cone of ``half_angle``. The image of a wall is the tip
+    itself turned over (grey dilation of the sharp steps): flat tops rounded over the apex's
+    radius at their edge, straight flanks at the cone's angle, and a kink where a flank meets
+    the lower face; the flank spans ``step * tan(half_angle)``.
+
+    Parameters
+    ----------
+    period : float
+        Chessboard period (two squares), metres (TGX1: 3 µm).
+    step : float
+        Height of the raised squares, metres.
+    tip_radius : float
+        Apex radius of the tip, metres (5-20 nm).
+    half_angle : float
+        Half-angle of the tip's cone, degrees (10-25).
+    roughness, roughness_correlation : float
+        RMS and correlation length of the faces' fine roughness, metres.
+    offset : (x, y)
+        Stage position of a square's corner, metres.
+    seed : int
+        Seed of the roughness.
+    """
+
+    period: float = 3e-6
+    step: float = 0.6e-6
+    tip_radius: float = 10e-9
+    half_angle: float = 14.0
+    roughness: float = 1.5e-9
+    roughness_correlation: float = 25e-9
+    offset: tuple[float, float] = (0.0, 0.0)
+    seed: int = 0
+    _rough: _Tile | None = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        if not (self.period > 0 and self.step >= 0 and self.tip_radius > 0):
+            raise ValueError("need period > 0, step >= 0 and tip_radius > 0")
+        if not 0 < self.half_angle < 60:
+            raise ValueError(f"half_angle must be in (0, 60) degrees, got {self.half_angle}")
+        if self.flank >= self.period / 2:
+            raise ValueError("the flanks (step * tan(half_angle)) must be narrower than a square")
+        tile = _roughness(self.roughness, self.roughness_correlation, self.seed)
+        object.__setattr__(self, "_rough", tile)
+
+    @property
+    def flank(self) -> float:
+        """Horizontal extent of a drawn wall, metres."""
+        return self.step * math.tan(math.radians(self.half_angle))
+
+    def height(self, x: FloatArray, y: FloatArray) -> FloatArray:
+        xa = np.asarray(x, dtype=np.float64) - self.offset[0]
+        ya = np.asarray(y, dtype=np.float64) - self.offset[1]
+        a = self.period / 2
+        i, j = np.floor(xa / a), np.floor(ya / a)
+        u, v = xa - i * a, ya - j * a
+        raised = (i + j) % 2 == 0
+        # a low square's four edge neighbours are raised: the nearest wall's top edge is the
+        # nearest side of the square (its diagonal neighbours are low)
+        d = np.minimum(np.minimum(u, a - u), np.minimum(v, a - v))
+        drawn = np.maximum(self.step - tip_profile(d, self.tip_radius, self.half_angle), 0.0)
+        h = np.where(raised, self.step, drawn)
+        if self._rough is not None:
+            h = h + self._rough(xa, ya)
+        out: FloatArray = h
+        return out
+
+
 @dataclass(frozen=True)
 class FoldedSurface:
     """A folded organic surface (like the paper's microfossil): ridged folds on a swell.
