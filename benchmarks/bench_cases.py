@@ -22,7 +22,13 @@ from numpy.typing import NDArray
 
 from backend.synthetic import Scored, scored
 from hardware.sim.drift import DriftModel
-from hardware.sim.surfaces import Chessboard, FoldedSurface, ImageSurface, Surface
+from hardware.sim.surfaces import (
+    Chessboard,
+    FoldedSurface,
+    ImageSurface,
+    Surface,
+    TipDrawnChessboard,
+)
 from hardware.sim.synth import SynthPatch, scan_fraction, synthesize
 from merge import Mosaic, Patch, PatchTransform, render_mosaic
 
@@ -193,6 +199,55 @@ def grating_cases() -> list[tuple[str, float, float, float, Case]]:
         for period in PERIODS
         for step in STEPS
         for ramp in RAMPS
+    ]
+
+
+#: The tip-drawn sweep (issue 66): chessboards of sharp steps as a tip draws them
+#: (:class:`hardware.sim.surfaces.TipDrawnChessboard`), as (apex radius, cone half-angle in
+#: degrees, step, period), metres: the paper's TGX1 with 150 nm flanks, a sharper apex on a
+#: wider cone, and a blunt apex on a narrow cone over a step so low its flank is a pixel or
+#: two (a cliff); each at three pixel sizes and the two geometries.
+TIP_SURFACES = (
+    (10e-9, 14.0, 0.6e-6, 3e-6),
+    (5e-9, 25.0, 0.3e-6, 2e-6),
+    (20e-9, 10.0, 0.1e-6, 2e-6),
+)
+TIP_PIXELS = (10e-9, 20e-9, 40e-9)
+
+
+def tip_grating_case(
+    radius: float, half_angle: float, step: float, period: float, pixel: float, geometry: str
+) -> Case:
+    """A tip-drawn chessboard of the sweep at the paper's grid (5 x 10 patches of 0.6 x
+    1.2 µm) or in 1 µm patches (4 x 4), sampled every ``pixel`` metres, the typical drift."""
+    name = (
+        f"tip-{geometry}-r{radius * 1e9:.0f}-a{half_angle:g}-s{step * 1e6:g}-p{period * 1e6:g}"
+        f"-{pixel * 1e9:.0f}nm"
+    )
+
+    def surface(seed: int) -> Surface:
+        return TipDrawnChessboard(
+            period=period, step=step, tip_radius=radius, half_angle=half_angle, seed=seed
+        )
+
+    if geometry == "paper":
+        case = paper_grid(name, surface, DriftModel.typical())
+        pixels = (round(0.6e-6 / pixel), round(1.2e-6 / pixel))
+    elif geometry == "1um":
+        case = fine_grating(name, surface)
+        pixels = (round(1e-6 / pixel), round(1e-6 / pixel))
+    else:
+        raise ValueError(f"unknown geometry {geometry!r}: use one of {', '.join(GEOMETRIES)}")
+    return dataclasses.replace(case, pixels=pixels, methods=("default",))
+
+
+def tip_grating_cases() -> list[tuple[str, tuple[float, float, float, float], float, Case]]:
+    """Every case of the tip-drawn sweep with its geometry, surface and pixel."""
+    return [
+        (geometry, tip, pixel, tip_grating_case(*tip, pixel, geometry))
+        for geometry in GEOMETRIES
+        for tip in TIP_SURFACES
+        for pixel in TIP_PIXELS
     ]
 
 

@@ -148,7 +148,7 @@ class TipDrawnChessboard:
     by a tip of apex ``tip_radius`` on a cone of ``half_angle``. The image of a wall is the tip
     itself turned over (grey dilation of the sharp steps): flat tops rounded over the apex's
     radius at their edge, straight flanks at the cone's angle, and a kink where a flank meets
-    the lower face; the flank spans ``step * tan(half_angle)``.
+    the lower face; the flank spans about ``step * tan(half_angle)`` (:attr:`flank`).
 
     Parameters
     ----------
@@ -190,8 +190,14 @@ class TipDrawnChessboard:
 
     @property
     def flank(self) -> float:
-        """Horizontal extent of a drawn wall, metres."""
-        return self.step * math.tan(math.radians(self.half_angle))
+        """Horizontal extent of a drawn wall, from its top edge to its foot, metres (about
+        ``step * tan(half_angle)``, the apex's arc added)."""
+        theta = math.radians(self.half_angle)
+        r = self.tip_radius
+        joint = r * math.cos(theta)
+        if self.step <= r * (1.0 - math.sin(theta)):  # the wall is lower than the apex's arc
+            return math.sqrt(max(r**2 - (r - self.step) ** 2, 0.0))
+        return joint + (self.step - r * (1.0 - math.sin(theta))) * math.tan(theta)
 
     def height(self, x: FloatArray, y: FloatArray) -> FloatArray:
         xa = np.asarray(x, dtype=np.float64) - self.offset[0]

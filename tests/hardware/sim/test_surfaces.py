@@ -1,7 +1,9 @@
+import math
+
 import numpy as np
 import pytest
 
-from hardware.sim.surfaces import Chessboard, FoldedSurface, ImageSurface
+from hardware.sim.surfaces import Chessboard, FoldedSurface, ImageSurface, TipDrawnChessboard
 
 
 def test_chessboard_has_the_tgx1_geometry() -> None:
@@ -45,3 +47,40 @@ def test_image_surface_interpolates_and_is_nan_outside() -> None:
     assert np.isnan(s.height(np.array([0.0]), np.array([0.0]))[0])
     with pytest.raises(ValueError, match="pixel_size"):
         ImageSurface(img, (0.0, 1.0))
+
+
+@pytest.mark.parametrize(("radius", "angle", "step"), [(10e-9, 14.0, 0.6e-6), (5e-9, 25.0, 0.1e-6)])
+def test_a_tip_draws_a_wall_as_its_own_side_turned_over(
+    radius: float, angle: float, step: float
+) -> None:
+    """The image of a raised square's wall: the top flat up to the wall, rounded within the
+    apex's reach (a sphere's arc), then a straight flank at the cone's angle down to the
+    lower face, which it meets in a kink; the flank spans step * tan(angle)."""
+    board = TipDrawnChessboard(tip_radius=radius, half_angle=angle, step=step, roughness=0.0)
+    a = board.period / 2
+    x = a + np.linspace(-50e-9, board.flank + 50e-9, 4001)  # across the wall at x = a
+    y = np.full_like(x, a / 2)  # inside a raised square (left) and a low one (right)
+    h = board.height(x, y)
+    assert np.all(h[x <= a] == step) and np.all(h[x >= a + board.flank + 1e-12] == 0.0)
+    assert np.all(np.diff(h) <= 1e-18)  # never rises going down the wall
+    flank = (x > a + radius) & (x < a + board.flank - 1e-9)
+    slope = np.diff(h[flank]) / np.diff(x[flank])
+    np.testing.assert_allclose(slope, -1 / math.tan(math.radians(angle)), rtol=1e-6)
+    arc = (x > a) & (x < a + 0.5 * radius * math.cos(math.radians(angle)))
+    np.testing.assert_allclose(
+        step - h[arc], radius - np.sqrt(radius**2 - (x[arc] - a) ** 2), atol=1e-15
+    )
+    # the foot: the slope jumps from the flank's to zero within one sample
+    foot = int(np.argmax(h <= 0.0))
+    left = (h[foot - 1] - h[foot - 3]) / (x[foot - 1] - x[foot - 3])
+    assert left < -0.9 / math.tan(math.radians(angle)) and h[foot + 2] == h[foot] == 0.0
+
+
+def test_a_tip_drawn_chessboard_alternates_and_refuses_flanks_wider_than_a_square() -> None:
+    board = TipDrawnChessboard(roughness=0.0)
+    a = board.period / 2
+    centres = np.array([0.5, 1.5, 2.5]) * a
+    xx, yy = np.meshgrid(centres, centres)
+    assert np.array_equal(board.height(xx, yy) > 0, (np.floor(xx / a) + np.floor(yy / a)) % 2 == 0)
+    with pytest.raises(ValueError, match="flanks"):
+        TipDrawnChessboard(step=4e-6, half_angle=25.0)
