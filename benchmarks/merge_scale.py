@@ -35,10 +35,11 @@ included).
 
 Prints a table and writes JSON (``--json``, default ``benchmarks/results/merge_scale.json``).
 Run: ``python benchmarks/merge_scale.py [--sides 10,20,30,40] [--pixels 64] [--large] [--big]
-[--bound] [--oracle] [--line-noise NM]`` (``--large``: also 2,500 and 10,000 patches of 64 x 64 px;
-``--pixels``: the ``--sides`` mosaics' patches that many pixels a side; ``--line-noise``: the
-scan lines' offsets, RMS nm, instead of the typical 0.3: at 0 what is left of a large mosaic's
-bend is the white noise's and the drift's).
+[--bound] [--oracle] [--line-noise NM] [--sample sparse]`` (``--large``: also 2,500 and
+10,000 patches of 64 x 64 px; ``--sample sparse``: a folded surface whose folds lie a few µm
+apart, so most overlaps hold roughness alone; ``--pixels``: the ``--sides`` mosaics' patches
+that many pixels a side; ``--line-noise``: the scan lines' offsets, RMS nm, instead of the
+typical 0.3: at 0 what is left of a large mosaic's bend is the white noise's and the drift's).
 """
 
 from __future__ import annotations
@@ -230,6 +231,12 @@ def row_error(z: Any, synth: Any) -> float:
     return float(np.sqrt(np.mean(means[rows] ** 2)))
 
 
+#: The samples, by the correlation length of the field whose zero lines are the folds'
+#: crests (metres): the folded surface, dense (a fold every few hundred nm), and one whose
+#: folds are sparse (a few µm apart: most overlaps hold the 1 nm roughness alone, issue 66).
+SAMPLES = {"folded": 350e-9, "sparse": 2e-6}
+
+
 def one_size(
     side: int,
     pixels: int,
@@ -238,11 +245,12 @@ def one_size(
     bound: bool = False,
     oracle: bool = False,
     line_noise: float | None = None,
+    sample: str = "folded",
 ) -> dict[str, Any]:
     """Synthesise, merge (in a fresh process) and score a ``side`` x ``side`` mosaic; with
     ``bound``, also its Cramér-Rao bound (:func:`bound_of`), with ``oracle`` the heights' solve
     at the true places (:func:`oracle_of`). ``line_noise``: the scan lines' offsets (RMS,
-    metres) instead of the typical drift's."""
+    metres) instead of the typical drift's. ``sample``: :data:`SAMPLES`."""
     from backend.synthetic import patch_set_from_synth, scored, sigma_calibration
     from hardware.sim.drift import DriftModel
     from hardware.sim.surfaces import FoldedSurface
@@ -250,7 +258,7 @@ def one_size(
     from merge.core.transforms import PatchTransform
     from merge.io.manifest import write_patch_set
 
-    surface = FoldedSurface(seed=3)
+    surface = FoldedSurface(seed=3, fold_length=SAMPLES[sample])
     drift = DriftModel.typical()
     if line_noise is not None:
         drift = dataclasses.replace(drift, line_noise=line_noise)
@@ -264,7 +272,7 @@ def one_size(
         drift=drift,
         seed=1,
     )
-    folder = work / f"{side}x{side}-{pixels}"
+    folder = work / f"{sample}-{side}x{side}-{pixels}"
     manifest = write_patch_set(patch_set_from_synth(synth), folder / "patches")
     out = folder / "out"
     ran = _merge_in_child(manifest, out, _warm_set(work, pixels))
@@ -347,6 +355,12 @@ def main(argv: list[str] | None = None) -> int:
         help="the scan lines' offsets, RMS nm (default the typical drift's 0.3; 0 shows what a "
         "large mosaic's bend owes them)",
     )
+    parser.add_argument(
+        "--sample",
+        choices=sorted(SAMPLES),
+        default="folded",
+        help="the folded surface (default) or one whose folds are sparse",
+    )
     parser.add_argument("--large", action="store_true", help="also 50 x 50 and 100 x 100")
     parser.add_argument("--big", action="store_true", help="also 50 x 50 patches of 256 x 256")
     parser.add_argument(
@@ -397,6 +411,7 @@ def main(argv: list[str] | None = None) -> int:
                 bound=args.bound and side * side <= BOUND_MAX,
                 oracle=args.oracle,
                 line_noise=line_noise,
+                sample=args.sample,
             )
             rows.append(r)
             ref = _reference(rows)
