@@ -8,11 +8,13 @@ prior (the SEM-to-stage calibration's, or the nominal placement):
 1. On a coarse grid of the SEM image (about 64 px across the mosaic), every rotation and scale
    of a grid around the prior, each with its best shift by masked normalised correlation of
    the tilt contrast (:func:`merge.correlative.correlate.masked_ncc`); the best kept, and the
-   best match elsewhere (a rival: a periodic sample matches one period away).
+   best match elsewhere (a rival: a periodic sample matches one period away; a lone edge
+   matches all along itself, the rival then on a ridge of correlation joined to the best).
 2. The same at finer grids around the best, with the fitted contrast (tilt and shading).
 3. Gauss-Newton at the SEM's own pixels on the map and the contrast's weights together
    (least squares of SEM minus model), its covariance from the misfit and its correlation
-   length.
+   length, widened by what the model itself leaves open: the probe's reach (the next best
+   reach's answer) and the topography's sampling (the answer on every other height).
 
 The transform found, ``T_sem_mosaic``, maps a point of the mosaic (stage coordinates, metres)
 to where the SEM image shows it (stage coordinates through the image's own pixel-to-stage
