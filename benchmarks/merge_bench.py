@@ -51,7 +51,7 @@ import numpy as np
 
 from backend.synthetic import patch_set_from_synth
 from hardware.sim.drift import DriftModel
-from hardware.sim.surfaces import FoldedSurface
+from hardware.sim.surfaces import FoldedSurface, TipDrawnChessboard
 from hardware.sim.synth import synthesize
 from merge import write_patch_set
 
@@ -340,7 +340,10 @@ def main(argv: list[str] | None = None) -> int:
             for geometry, tip, pixel, case in tip_grating_cases():
                 t = tip_row(case, args.gratings, Path(tmp))
                 radius, angle, step, period = tip
-                flank = step * np.tan(np.radians(angle))
+                # the drawn wall's width, the apex's arc included
+                flank = TipDrawnChessboard(
+                    period=period, step=step, tip_radius=radius, half_angle=angle, roughness=0.0
+                ).flank
                 where = {
                     "geometry": geometry,
                     "tip_radius": radius,
