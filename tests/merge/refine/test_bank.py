@@ -103,6 +103,37 @@ def test_raw_lookups_follow_roughness_between_pixels_better_than_bilinear() -> N
     assert spline_err < 0.4 * bil_err
 
 
+def _flank(x: np.ndarray, y: np.ndarray, phase: float) -> np.ndarray:
+    """A tip-drawn step 0.6 µm high (metres, 20 nm pixels as x, y in pixels): flat, a straight
+    flank of slope 4 over 7.5 px, flat; its edges 2° off the columns, ``phase`` px along x."""
+    across = (x + phase) * np.cos(np.radians(2.0)) + y * np.sin(np.radians(2.0))
+    out: np.ndarray = 20e-9 * 4.0 * np.clip(across - 10.0, 0.0, 7.5)
+    return out
+
+
+@pytest.mark.parametrize("phase", [0.0, 0.3, 0.5, 0.8])
+def test_raw_lookups_draw_a_tip_drawn_edge_as_it_is_wherever_its_kinks_fall(phase: float) -> None:
+    # the spline rings at the flank's kinks by an amount that depends on where they fall
+    # between the pixels (so two patches of one edge disagree); the sub-cell reconstruction
+    # draws both straight pieces and the kink where they meet
+    yy, xx = np.mgrid[0:24, 0:36].astype(np.float64)
+    patch = Patch("a", _flank(xx, yy, phase), (0.0, 0.0), (20e-9, 20e-9))
+    rng = np.random.default_rng(2)
+    uv = rng.uniform(4.0, 19.0, size=(2000, 2)) * [1.5, 1.0]
+    pts = np.column_stack([uv - SurfaceBank([patch], 20e-9, 0.0, 1).half[0], np.zeros(2000)])
+    errors = {}
+    for subcell in (False, True):
+        bank = SurfaceBank([patch], 20e-9, 0.0, 1)
+        if not subcell:
+            bank.kinks = None
+        h, _, _, ok = bank.lookup(np.zeros(2000, dtype=np.intp), pts)
+        truth = _flank(uv[:, 0], uv[:, 1], phase) / 20e-9 - bank.centre[0, 2]
+        assert ok.all()
+        errors[subcell] = np.abs(h - truth).max() * 20.0  # nm
+    assert errors[False] > 1.0  # nanometres of ringing
+    assert errors[True] < 1e-2  # a hundredth of a nanometre: the ringing beyond RINGING
+
+
 def test_lookup_is_not_valid_next_to_a_hole() -> None:
     p = _plane_patch("a", (0.0, 0.0))
     heights = p.heights.copy()

@@ -1,0 +1,203 @@
+"""Heights between pixels where the surface has kinks: sub-cell reconstruction.
+
+A tip draws a grating's edge as straight flanks that meet the flat faces in kinks (rounded only
+by the apex, a fraction of a pixel). A spline through the pixels rings at a kink, over a few
+pixels, by a share of the slope's jump times the pixel: at 20 nm pixels and a flank of slope 4,
+nanometres. Worse, the ringing depends on where the kink falls between two pixels, which differs
+from patch to patch: two patches of one surface are reconstructed differently, and the
+difference is read as a shift (0.3-3 nm at 20 nm pixels, 5-20 nm at 40 nm, without noise).
+
+Where the second differences along a line of pixels are concentrated on one or two neighbouring
+pixels, the line is two straight pieces meeting in a kink. The kink then lies where the line
+through the two pixels left of the cell meets the line through the two right of it (Harten's
+subcell resolution, for point values): exact on a piecewise-linear surface wherever the kink
+falls, so every patch reconstructs the same surface. Elsewhere the pixels are smooth at their
+scale and the spline stands. In two dimensions the reconstruction goes along the rows, then
+down the column of the row values (a tensor product), which resolves edges along either axis
+and at any angle.
+
+Lengths and heights here are in pixels and a height unit (the caller's).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy import ndimage
+
+FloatArray = NDArray[np.float64]
+BoolArray = NDArray[np.bool_]
+
+#: Pixels of the window a cell's reconstruction reads, along each axis: four before the cell,
+#: its two corners and four after (the second differences at pixels -3 .. 4, so that a kink on
+#: the cell's lines is seen with two second differences beyond it on either side).
+WINDOW = 10
+#: Second differences below this share of a window's largest count as none (a straight piece):
+#: on a tip-drawn flank the kinks' are the slope's jump times the pixel, tens of nanometres.
+STRAIGHT = 0.1
+#: A kink's turn (its pair of second differences) must exceed this many robust spreads of one
+#: (:func:`kink_threshold`: the faces' noise and roughness). Where it does not, the spline's
+#: ringing, some 3 % of the turn, is below what the noise and roughness already blur, and the two
+#: pieces through noisy pixels do no better (a tip-drawn flank's foot in 1D, noise-free: turns of
+#: 15-30 spreads, both 0.7-0.8 nm RMS; above 30, 0.6 against the spline's 2.3).
+SIGNIFICANCE = 20.0
+#: Share of a kink's turn that may spill onto the second differences just beyond its pair
+#: (either way), plus one standard deviation of the spill's noise: a tip's kinks (its apex 5-20
+#: nm at 20 nm pixels) spill under 0.05 of the turn; a crest rounded over a pixel with curved
+#: sides (the folded surface's) -0.1 to -0.2, where two straight pieces draw it worse than the
+#: spline does (1D, noise-free: 3.3 nm RMS against 2.1).
+SPILL = 0.05
+#: Pixels from a kink within which the spline through the pixels still rings by more than a
+#: hundredth of a nanometre (its prefilter's influence falls by 2 - √3 ≈ 0.27 a pixel, from
+#: some 3 % of the slope's jump times the pixel: 2.4 nm at 20 nm pixels and a slope of 4).
+RINGING = 5
+
+
+def kink_threshold(heights: FloatArray) -> float:
+    """The robust spread (1.4826 MAD) of ``heights``' second differences along both axes: on a
+    grating mostly the faces' noise and roughness, the unit the kinks are told from it in.
+
+    ``heights`` (ny, nx), any height unit (NaN ignored). Returns 0 where there is nothing to
+    measure it on (then any kink that turns at all counts).
+    """
+    h = np.asarray(heights, dtype=np.float64)
+    if h.ndim != 2:
+        raise ValueError(f"heights must be 2-D, got shape {h.shape}")
+    d = [np.diff(h, 2, axis=axis).ravel() for axis in (0, 1) if h.shape[axis] >= 3]
+    if not d:
+        return 0.0
+    a = np.abs(np.concatenate(d))
+    a = a[np.isfinite(a)]
+    if not len(a):
+        return 0.0
+    return 1.4826 * float(np.median(a))
+
+
+def kink_cells(heights: FloatArray, threshold: float) -> BoolArray:
+    """(ny, nx) whether the cell whose lower corner is each pixel lies within :data:`RINGING`
+    pixels of a kink: of a cell that a line of pixels along either axis, read by
+    :func:`subcell_1d` with ``threshold`` (the patch's :func:`kink_threshold`), finds kinked.
+    There the spline through the pixels rings; :func:`subcell_2d` draws the straight pieces
+    instead (the last pixel's cell, which holds no look-up of its own, is never flagged)."""
+    h = np.asarray(heights, dtype=np.float64)
+    ny, nx = h.shape
+    seen = np.zeros((ny, nx), dtype=bool)
+    before = WINDOW // 2 - 1
+    for axis in (0, 1):
+        if h.shape[axis] < 2:
+            continue
+        lines = np.moveaxis(h, axis, -1)
+        padded = np.pad(
+            lines, [(0, 0), (before, WINDOW - before - 2)], mode="reflect", reflect_type="odd"
+        )
+        windows = np.lib.stride_tricks.sliding_window_view(padded, WINDOW, axis=-1)
+        flat = windows.reshape(-1, WINDOW)
+        _, kinked = subcell_1d(flat, np.zeros(len(flat)), np.full(len(flat), threshold))
+        kinked &= np.isfinite(flat).all(axis=1)
+        cells = kinked.reshape(windows.shape[:-1])  # (lines, n - 1)
+        full = np.zeros(lines.shape, dtype=bool)
+        full[:, :-1] = cells
+        seen |= np.moveaxis(full, -1, axis)
+    out: BoolArray = ndimage.binary_dilation(seen, iterations=RINGING, structure=np.ones((3, 3)))
+    out[-1, :] = False
+    out[:, -1] = False
+    return out
+
+
+def subcell_1d(
+    values: FloatArray, t: FloatArray, threshold: FloatArray
+) -> tuple[FloatArray, BoolArray]:
+    """Heights at fraction ``t`` of the cell between the fifth and sixth of ten pixels.
+
+    Parameters
+    ----------
+    values : (m, 10) array
+        Heights at pixels -4 .. 5 along the line; the cell is [0, 1].
+    t : (m,) array
+        Where in the cell, 0 to 1.
+    threshold : (m,) array
+        :func:`kink_threshold` of each line's patch.
+
+    Returns
+    -------
+    heights : (m,) array
+        Where the line is straight pieces meeting in kinks (``kinked``: its second differences
+        come alone or in same-signed pairs with none between, the largest pair turns by
+        :data:`SIGNIFICANCE` spreads or more and spills at most :data:`SPILL` of that beyond
+        itself), the piece's height:
+        in a cell that holds a kink, the piece through pixels -1 and 0 left of it and through 1
+        and 2 right of it, the kink where they meet; in any other cell the straight line
+        through its corners. Elsewhere (smooth, or a step drawn within a pixel or two, which
+        turns the line both ways at once) the cubic through pixels -1 .. 2.
+    kinked : (m,) bool array
+    """
+    v = np.asarray(values, dtype=np.float64)
+    if v.ndim != 2 or v.shape[1] != WINDOW:
+        raise ValueError(f"values must be (m, {WINDOW}), got shape {v.shape}")
+    d = v[:, :-2] - 2.0 * v[:, 1:-1] + v[:, 2:]  # at pixels -3 .. 4
+    a = np.abs(d)
+    bent = a >= STRAIGHT * a.max(axis=1, keepdims=True)
+    # straight pieces and kinks: no three bent in a row, no bent pair turning both ways
+    both = bent[:, :-1] & bent[:, 1:]
+    three = (both[:, :-1] & bent[:, 2:]).any(axis=1)
+    turning = (both & (d[:, :-1] * d[:, 1:] < 0)).any(axis=1)
+    # the window's kink: its largest pair; sharp, its turn sits on that pair alone (rounded, or
+    # between curved pieces, it spills onto the second differences either side)
+    pairs = d[:, :-1] + d[:, 1:]
+    k = np.argmax(np.abs(pairs), axis=1)
+    rows = np.arange(len(d))
+    last = d.shape[1] - 1
+    # on the cell's lines (pixels -1 .. 2), and measured two pixels either side: nearer the
+    # window's end a turn's other side is out of sight (the foot of a step drawn in two or three
+    # pixels looks like a kink there, its top's turn beginning just beyond)
+    interior = (k >= 2) & (k + 3 <= last)
+    turn = np.abs(pairs[rows, k])
+    spread = np.asarray(threshold, dtype=np.float64)
+    sharp = np.ones(len(d), dtype=bool)
+    for before, after in ((k - 1, k + 2), (k - 2, k + 3)):
+        beside = np.abs(d[rows, np.clip(before, 0, last)]) + np.abs(
+            d[rows, np.clip(after, 0, last)]
+        )
+        # beside <= (SPILL + its noise's mean / turn) * turn, without dividing by a zero turn
+        sharp &= beside <= SPILL * turn + 2.0 * spread
+    kinked = (turn > SIGNIFICANCE * spread) & interior & ~three & ~turning & sharp
+    left, right = v[:, 4], v[:, 5]
+    linear = left + t * (right - left)
+    s_left, s_right = left - v[:, 3], v[:, 6] - right
+    with np.errstate(divide="ignore", invalid="ignore"):
+        at = (right - s_right - left) / (s_left - s_right)
+    two_pieces = np.where(t < at, left + s_left * t, right + s_right * (t - 1.0))
+    inside = (bent[:, 3] | bent[:, 4]) & np.isfinite(at) & (at >= 0.0) & (at <= 1.0)
+    pieces = np.where(inside, two_pieces, linear)
+    # Lagrange's cubic through pixels -1 .. 2 (exact for cubics, local: no ringing from afar)
+    p0, p1, p2, p3 = v[:, 3], v[:, 4], v[:, 5], v[:, 6]
+    cubic = (
+        -t * (t - 1.0) * (t - 2.0) / 6.0 * p0
+        + (t + 1.0) * (t - 1.0) * (t - 2.0) / 2.0 * p1
+        - (t + 1.0) * t * (t - 2.0) / 2.0 * p2
+        + (t + 1.0) * t * (t - 1.0) / 6.0 * p3
+    )
+    out: FloatArray = np.where(kinked, pieces, cubic)
+    return out, kinked
+
+
+def subcell_2d(
+    window: FloatArray, fv: FloatArray, fu: FloatArray, threshold: FloatArray
+) -> tuple[FloatArray, BoolArray]:
+    """Heights at (``fv``, ``fu``) within the centre cell of 10 x 10 windows of pixels.
+
+    ``window`` (m, 10, 10): rows -4 .. 5 and columns -4 .. 5 around the cell [0, 1]²; ``fv``,
+    ``fu`` (m,) where in it; ``threshold`` (m,) as in :func:`subcell_1d`. Along every row of
+    the window first, then down the column of those values: a line that is not kinked takes
+    the local cubic, exact on a straight piece, where a spline would still ring from a kink a few
+    pixels away. Returns the heights and whether any of the eleven lines was kinked.
+    """
+    w = np.asarray(window, dtype=np.float64)
+    m = len(w)
+    if w.shape != (m, WINDOW, WINDOW):
+        raise ValueError(f"window must be (m, {WINDOW}, {WINDOW}), got shape {w.shape}")
+    rows, kinked_rows = subcell_1d(
+        w.reshape(m * WINDOW, WINDOW), np.repeat(fu, WINDOW), np.repeat(threshold, WINDOW)
+    )
+    out, kinked = subcell_1d(rows.reshape(m, WINDOW), fv, threshold)
+    return out, kinked | kinked_rows.reshape(m, WINDOW).any(axis=1)
