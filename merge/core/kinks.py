@@ -75,17 +75,27 @@ def kink_threshold(heights: FloatArray) -> float:
     return 1.4826 * float(np.median(a))
 
 
-def kink_cells(heights: FloatArray, threshold: float) -> BoolArray:
-    """(ny, nx) whether the cell whose lower corner is each pixel lies within :data:`RINGING`
-    pixels of a kink: of a cell that a line of pixels along either axis, read by
-    :func:`subcell_1d` with ``threshold`` (the patch's :func:`kink_threshold`), finds kinked.
-    There the spline through the pixels rings; :func:`subcell_2d` draws the straight pieces
-    instead (the last pixel's cell, which holds no look-up of its own, is never flagged)."""
+#: :func:`kink_cells`' codes: a cell far from any kink (the spline stands), one within
+#: :data:`RINGING` pixels of one whose window holds no kinked line (the local bicubic,
+#: :func:`bicubic`, what :func:`subcell_2d` draws there, for 16 pixels instead of 100), and one
+#: whose window does (:func:`subcell_2d`).
+SPLINE, RINGS, KINKED = 0, 1, 2
+
+
+def kink_cells(heights: FloatArray, threshold: float) -> NDArray[np.uint8]:
+    """(ny, nx) how the cell whose lower corner is each pixel is drawn: :data:`KINKED` where a
+    line of :func:`subcell_2d`'s window finds a kink (a row of it, read by :func:`subcell_1d`
+    with ``threshold``, the patch's :func:`kink_threshold`; or the column through the cell's
+    corners), :data:`RINGS` within :data:`RINGING` pixels of such a line, where the spline
+    through the pixels still rings, :data:`SPLINE` elsewhere (and in the last pixel's cell,
+    which holds no look-up of its own)."""
     h = np.asarray(heights, dtype=np.float64)
     ny, nx = h.shape
-    seen = np.zeros((ny, nx), dtype=bool)
+    seen = []  # per axis: the cells whose line along it is kinked
     before = WINDOW // 2 - 1
     for axis in (0, 1):
+        found_cells = np.zeros((ny, nx), dtype=bool)
+        seen.append(found_cells)
         if h.shape[axis] < 2:
             continue
         lines = np.moveaxis(h, axis, -1)
@@ -94,15 +104,59 @@ def kink_cells(heights: FloatArray, threshold: float) -> BoolArray:
         )
         windows = np.lib.stride_tricks.sliding_window_view(padded, WINDOW, axis=-1)
         flat = windows.reshape(-1, WINDOW)
-        _, kinked = subcell_1d(flat, np.zeros(len(flat)), np.full(len(flat), threshold))
-        kinked &= np.isfinite(flat).all(axis=1)
-        cells = kinked.reshape(windows.shape[:-1])  # (lines, n - 1)
+        # a window turns by at most twice its largest second difference: only those that
+        # may reach the significance are read (on most surfaces none)
+        bends = np.abs(np.diff(flat, 2, axis=1)).max(axis=1)
+        maybe = np.flatnonzero(2.0 * bends > SIGNIFICANCE * threshold)
+        kinked = np.zeros(len(flat), dtype=bool)
+        if len(maybe):
+            part = flat[maybe]
+            _, found = subcell_1d(part, np.zeros(len(part)), np.full(len(part), threshold))
+            kinked[maybe] = found & np.isfinite(part).all(axis=1)
         full = np.zeros(lines.shape, dtype=bool)
-        full[:, :-1] = cells
-        seen |= np.moveaxis(full, -1, axis)
-    out: BoolArray = ndimage.binary_dilation(seen, iterations=RINGING, structure=np.ones((3, 3)))
-    out[-1, :] = False
-    out[:, -1] = False
+        full[:, :-1] = kinked.reshape(windows.shape[:-1])  # (lines, n - 1)
+        found_cells |= np.moveaxis(full, -1, axis)
+    along_y, along_x = seen  # lines along axis 0 (columns) first
+    near = ndimage.binary_dilation(along_x | along_y, iterations=RINGING, structure=np.ones((3, 3)))
+    # the window's rows (i - 4 .. i + 5) at the cell's column, and the columns at its corners
+    rows = _shifted_any(along_x, -before, WINDOW - before - 1)
+    columns = along_y.copy()
+    columns[:, :-1] |= along_y[:, 1:]
+    out = np.where(rows | columns, KINKED, np.where(near, RINGS, SPLINE)).astype(np.uint8)
+    out[-1, :] = SPLINE
+    out[:, -1] = SPLINE
+    return out
+
+
+def _shifted_any(mask: BoolArray, lo: int, hi: int) -> BoolArray:
+    """(ny, nx) whether ``mask`` holds in rows ``i + lo .. i + hi`` of every cell's column."""
+    ny = mask.shape[0]
+    out = np.zeros_like(mask)
+    for k in range(lo, hi + 1):
+        src = mask[max(k, 0) : ny + min(k, 0)]
+        out[max(-k, 0) : ny + min(-k, 0)] |= src
+    return out
+
+
+def bicubic(window: FloatArray, fv: FloatArray, fu: FloatArray) -> FloatArray:
+    """Lagrange's bicubic through 4 x 4 pixels (m, 4, 4: rows and columns -1 .. 2 around the
+    cell [0, 1]²) at (``fv``, ``fu``) (m,): local and exact on a plane or a straight piece."""
+    w = np.asarray(window, dtype=np.float64)
+
+    def weights(t: FloatArray) -> FloatArray:
+        t = np.asarray(t, dtype=np.float64)
+        out: FloatArray = np.stack(
+            [
+                -t * (t - 1.0) * (t - 2.0) / 6.0,
+                (t + 1.0) * (t - 1.0) * (t - 2.0) / 2.0,
+                -(t + 1.0) * t * (t - 2.0) / 2.0,
+                (t + 1.0) * t * (t - 1.0) / 6.0,
+            ],
+            axis=1,
+        )
+        return out
+
+    out: FloatArray = np.einsum("mi,mij,mj->m", weights(fv), w, weights(fu))
     return out
 
 
@@ -136,9 +190,26 @@ def subcell_1d(
     v = np.asarray(values, dtype=np.float64)
     if v.ndim != 2 or v.shape[1] != WINDOW:
         raise ValueError(f"values must be (m, {WINDOW}), got shape {v.shape}")
+    t = np.asarray(t, dtype=np.float64)
+    spread = np.broadcast_to(np.asarray(threshold, dtype=np.float64), (len(v),))
+    # Lagrange's cubic through pixels -1 .. 2 (exact for cubics, local: no ringing from afar)
+    p0, p1, p2, p3 = v[:, 3], v[:, 4], v[:, 5], v[:, 6]
+    out: FloatArray = (
+        -t * (t - 1.0) * (t - 2.0) / 6.0 * p0
+        + (t + 1.0) * (t - 1.0) * (t - 2.0) / 2.0 * p1
+        - (t + 1.0) * t * (t - 2.0) / 2.0 * p2
+        + (t + 1.0) * t * (t - 1.0) / 6.0 * p3
+    )
+    kinked = np.zeros(len(v), dtype=bool)
     d = v[:, :-2] - 2.0 * v[:, 1:-1] + v[:, 2:]  # at pixels -3 .. 4
     a = np.abs(d)
-    bent = a >= STRAIGHT * a.max(axis=1, keepdims=True)
+    top = a.max(axis=1)
+    # a turn is at most twice the largest second difference: only those lines are read
+    maybe = np.flatnonzero(2.0 * top > SIGNIFICANCE * spread)
+    if not len(maybe):
+        return out, kinked
+    v, d, a, t, spread = v[maybe], d[maybe], a[maybe], t[maybe], spread[maybe]
+    bent = a >= STRAIGHT * top[maybe, None]
     # straight pieces and kinks: no three bent in a row, no bent pair turning both ways
     both = bent[:, :-1] & bent[:, 1:]
     three = (both[:, :-1] & bent[:, 2:]).any(axis=1)
@@ -146,40 +217,31 @@ def subcell_1d(
     # the window's kink: its largest pair; sharp, its turn sits on that pair alone (rounded, or
     # between curved pieces, it spills onto the second differences either side)
     pairs = d[:, :-1] + d[:, 1:]
-    k = np.argmax(np.abs(pairs), axis=1)
-    rows = np.arange(len(d))
+    k = np.argmax(np.abs(pairs), axis=1)[:, None]
     last = d.shape[1] - 1
     # on the cell's lines (pixels -1 .. 2), and measured two pixels either side: nearer the
     # window's end a turn's other side is out of sight (the foot of a step drawn in two or three
     # pixels looks like a kink there, its top's turn beginning just beyond)
-    interior = (k >= 2) & (k + 3 <= last)
-    turn = np.abs(pairs[rows, k])
-    spread = np.asarray(threshold, dtype=np.float64)
-    sharp = np.ones(len(d), dtype=bool)
-    for before, after in ((k - 1, k + 2), (k - 2, k + 3)):
-        beside = np.abs(d[rows, np.clip(before, 0, last)]) + np.abs(
-            d[rows, np.clip(after, 0, last)]
-        )
-        # beside <= (SPILL + its noise's mean / turn) * turn, without dividing by a zero turn
-        sharp &= beside <= SPILL * turn + 2.0 * spread
-    kinked = (turn > SIGNIFICANCE * spread) & interior & ~three & ~turning & sharp
+    interior = ((k >= 2) & (k + 3 <= last))[:, 0]
+    k = np.clip(k, 2, last - 3)
+    turn = np.abs(np.take_along_axis(pairs, k, axis=1))[:, 0]
+    near = np.take_along_axis(a, k + np.array([-2, -1, 2, 3]), axis=1)
+    # beside <= (SPILL + its noise's mean / turn) * turn, without dividing by a zero turn
+    limit = SPILL * turn + 2.0 * spread
+    sharp = (near[:, 1] + near[:, 2] <= limit) & (near[:, 0] + near[:, 3] <= limit)
+    found = (turn > SIGNIFICANCE * spread) & interior & ~three & ~turning & sharp
+    kinked[maybe] = found
+    if not found.any():
+        return out, kinked
+    on = np.flatnonzero(found)
+    v, t, bent = v[on], t[on], bent[on]
     left, right = v[:, 4], v[:, 5]
-    linear = left + t * (right - left)
     s_left, s_right = left - v[:, 3], v[:, 6] - right
     with np.errstate(divide="ignore", invalid="ignore"):
         at = (right - s_right - left) / (s_left - s_right)
     two_pieces = np.where(t < at, left + s_left * t, right + s_right * (t - 1.0))
     inside = (bent[:, 3] | bent[:, 4]) & np.isfinite(at) & (at >= 0.0) & (at <= 1.0)
-    pieces = np.where(inside, two_pieces, linear)
-    # Lagrange's cubic through pixels -1 .. 2 (exact for cubics, local: no ringing from afar)
-    p0, p1, p2, p3 = v[:, 3], v[:, 4], v[:, 5], v[:, 6]
-    cubic = (
-        -t * (t - 1.0) * (t - 2.0) / 6.0 * p0
-        + (t + 1.0) * (t - 1.0) * (t - 2.0) / 2.0 * p1
-        - (t + 1.0) * t * (t - 2.0) / 2.0 * p2
-        + (t + 1.0) * t * (t - 1.0) / 6.0 * p3
-    )
-    out: FloatArray = np.where(kinked, pieces, cubic)
+    out[maybe[on]] = np.where(inside, two_pieces, left + t * (right - left))
     return out, kinked
 
 

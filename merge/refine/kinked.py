@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import NDArray
 
-from merge.core.kinks import WINDOW, kink_cells, kink_threshold, subcell_2d
+from merge.core.kinks import KINKED, RINGS, WINDOW, bicubic, kink_cells, kink_threshold, subcell_2d
 
 if TYPE_CHECKING:
     from merge.refine.bank import SurfaceBank
@@ -38,8 +38,9 @@ class KinkedCells:
         self.start = np.concatenate([[0], np.cumsum(np.asarray(nx) * np.asarray(ny))]).astype(
             np.intp
         )
-        #: pixel by pixel, patch after patch: the cell near a kink
-        self.cell = np.zeros(int(self.start[-1]), dtype=bool)
+        #: pixel by pixel, patch after patch: how the cell is drawn
+        #: (:func:`merge.core.kinks.kink_cells`' codes)
+        self.cell = np.zeros(int(self.start[-1]), dtype=np.uint8)
 
     def add(self, c: int, heights: FloatArray) -> None:
         """Patch ``c``'s threshold and cells from its raw heights (pixel units); a patch
@@ -64,30 +65,64 @@ class KinkedCells:
         nx, ny = bank.nx[dst], bank.ny[dst]
         i0 = np.clip(np.floor(v).astype(np.intp), 0, ny - 2)
         j0 = np.clip(np.floor(u).astype(np.intp), 0, nx - 2)
-        sel = np.flatnonzero(inside & self.cell.take(self.start[dst] + i0 * nx + j0))
-        if not len(sel):
-            return
-        c = np.asarray(dst, dtype=np.intp)[sel]
-        i0, j0 = i0[sel], j0[sel]
-        out, _ = subcell_2d(_window(bank, c, i0, j0), v[sel] - i0, u[sel] - j0, self.threshold[c])
-        use = np.isfinite(out)
-        h[sel[use]] = out[use]
+        code = np.where(inside, self.cell.take(self.start[dst] + i0 * nx + j0), 0)
+        for kind in (RINGS, KINKED):
+            sel = np.flatnonzero(code == kind)
+            if not len(sel):
+                continue
+            c = np.asarray(dst, dtype=np.intp)[sel]
+            i, j = i0[sel], j0[sel]
+            fv, fu = v[sel] - i, u[sel] - j
+            if kind == KINKED:
+                out, _ = subcell_2d(_window(bank, c, i, j), fv, fu, self.threshold[c])
+            else:
+                out = bicubic(_window(bank, c, i, j, size=4), fv, fu)
+            use = np.isfinite(out)
+            h[sel[use]] = out[use]
 
 
-def _window(bank: SurfaceBank, c: IntArray, i0: IntArray, j0: IntArray) -> FloatArray:
-    """(m, 10, 10) the pixels rows ``i0 - 4 .. i0 + 5`` and columns ``j0 - 4 .. j0 + 5`` of
-    ``bank``'s patches ``c`` (:data:`merge.core.kinks.WINDOW`), read from its nodes and
-    continued point-symmetrically beyond the border (as the spline is)."""
-    offsets = np.arange(WINDOW) - (WINDOW // 2 - 1)
-    rows = _reflected(i0[:, None] + offsets, bank.ny[c][:, None])
-    cols = _reflected(j0[:, None] + offsets, bank.nx[c][:, None])
+def _window(
+    bank: SurfaceBank, c: IntArray, i0: IntArray, j0: IntArray, *, size: int = WINDOW
+) -> FloatArray:
+    """(m, size, size) the pixels around cells (``i0``, ``j0``) of ``bank``'s patches ``c``
+    (rows and columns from ``size / 2 - 1`` before the cell's corner; 10: -4 .. 5,
+    :data:`merge.core.kinks.WINDOW`), read from its nodes and continued point-symmetrically
+    beyond the border (as the spline is)."""
+    offsets = np.arange(size) - (size // 2 - 1)
+    (r_edge, r_w), (r_mirror, r_wm) = _reflected(i0[:, None] + offsets, bank.ny[c][:, None])
+    (c_edge, c_w), (c_mirror, c_wm) = _reflected(j0[:, None] + offsets, bank.nx[c][:, None])
     base = bank.origin[c][:, None, None]
     line = (bank.nodes * bank.grid_nx[c])[:, None, None]
-    out = np.zeros((len(c), WINDOW, WINDOW))
-    for r_at, r_w in rows:
-        for c_at, c_w in cols:
-            k = base + r_at[:, :, None] * line + bank.nodes * c_at[:, None, :]
-            out += (r_w[:, :, None] * c_w[:, None, :]) * bank.height.take(k)
+
+    out = (r_w[:, :, None] * c_w[:, None, :]) * _read_at(bank, base, line, r_edge, c_edge)
+    # the continuation's mirrored pixels, only for the windows that reach past a border
+    rows_out = np.flatnonzero((r_wm != 0).any(axis=1))
+    if len(rows_out):
+        at = rows_out
+        out[at] += (r_wm[at, :, None] * c_w[at, None, :]) * _read_at(
+            bank, base[at], line[at], r_mirror[at], c_edge[at]
+        )
+    cols_out = np.flatnonzero((c_wm != 0).any(axis=1))
+    if len(cols_out):
+        at = cols_out
+        out[at] += (r_w[at, :, None] * c_wm[at, None, :]) * _read_at(
+            bank, base[at], line[at], r_edge[at], c_mirror[at]
+        )
+        both = np.flatnonzero((c_wm[at] != 0).any(axis=1) & (r_wm[at] != 0).any(axis=1))
+        if len(both):
+            at = at[both]
+            out[at] += (r_wm[at, :, None] * c_wm[at, None, :]) * _read_at(
+                bank, base[at], line[at], r_mirror[at], c_mirror[at]
+            )
+    return out
+
+
+def _read_at(
+    bank: SurfaceBank, base: IntArray, line: IntArray, rows: IntArray, cols: IntArray
+) -> FloatArray:
+    """(m, k, k) ``bank``'s pixels (``rows`` x ``cols``) from nodes ``base`` on."""
+    k = base + rows[:, :, None] * line + bank.nodes * cols[:, None, :]
+    out: FloatArray = bank.height.take(k).astype(np.float64)
     return out
 
 
