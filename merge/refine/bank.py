@@ -76,10 +76,10 @@ class SurfaceBank:
     Near a kink (a tip-drawn edge's foot or top: straight flanks meeting flat faces) the spline
     rings by a share of the slope's jump times the pixel, differently in every patch as the kink
     falls elsewhere between its pixels; there the raw look-ups draw the straight pieces and the
-    kink where they meet (:mod:`merge.core.kinks`). The paper's grid on a tip-drawn chessboard
-    (0.6 µm steps, 150 nm flanks, 20 nm pixels), noise-free from the true places, 3 draws: XY
-    0.73 -> 0.17 nm (what is left is the faces' roughness between the pixels: 0.24 nm with no
-    steps at all); 0.3 µm steps with 140 nm flanks 0.33 -> 0.22 nm; at 10 nm pixels 0.01-0.03 nm.
+    kink where they meet (:mod:`merge.refine.kinked`, :mod:`merge.core.kinks`). The paper's grid
+    on a tip-drawn chessboard (0.6 µm steps, 157 nm flanks, 20 nm pixels), 1 nm noise, seeds
+    21-23: XY 1.36 -> 0.83 nm; noise-free from the true places 0.73 -> 0.17 nm (what is left is
+    the faces' roughness between the pixels).
     """
 
     #: Nodes per pixel of the look-ups on raw heights.
