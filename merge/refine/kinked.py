@@ -28,8 +28,9 @@ Ints = NDArray[np.integer[Any]]
 
 
 class KinkedCells:
-    """Every patch's kink threshold and, pixel by pixel, whether the cell it is the lower
-    corner of lies near a kink (patches of ``ny`` x ``nx`` pixels, (n,) each)."""
+    """Every patch's kink threshold and, pixel by pixel, how the cell it is the lower corner of
+    is drawn (patches of ``ny`` x ``nx`` pixels, (n,) each). The codes take a byte a pixel, held
+    only once some patch has a kink (a mosaic without any holds none)."""
 
     def __init__(self, ny: Ints, nx: Ints) -> None:
         #: per patch, the robust spread of its second differences (pixel units)
@@ -39,8 +40,8 @@ class KinkedCells:
             np.intp
         )
         #: pixel by pixel, patch after patch: how the cell is drawn
-        #: (:func:`merge.core.kinks.kink_cells`' codes)
-        self.cell = np.zeros(int(self.start[-1]), dtype=np.uint8)
+        #: (:func:`merge.core.kinks.kink_cells`' codes), or None while no patch has a kink
+        self.cell: NDArray[np.uint8] | None = None
 
     def add(self, c: int, heights: FloatArray) -> None:
         """Patch ``c``'s threshold and cells from its raw heights (pixel units); a patch
@@ -49,7 +50,12 @@ class KinkedCells:
             return
         threshold = kink_threshold(heights)
         self.threshold[c] = threshold
-        self.cell[self.start[c] : self.start[c + 1]] = kink_cells(heights, threshold).ravel()
+        codes = kink_cells(heights, threshold)
+        if self.cell is None:
+            if not codes.any():
+                return
+            self.cell = np.zeros(int(self.start[-1]), dtype=np.uint8)
+        self.cell[self.start[c] : self.start[c + 1]] = codes.ravel()
 
     def redraw(
         self,
@@ -62,6 +68,8 @@ class KinkedCells:
     ) -> None:
         """Heights ``h`` (m,) of ``bank``'s look-ups at pixel coordinates (``u``, ``v``) of
         patches ``dst``, redrawn where their cell lies near a kink."""
+        if self.cell is None:
+            return
         nx, ny = bank.nx[dst], bank.ny[dst]
         i0 = np.clip(np.floor(v).astype(np.intp), 0, ny - 2)
         j0 = np.clip(np.floor(u).astype(np.intp), 0, nx - 2)

@@ -21,7 +21,7 @@ def test_cells_near_a_kink_are_drawn_as_the_full_reconstruction_draws_them() -> 
         Patch("b", rising.T * 20e-9, (0.0, 0.0), (20e-9, 20e-9)),
     ]
     bank = SurfaceBank(patches, 20e-9, 0.0, 1)
-    assert bank.kinks is not None
+    assert bank.kinks is not None and bank.kinks.cell is not None
     rng = np.random.default_rng(3)
     m = 20000
     dst = rng.integers(0, 2, m)
@@ -40,3 +40,9 @@ def test_cells_near_a_kink_are_drawn_as_the_full_reconstruction_draws_them() -> 
     )
     np.testing.assert_allclose(h[sel], full, atol=1e-9)
     assert np.isnan(h[code == 0]).all()  # far from the kinks: the spline's, untouched
+
+
+def test_a_mosaic_without_kinks_holds_no_codes() -> None:
+    rough = np.random.default_rng(4).normal(0.0, 1e-9, (40, 40))
+    bank = SurfaceBank([Patch("a", rough, (0.0, 0.0), (20e-9, 20e-9))], 20e-9, 0.0, 1)
+    assert bank.kinks is not None and bank.kinks.cell is None
