@@ -45,11 +45,11 @@ STRAIGHT = 0.1
 #: (at 8 no better: 0.66, 0.34), the folded surface, the real MoS2 and the tanh chessboards
 #: within 0.003 nm of the spline's.
 SIGNIFICANCE = 12.0
-#: Share of a kink's turn that may spill onto the second differences just beyond its pair
-#: (either way), plus one standard deviation of the spill's noise: a tip's kinks (its apex 5-20
-#: nm at 20 nm pixels) spill under 0.05 of the turn; a crest rounded over a pixel with curved
-#: sides (the folded surface's) -0.1 to -0.2, where two straight pieces draw it worse than the
-#: spline does (1D, noise-free: 3.3 nm RMS against 2.1).
+#: Share of a kink's turn that the second differences beyond its pair may hold (in absolute
+#: value, those one pixel either side and those two, each couple apart), plus two spreads for
+#: their noise: a tip's kinks (its apex 5-20 nm at 20 nm pixels) spill under 0.05 of the turn; a
+#: crest rounded over a pixel with curved sides (the folded surface's) 0.1-0.2, where two
+#: straight pieces draw it worse than the spline does (1D, noise-free: 3.3 nm RMS against 2.1).
 SPILL = 0.05
 #: Pixels from a kink within which the spline through the pixels still rings by more than a
 #: hundredth of a nanometre (its prefilter's influence falls by 2 - √3 ≈ 0.27 a pixel, from
