@@ -17,7 +17,18 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import NDArray
 
-from merge.core.kinks import KINKED, RINGS, WINDOW, bicubic, kink_cells, kink_threshold, subcell_2d
+from merge.core.kinks import (
+    DRAWING,
+    KINKED,
+    RINGS,
+    ROW_KINKED,
+    WINDOW,
+    bicubic,
+    kink_cells,
+    kink_threshold,
+    subcell_2d,
+    subcell_2d_rows,
+)
 
 if TYPE_CHECKING:
     from merge.refine.bank import SurfaceBank
@@ -73,7 +84,7 @@ class KinkedCells:
         nx, ny = bank.nx[dst], bank.ny[dst]
         i0 = np.clip(np.floor(v).astype(np.intp), 0, ny - 2)
         j0 = np.clip(np.floor(u).astype(np.intp), 0, nx - 2)
-        code = np.where(inside, self.cell.take(self.start[dst] + i0 * nx + j0), 0)
+        code = np.where(inside, self.cell.take(self.start[dst] + i0 * nx + j0) & DRAWING, 0)
         for kind in (RINGS, KINKED):
             sel = np.flatnonzero(code == kind)
             if not len(sel):
@@ -81,24 +92,63 @@ class KinkedCells:
             c = np.asarray(dst, dtype=np.intp)[sel]
             i, j = i0[sel], j0[sel]
             fv, fu = v[sel] - i, u[sel] - j
-            if kind == KINKED:
-                out, _ = subcell_2d(_window(bank, c, i, j), fv, fu, self.threshold[c])
-            else:
+            if kind == RINGS:
                 out = bicubic(_window(bank, c, i, j, size=4), fv, fu)
+            else:
+                out = self._kinked(self.cell, bank, c, i, j, fv, fu)
             use = np.isfinite(out)
             h[sel[use]] = out[use]
 
+    def _kinked(
+        self,
+        cell: NDArray[np.uint8],
+        bank: SurfaceBank,
+        c: IntArray,
+        i: IntArray,
+        j: IntArray,
+        fv: FloatArray,
+        fu: FloatArray,
+    ) -> FloatArray:
+        """:func:`merge.core.kinks.subcell_2d` at cells (``i``, ``j``) of patches ``c``. Where
+        the window's rows all lie in the patch their readings are the codes' (made on the same
+        pixels), so only 40 pixels and the column are read; elsewhere (rows continued past a
+        border) the whole window."""
+        before = WINDOW // 2 - 1
+        known = (i - before >= 0) & (i + WINDOW - before - 1 <= bank.ny[c] - 1)
+        out = np.empty(len(c))
+        k = np.flatnonzero(known)
+        if len(k):
+            rows = i[k, None] + np.arange(WINDOW) - before
+            at = self.start[c[k], None] + rows * bank.nx[c[k], None] + j[k, None]
+            kinked_rows = (cell.take(at) & ROW_KINKED).astype(bool)
+            window = _window(bank, c[k], i[k], j[k], columns=4)
+            out[k] = subcell_2d_rows(window, kinked_rows, fv[k], fu[k], self.threshold[c[k]])
+        k = np.flatnonzero(~known)
+        if len(k):
+            window = _window(bank, c[k], i[k], j[k])
+            out[k] = subcell_2d(window, fv[k], fu[k], self.threshold[c[k]])[0]
+        return out
+
 
 def _window(
-    bank: SurfaceBank, c: IntArray, i0: IntArray, j0: IntArray, *, size: int = WINDOW
+    bank: SurfaceBank,
+    c: IntArray,
+    i0: IntArray,
+    j0: IntArray,
+    *,
+    size: int = WINDOW,
+    columns: int | None = None,
 ) -> FloatArray:
-    """(m, size, size) the pixels around cells (``i0``, ``j0``) of ``bank``'s patches ``c``
-    (rows and columns from ``size / 2 - 1`` before the cell's corner; 10: -4 .. 5,
-    :data:`merge.core.kinks.WINDOW`), read from its nodes and continued point-symmetrically
-    beyond the border (as the spline is)."""
+    """(m, size, columns) the pixels around cells (``i0``, ``j0``) of ``bank``'s patches ``c``
+    (rows from ``size / 2 - 1`` before the cell's corner, 10: -4 .. 5,
+    :data:`merge.core.kinks.WINDOW`; columns likewise, ``size`` of them unless ``columns``
+    says), read from its nodes and continued point-symmetrically beyond the border (as the
+    spline is)."""
+    width = size if columns is None else columns
     offsets = np.arange(size) - (size // 2 - 1)
+    across = np.arange(width) - (width // 2 - 1)
     (r_edge, r_w), (r_mirror, r_wm) = _reflected(i0[:, None] + offsets, bank.ny[c][:, None])
-    (c_edge, c_w), (c_mirror, c_wm) = _reflected(j0[:, None] + offsets, bank.nx[c][:, None])
+    (c_edge, c_w), (c_mirror, c_wm) = _reflected(j0[:, None] + across, bank.nx[c][:, None])
     base = bank.origin[c][:, None, None]
     line = (bank.nodes * bank.grid_nx[c])[:, None, None]
 
