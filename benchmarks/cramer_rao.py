@@ -30,7 +30,7 @@ drift as the prior, and the merge 0.53 over 8 draws).
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -324,13 +324,10 @@ def efficient_errors(
         synth, surface, drift, sampled=sampled, plane_prior=plane_prior
     )
     xy, z = expected_registration(scale @ scale.T, synth, centres)
-    rng = np.random.default_rng(seed)
     patches = patch_set_from_synth(synth).patches
     floor = floor_of(list(synth), surface)
     mp = []
-    for _ in range(samples):
-        delta = (scale @ rng.standard_normal(scale.shape[1])).reshape(-1, 6)
-        trs = perturbed(synth, centres, delta)
+    for trs in _efficient_samples(synth, scale, centres, samples=samples, seed=seed):
         _, _, (G, g) = registration_error(synth, trs)
         mosaic = render_mosaic(patches, trs)
         mp.append(map_error(mosaic.heights, mosaic.origin, mosaic.pixel_size, surface, G, g))
@@ -359,15 +356,29 @@ def efficient_row_end(
     tip-drawn sweep's 20 nm cases, 100 samples: median 3.0-3.1, 90th percentile 4.7).
     """
     scale, centres = correction_scale(synth, surface, drift)
-    rng = np.random.default_rng(seed)
     cols = np.array([s.col for s in synth])
     ends = (cols == cols.min()) | (cols == cols.max())  # the snake's rows end there
     stats = []
-    for _ in range(samples):
-        delta = (scale @ rng.standard_normal(scale.shape[1])).reshape(-1, 6)
-        off = np.hypot(*scored(list(synth), perturbed(synth, centres, delta)).patches[:, :2].T)
+    for trs in _efficient_samples(synth, scale, centres, samples=samples, seed=seed):
+        off = np.hypot(*scored(list(synth), trs).patches[:, :2].T)
         stats.append(off[ends].max() / max(float(np.median(off)), 1e-15))
     return float(np.median(stats))
+
+
+def _efficient_samples(
+    synth: Sequence[SynthPatch],
+    scale: FloatArray,
+    centres: FloatArray,
+    *,
+    samples: int,
+    seed: int,
+) -> Iterator[list[PatchTransform]]:
+    """``samples`` draws of the transforms an efficient merge would return: the truth moved by
+    the bound's errors (``scale`` from :func:`correction_scale`, its columns' covariance)."""
+    rng = np.random.default_rng(seed)
+    for _ in range(samples):
+        delta = (scale @ rng.standard_normal(scale.shape[1])).reshape(-1, 6)
+        yield perturbed(synth, centres, delta)
 
 
 def spread_of(ratio: FloatArray) -> dict[str, float]:

@@ -147,24 +147,13 @@ def _shifted_any(mask: BoolArray, lo: int, hi: int) -> BoolArray:
 
 def bicubic(window: FloatArray, fv: FloatArray, fu: FloatArray) -> FloatArray:
     """Lagrange's bicubic through 4 x 4 pixels (m, 4, 4: rows and columns -1 .. 2 around the
-    cell [0, 1]²) at (``fv``, ``fu``) (m,): local and exact on a plane or a straight piece."""
+    cell [0, 1]²) at (``fv``, ``fu``) (m,): local and exact on a plane or a straight piece; the
+    cubic along every row, then down the column (as :func:`subcell_2d` draws lines without a
+    kink)."""
     w = np.asarray(window, dtype=np.float64)
-
-    def weights(t: FloatArray) -> FloatArray:
-        t = np.asarray(t, dtype=np.float64)
-        out: FloatArray = np.stack(
-            [
-                -t * (t - 1.0) * (t - 2.0) / 6.0,
-                (t + 1.0) * (t - 1.0) * (t - 2.0) / 2.0,
-                -(t + 1.0) * t * (t - 2.0) / 2.0,
-                (t + 1.0) * t * (t - 1.0) / 6.0,
-            ],
-            axis=1,
-        )
-        return out
-
-    out: FloatArray = np.einsum("mi,mij,mj->m", weights(fv), w, weights(fu))
-    return out
+    m = len(w)
+    rows = _cubic(w.reshape(-1, 4), np.repeat(np.asarray(fu, dtype=np.float64), 4))
+    return _cubic(rows.reshape(m, 4), np.asarray(fv, dtype=np.float64))
 
 
 def subcell_1d(
