@@ -120,14 +120,15 @@ def coherence(heights: FloatArray) -> float:
     return float((high - low) / (high + low)) if high > 0 else 0.0
 
 
-def correlated_channels(levelled: FloatArray) -> FloatArray:
-    """What is correlated: the heights and their slopes (after one cell of smoothing).
+def correlated_channels(levelled: FloatArray, *, smooth: float = 1.0) -> FloatArray:
+    """What is correlated: the heights and their slopes (after ``smooth`` cells of Gaussian
+    smoothing).
 
     Heights alone let a smooth background ramp correlate with itself at any shift (the NCC
     removes offsets, not ramps); slopes turn a ramp into a constant, which the NCC removes, and
     keep the wide, smooth edges of a grating that a high-pass filter would erase.
     """
-    gy, gx = np.gradient(smooth_nan(levelled, 1.0))
+    gy, gx = np.gradient(smooth_nan(levelled, smooth))
     return np.stack([levelled, gx, gy])
 
 

@@ -333,3 +333,30 @@ def test_a_mosaic_two_patches_wide_keeps_every_corner(monkeypatch: pytest.Monkey
     _, err, spared = _grid_start(4, 2, monkeypatch)
     assert spared == 0
     assert np.abs(err).max() < 40e-9
+
+
+def test_a_lattice_of_several_pixels_keeps_a_fine_roughness_in_the_slopes() -> None:
+    # folds microns apart: most overlaps are a plane with 1 nm of roughness 20 nm across, on
+    # cells of two pixels (31 nm); a cell of smoothing more left the ramp to choose the peaks
+    synth = synthesize(
+        FoldedSurface(seed=3, fold_length=2e-6),
+        rows=4,
+        cols=4,
+        patch_size=(1e-6, 1e-6),
+        pixels=(64, 64),
+        overlap=(0.25, 0.25),
+        drift=DriftModel.typical(),
+        seed=1,
+    )
+    ps = patch_set_from_synth(synth)
+    pairs = overlapping_pairs(np.array([p.footprint for p in ps]), margin=1e-7)
+    cell = 2e-6 / 64
+    start = coarse_start(ps.patches, pairs, cell=cell, max_shift=default_max_shift(ps))
+    centre = np.array([[*p.center, float(np.nanmedian(p.heights))] for p in ps])
+    truth = np.array(
+        [s.rotation @ c + s.translation - c for s, c in zip(synth, centre, strict=True)]
+    )
+    err = start.translation[:, :2] - truth[:, :2]
+    err -= err.mean(axis=0)  # the gauge
+    off = np.hypot(*err.T)
+    assert np.median(off) < cell  # a cell of smoothing more: 36 nm
