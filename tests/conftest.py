@@ -12,7 +12,7 @@ from numpy.typing import NDArray
 
 from backend.synthetic import patch_set_from_synth, registration_error
 from hardware.sim.drift import DriftModel
-from hardware.sim.surfaces import FoldedSurface, ImageSurface, Surface
+from hardware.sim.surfaces import FoldedSurface, ImageSurface, Surface, TipDrawnChessboard
 from hardware.sim.synth import SynthPatch, synthesize
 from merge import PatchSet, PatchTransform
 
@@ -112,4 +112,20 @@ def narrow_paper_grid(surface: Surface, seed: int) -> list[SynthPatch]:
         overlap=(0.15, 0.15),
         drift=DriftModel.typical(),
         seed=seed,
+    )
+
+
+def tip_drawn_paper_grid(drift: DriftModel | None = None) -> Synthetic:
+    """The paper's grid (5 x 10 patches of 0.6 x 1.2 um in 30 x 60 px, overlaps of a half and a
+    third) of its own sample as a tip draws it (:class:`TipDrawnChessboard`: 0.6 um steps,
+    straight flanks meeting the faces in kinks), under ``drift`` (default the typical)."""
+    return make_synthetic(
+        TipDrawnChessboard(seed=11),
+        rows=5,
+        cols=10,
+        patch_size=(0.6e-6, 1.2e-6),
+        pixels=(30, 60),
+        overlap=(0.5, 1 / 3),
+        drift=drift,
+        seed=11,
     )

@@ -9,12 +9,12 @@ import numpy as np
 import pytest
 
 from hardware.sim.drift import DriftModel
-from hardware.sim.surfaces import Chessboard, TipDrawnChessboard
+from hardware.sim.surfaces import Chessboard
 from hardware.sim.synth import SynthPatch
 from merge import MergeCancelled, MergeConfig, Patch, PatchSet, PatchTransform, pipeline, run
 from merge.core.kabsch import weighted_rigid_transform
 from merge.pipeline import PERIODIC
-from tests.conftest import Synthetic, make_synthetic, stripes_mosaic
+from tests.conftest import Synthetic, make_synthetic, stripes_mosaic, tip_drawn_paper_grid
 
 
 def test_default_method_recovers_the_truth(small_mosaic: Synthetic) -> None:
@@ -212,16 +212,7 @@ def test_a_tip_drawn_chessboard_is_placed_to_a_fraction_of_a_nanometre_without_n
     # took the paper grid 1.1 nm off without any noise; the kinks drawn as straight pieces,
     # what is left is the faces' roughness between the pixels
     quiet = dataclasses.replace(DriftModel.typical(), noise=0.0, line_noise=0.0)
-    grating = make_synthetic(
-        TipDrawnChessboard(seed=11),
-        rows=5,
-        cols=10,
-        patch_size=(0.6e-6, 1.2e-6),
-        pixels=(30, 60),
-        overlap=(0.5, 1 / 3),
-        drift=quiet,
-        seed=11,
-    )
+    grating = tip_drawn_paper_grid(quiet)
     result = run(grating.patch_set)
     assert _xy_error(grating.synth, result.transforms) < 0.3e-9
 

@@ -8,14 +8,14 @@ from typing import Any, TypeVar
 import numpy as np
 import pytest
 
-from hardware.sim.surfaces import FoldedSurface, TipDrawnChessboard
+from hardware.sim.surfaces import FoldedSurface
 from merge import pipeline
 from merge.config import MergeConfig
 from merge.refine import icp, level
 from merge.refine.bank import SurfaceBank
 from merge.refine.icp import DEFAULT_LEVELS
 from merge.refine.level import FREEZE_MEASURED, FREEZE_MOTION, _cycled, _small
-from tests.conftest import Synthetic, make_synthetic
+from tests.conftest import Synthetic, make_synthetic, tip_drawn_paper_grid
 
 T = TypeVar("T")
 
@@ -157,15 +157,7 @@ def test_a_smoothed_level_holds_patches_the_start_measured_to_a_looser_tolerance
 ) -> None:
     # the paper's grating as a tip draws it: the raw level's optimum lies tenths of a pixel
     # from the one-pixel level's, whose last steps, polishing spins, bought nothing
-    grating = make_synthetic(
-        TipDrawnChessboard(seed=11),
-        rows=5,
-        cols=10,
-        patch_size=(0.6e-6, 1.2e-6),
-        pixels=(30, 60),
-        overlap=(0.5, 1 / 3),
-        seed=11,
-    )
+    grating = tip_drawn_paper_grid()
     smoothed = _steps_recorded(monkeypatch, lambda lv, _: not lv.raw)
     looser = pipeline.run(grating.patch_set)
     n_looser = sum(smoothed)

@@ -17,7 +17,7 @@ from merge.start import coarse_cell
 from merge.start import measure as measure_module
 from merge.start.averaging import Lattice
 from merge.start.coarse import CoarseStart, coarse_start
-from tests.conftest import Synthetic
+from tests.conftest import Synthetic, make_synthetic
 
 
 def test_coarse_start_finds_xy_and_the_z_staircase(small_mosaic: Synthetic) -> None:
@@ -338,17 +338,15 @@ def test_a_mosaic_two_patches_wide_keeps_every_corner(monkeypatch: pytest.Monkey
 def test_a_lattice_of_several_pixels_keeps_a_fine_roughness_in_the_slopes() -> None:
     # folds microns apart: most overlaps are a plane with 1 nm of roughness 20 nm across, on
     # cells of two pixels (31 nm); a cell of smoothing more left the ramp to choose the peaks
-    synth = synthesize(
+    mosaic = make_synthetic(
         FoldedSurface(seed=3, fold_length=2e-6),
         rows=4,
         cols=4,
         patch_size=(1e-6, 1e-6),
         pixels=(64, 64),
         overlap=(0.25, 0.25),
-        drift=DriftModel.typical(),
-        seed=1,
     )
-    ps = patch_set_from_synth(synth)
+    synth, ps = mosaic.synth, mosaic.patch_set
     pairs = overlapping_pairs(np.array([p.footprint for p in ps]), margin=1e-7)
     cell = 2e-6 / 64
     start = coarse_start(ps.patches, pairs, cell=cell, max_shift=default_max_shift(ps))
