@@ -38,18 +38,21 @@ MIN_OVERLAP_FRACTION = 0.1
 #: passes here and has nothing to correlate is caught by its peak's significance.
 MIN_TEXTURE = 1.05
 #: Smoothing of the correlated slopes (:func:`merge.start.lattice.correlated_channels`), in
-#: pixels of the finest pitch (at most a cell). On a lattice of one cell per pixel (the benches'
-#: small mosaics and every variation draw) that is the cell of smoothing the start was tuned
-#: with. Where a cell holds several pixels (patches of more than
+#: pixels of the finest pitch (at most a cell). On a lattice of one cell per pixel (most of the
+#: benches' mosaics) that is the cell of smoothing the start was tuned with; the variations'
+#: MoS2 (oblong pixels: cells of two fine ones) and real grating (cells of three) moved within
+#: their noise (40 draws: medians within 0.06 nm, MoS2's worst map/floor 1.08 -> 1.04, the
+#: bench's draws of both within 0.01 at the median). Where a cell holds several pixels (more than
 #: :data:`~merge.start.cell.COARSE_CELLS` pixels a side on a mosaic too large for the budget to
-#: refine the lattice, :func:`merge.start.cell.coarse_cell`) the cell's averaging has smoothed
-#: already, and a cell more took a fine texture out of the slopes: on 20 x 20 patches of
-#: 64 x 64 px of a sample whose folds lie microns apart (most overlaps a plane with 1 nm of
-#: roughness 20 nm across, on cells of two pixels, 31 nm) the start's pairs were 57 nm off at
-#: the median and 148 nm at the 90th percentile, the start's XY 276 nm, and the refinement took
-#: 27 iterations to end 3.1 nm off; with a pixel of smoothing 13 and 33 nm, 24 nm, 16 iterations
-#: and 1.24 nm. Less than a pixel does not hold on a grating's small noisy patches (a 4 x 2 TGX1
-#: draw with 1.85 nm of noise placed two patches 100 nm off in x at half a pixel, and at 0.8).
+#: refine the lattice, :func:`merge.start.cell.coarse_cell`; oblong pixels) the cell's averaging
+#: has smoothed already, and a cell more took a fine texture out of the slopes: on 20 x 20
+#: patches of 64 x 64 px of a sample whose folds lie microns apart (most overlaps a plane with
+#: 1 nm of roughness 20 nm across, on cells of two pixels, 31 nm) the start's pairs were 57 nm
+#: off at the median and 148 nm at the 90th percentile, the start's XY 276 nm, and the
+#: refinement took 27 iterations to end 3.1 nm off; with a pixel of smoothing 13 and 33 nm,
+#: 24 nm, 16 iterations and 1.24 nm. Less than a pixel does not hold on a grating's small noisy
+#: patches (a 4 x 2 TGX1 draw with 1.85 nm of noise placed two patches 100 nm off in x at half
+#: a pixel, and at 0.8).
 SLOPE_SMOOTH_PIXELS = 1.0
 
 
