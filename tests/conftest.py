@@ -100,32 +100,36 @@ def still(noise: float) -> DriftModel:
     )
 
 
-def narrow_paper_grid(surface: Surface, seed: int) -> list[SynthPatch]:
-    """The paper's grid (5 x 10 patches of 0.6 x 1.2 um in 30 x 60 px) with overlaps of only
-    15 % both ways, under the typical drift: strips a few pixels wide, two stage errors."""
+def paper_grid(
+    surface: Surface,
+    seed: int,
+    *,
+    overlap: tuple[float, float] = (0.5, 1 / 3),
+    drift: DriftModel | None = None,
+) -> list[SynthPatch]:
+    """The paper's grid: 5 x 10 patches of 0.6 x 1.2 um in 30 x 60 px, overlaps of a half and a
+    third unless ``overlap`` says, under ``drift`` (default the typical)."""
     return synthesize(
         surface,
         rows=5,
         cols=10,
         patch_size=(0.6e-6, 1.2e-6),
         pixels=(30, 60),
-        overlap=(0.15, 0.15),
-        drift=DriftModel.typical(),
+        overlap=overlap,
+        drift=drift or DriftModel.typical(),
         seed=seed,
     )
 
 
+def narrow_paper_grid(surface: Surface, seed: int) -> list[SynthPatch]:
+    """The paper's grid with overlaps of only 15 % both ways, under the typical drift: strips a
+    few pixels wide, two stage errors."""
+    return paper_grid(surface, seed, overlap=(0.15, 0.15))
+
+
 def tip_drawn_paper_grid(drift: DriftModel | None = None) -> Synthetic:
-    """The paper's grid (5 x 10 patches of 0.6 x 1.2 um in 30 x 60 px, overlaps of a half and a
-    third) of its own sample as a tip draws it (:class:`TipDrawnChessboard`: 0.6 um steps,
-    straight flanks meeting the faces in kinks), under ``drift`` (default the typical)."""
-    return make_synthetic(
-        TipDrawnChessboard(seed=11),
-        rows=5,
-        cols=10,
-        patch_size=(0.6e-6, 1.2e-6),
-        pixels=(30, 60),
-        overlap=(0.5, 1 / 3),
-        drift=drift,
-        seed=11,
-    )
+    """The paper's grid of its own sample as a tip draws it (:class:`TipDrawnChessboard`: 0.6 um
+    steps, straight flanks meeting the faces in kinks), under ``drift`` (default the typical)."""
+    surface = TipDrawnChessboard(seed=11)
+    synth = paper_grid(surface, 11, drift=drift)
+    return Synthetic(synth, patch_set_from_synth(synth), surface)
