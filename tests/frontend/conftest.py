@@ -60,7 +60,13 @@ def _state(pg: Any) -> str:
     return "; ".join(f"#{i}: {pg.inner_text('#' + i)!r}" for i in ids)
 
 
-def _wait(pg: Any, condition: str, timeout: float = 120_000) -> None:
+#: How long the page may take to show what the server finishes (a run of 48 patches, a merge):
+#: long, since a busy CI machine ran such a run 6 x slower than an idle one (a 120 s wait
+#: failed there); a page that never gets there still fails, later.
+FINISH_MS = 600_000
+
+
+def _wait(pg: Any, condition: str, timeout: float = FINISH_MS) -> None:
     try:
         pg.wait_for_function(condition, timeout=timeout)
     except playwright_api.TimeoutError:
