@@ -35,6 +35,9 @@ from merge import Mosaic, Patch, PatchTransform, render_mosaic
 FloatArray = NDArray[np.float64]
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data"
+#: A draw fails grossly when its map error exceeds this many floors, or (on a textured case,
+#: where ``merge_bench.py``'s sweep counts it) its registration error this many nanometres in XY.
+GROSS_MAP, GROSS_XY_NM = 3.0, 10.0
 
 
 @dataclass(frozen=True)

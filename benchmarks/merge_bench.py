@@ -58,6 +58,8 @@ from merge import write_patch_set
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_cases import (  # modules beside this script
     CASES,
+    GROSS_MAP,
+    GROSS_XY_NM,
     ROOT,
     Case,
     grating_cases,
@@ -157,9 +159,6 @@ def draws(case: Case, first: dict[str, Any], count: int, work: Path) -> dict[str
 
 #: First draw of the robustness sweep: past every draw the benchmark's table uses.
 SWEEP_FIRST = 21
-#: A sweep draw fails grossly when its map error exceeds this many floors, or (on a textured
-#: case) its registration error this many nanometres in XY.
-GROSS_MAP, GROSS_XY_NM = 3.0, 10.0
 
 
 def sweep(case: Case, count: int, work: Path) -> dict[str, Any]:
