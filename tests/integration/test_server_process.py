@@ -130,7 +130,9 @@ def test_sigkill_mid_run_then_resume_stores_every_patch_exactly_once(tmp_path: P
 
 @pytest.mark.slow
 def test_sigkill_of_the_server_mid_merge_takes_its_worker_along(tmp_path: Path) -> None:
-    server = ServerProcess(tmp_path, MOSAIC_AUTO_MERGE="false").start()
+    # the run only makes the patches to merge: no live merge beside it (a core's worth of load
+    # on the suite's other worker for nothing this test checks)
+    server = ServerProcess(tmp_path, MOSAIC_AUTO_MERGE="false", MOSAIC_LIVE_MERGE="false").start()
     pid_file = tmp_path / "merge-worker.pid"
     try:
         with server.client() as client:
