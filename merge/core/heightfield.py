@@ -18,8 +18,11 @@ FloatArray = NDArray[np.float64]
 Border = Literal["repeat", "mirror"]
 
 
-def smooth_nan(heights: FloatArray, sigma: float, *, border: Border = "repeat") -> FloatArray:
-    """Gaussian smoothing (``sigma`` in pixels) that ignores NaN and keeps them NaN.
+def smooth_nan(
+    heights: FloatArray, sigma: float | tuple[float, float], *, border: Border = "repeat"
+) -> FloatArray:
+    """Gaussian smoothing (``sigma`` in pixels, or (rows, columns) apart) that ignores NaN and
+    keeps them NaN.
 
     ``border`` says how the heights continue beyond the patch. ``"repeat"`` repeats the border
     value, which bends a slope that crosses the border by a good fraction of slope x sigma (on a
@@ -28,9 +31,10 @@ def smooth_nan(heights: FloatArray, sigma: float, *, border: Border = "repeat") 
     continuation: the better choice where the smoothing is wide and the bias large.
     """
     h = np.asarray(heights, dtype=np.float64)
-    if sigma <= 0:
+    widest = float(np.max(sigma))
+    if widest <= 0:
         return h.copy()
-    pad = int(np.ceil(4.0 * sigma)) + 1  # the filter's reach (it truncates at 4 sigma)
+    pad = int(np.ceil(4.0 * widest)) + 1  # the filter's reach (it truncates at 4 sigma)
     padded = border == "mirror" and min(h.shape) > pad
     if padded:
         h = np.pad(h, pad, mode="reflect", reflect_type="odd")

@@ -38,11 +38,13 @@ MIN_OVERLAP_FRACTION = 0.1
 #: passes here and has nothing to correlate is caught by its peak's significance.
 MIN_TEXTURE = 1.05
 #: Smoothing of the correlated slopes (:func:`merge.start.lattice.correlated_channels`), in
-#: pixels of the finest pitch (at most a cell). On a lattice of one cell per pixel (most of the
-#: benches' mosaics) that is the cell of smoothing the start was tuned with; the variations'
-#: MoS2 (oblong pixels: cells of two fine ones) and real grating (cells of three) moved within
-#: their noise (40 draws: medians within 0.06 nm, MoS2's worst map/floor 1.08 -> 1.04, the
-#: bench's draws of both within 0.01 at the median). Where a cell holds several pixels (more than
+#: pixels of each axis's finest pitch (at most a cell, :func:`slope_smoothing`). On a lattice
+#: of one cell per pixel (most of the benches' mosaics) that is the cell of smoothing the start
+#: was tuned with; the variations' real grating (cells of three) moved within its noise (40
+#: draws: medians within 0.06 nm, the bench's draws within 0.01 at the median); MoS2's oblong
+#: pixels keep a cell across the lines, where a pixel is a cell (176 draws of four blocks: four
+#: draws 1.4-2.5 -> 1.0-1.3 x the floor, one of them 7 silent patches -> none, none worse; half
+#: a cell there had made them so). Where a cell holds several pixels (more than
 #: :data:`~merge.start.cell.COARSE_CELLS` pixels a side on a mosaic too large for the budget to
 #: refine the lattice, :func:`merge.start.cell.coarse_cell`; oblong pixels) the cell's averaging
 #: has smoothed already, and a cell more took a fine texture out of the slopes: on 20 x 20
@@ -54,6 +56,20 @@ MIN_TEXTURE = 1.05
 #: patches (a 4 x 2 TGX1 draw with 1.85 nm of noise placed two patches 100 nm off in x at half
 #: a pixel, and at 0.8).
 SLOPE_SMOOTH_PIXELS = 1.0
+
+
+def slope_smoothing(patches: Sequence[Patch], cell: float) -> tuple[float, float]:
+    """The correlated slopes' smoothing (cells; rows, columns): :data:`SLOPE_SMOOTH_PIXELS` of
+    each axis's own finest pitch, at most a cell. Along an axis of coarse pixels (oblong ones:
+    a cell a pixel) a pixel of the other axis's pitch is half a cell or less, which left the
+    slopes across the lines a pixel's noise: a 3 x 4 MoS2 draw (7.8 x 15.5 nm pixels, 1.8 nm of
+    noise) placed a row of patches 100 nm off along y, held and silent."""
+    pitch_x = min(p.pixel_size[0] for p in patches)
+    pitch_y = min(p.pixel_size[1] for p in patches)
+    return (
+        min(1.0, SLOPE_SMOOTH_PIXELS * pitch_y / cell),
+        min(1.0, SLOPE_SMOOTH_PIXELS * pitch_x / cell),
+    )
 
 
 @dataclass(frozen=True)
@@ -147,8 +163,7 @@ def averaged_on_lattice(
     sigma = np.where(np.isfinite(noise) & (noise > 0), noise, 1e-12)
     textured = np.empty(n, dtype=bool)
     channels = []
-    pitch = min(min(p.pixel_size) for p in patches)
-    smooth = min(1.0, SLOPE_SMOOTH_PIXELS * pitch / cell)
+    smooth = slope_smoothing(patches, cell)
     for c, lv in enumerate(levelled):
         checkpoint()
         textured[c] = texture(lv) > MIN_TEXTURE * sigma[c]

@@ -120,9 +120,11 @@ def coherence(heights: FloatArray) -> float:
     return float((high - low) / (high + low)) if high > 0 else 0.0
 
 
-def correlated_channels(levelled: FloatArray, *, smooth: float = 1.0) -> FloatArray:
+def correlated_channels(
+    levelled: FloatArray, *, smooth: float | tuple[float, float] = 1.0
+) -> FloatArray:
     """What is correlated: the heights and their slopes (after ``smooth`` cells of Gaussian
-    smoothing).
+    smoothing, or (rows, columns) apart).
 
     Heights alone let a smooth background ramp correlate with itself at any shift (the NCC
     removes offsets, not ramps); slopes turn a ramp into a constant, which the NCC removes, and

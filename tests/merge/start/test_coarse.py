@@ -5,7 +5,7 @@ import pytest
 
 from backend.synthetic import patch_set_from_synth, registration_error
 from hardware.sim.drift import DriftModel
-from hardware.sim.surfaces import Chessboard, FoldedSurface
+from hardware.sim.surfaces import Chessboard, FoldedSurface, ImageSurface
 from hardware.sim.synth import SynthPatch, synthesize
 from merge import run
 from merge.core.information import signal_information
@@ -15,9 +15,9 @@ from merge.pipeline import default_cell, default_max_shift
 from merge.start import coarse as coarse_module
 from merge.start import coarse_cell
 from merge.start import measure as measure_module
-from merge.start.averaging import Lattice
+from merge.start.averaging import Lattice, slope_smoothing
 from merge.start.coarse import CoarseStart, coarse_start
-from tests.conftest import Synthetic, make_synthetic
+from tests.conftest import SHARED_DATA, Synthetic, make_synthetic
 
 
 def test_coarse_start_finds_xy_and_the_z_staircase(small_mosaic: Synthetic) -> None:
@@ -358,3 +358,45 @@ def test_a_lattice_of_several_pixels_keeps_a_fine_roughness_in_the_slopes() -> N
     err -= err.mean(axis=0)  # the gauge
     off = np.hypot(*err.T)
     assert np.median(off) < cell  # a cell of smoothing more: 36 nm
+
+
+def test_the_slopes_are_smoothed_by_a_pixel_of_each_axis() -> None:
+    def patch(pixel: tuple[float, float]) -> Patch:
+        return Patch("p", np.zeros((8, 8)), (0.0, 0.0), pixel)
+
+    # square pixels on cells of two: half a cell both ways
+    assert slope_smoothing([patch((15e-9, 15e-9))], 30e-9) == pytest.approx((0.5, 0.5))
+    # oblong pixels (x half of y) on cells of the coarse pitch: a cell across the lines
+    assert slope_smoothing([patch((8e-9, 16e-9))], 16e-9) == pytest.approx((1.0, 0.5))
+    # never more than a cell
+    assert slope_smoothing([patch((20e-9, 20e-9))], 10e-9) == pytest.approx((1.0, 1.0))
+
+
+@pytest.mark.skipif(not (SHARED_DATA / "mos2.npy").exists(), reason="needs ../shared/data")
+def test_oblong_pixels_keep_the_slopes_across_the_lines_smoothed() -> None:
+    # a variation draw (merge_variations.py 1067): 3 x 4 patches of the real MoS2 image in
+    # pixels of 10 x 21 nm under 1.8 nm of noise; with the slopes smoothed by a fine pixel
+    # along y too (half of one there) the start put its patches 40-170 nm off (109 nm RMS)
+    # and the merge kept a row 100 nm off, every patch held
+    image = np.load(SHARED_DATA / "mos2.npy")
+    surface = ImageSurface(image, (3.973e-6 / 512, 3.973e-6 / 256))
+    drift = DriftModel(
+        stage_sigma=75.43e-9,
+        rotation_sigma_deg=0.2085,
+        z_step_mean=20.37e-9,
+        z_step_sigma=24.56e-9,
+        noise=1.796e-9,
+    )
+    synth = synthesize(
+        surface,
+        rows=3,
+        cols=4,
+        patch_size=(1.241e-6, 1.241e-6),
+        pixels=(120, 60),
+        overlap=(0.4574, 0.3357),
+        start=(2.5e-7, 2.5e-7),
+        drift=drift,
+        seed=1267001,
+    )
+    # within a cell (21 nm) of the truth; half a cell of smoothing along y: 165 nm
+    assert _start_xy_errors(synth).max() < 21e-9
