@@ -201,7 +201,14 @@ class Runner(RunEnding, PatchLoop, UnattendedSafety):
         )
 
     def resume(self, run_id: int, *, actor: str, wait: float = 5.0) -> None:
-        """Resume a paused run, or restart a failed or interrupted one."""
+        """Resume a paused run, or restart a failed or interrupted one. A run that has ended
+        (failed) while its thread still closes it (its file, the live merge) is waited for, up
+        to ``wait`` s: asked for at once, its restart was refused as "running, not paused"."""
+        if self.active_run == run_id and self._ended(run_id):
+            with self._lock:
+                thread = self._thread
+            if thread is not None:
+                thread.join(wait)
         if self.active_run != run_id:
             self.start(run_id, actor=actor)
             return
@@ -383,6 +390,11 @@ class Runner(RunEnding, PatchLoop, UnattendedSafety):
         self._snapshot = {**self._snapshot, "safe_state": True, "loop_engaged": False}
 
     # -- helpers ----------------------------------------------------------------------------
+
+    def _ended(self, run_id: int) -> bool:
+        """Whether the run's recorded state is one it can start from (it has ended)."""
+        with self.sessions() as session:
+            return RunState(self._get(session, run_id).state) in STARTABLE
 
     def _get(self, session: Session, run_id: int) -> Run:
         run = session.get(Run, run_id)

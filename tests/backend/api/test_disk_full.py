@@ -179,3 +179,38 @@ def test_enospc_at_each_write_site_ends_safe_and_the_run_resumes(
     assert server.post(f"/api/runs/{rid}/resume").status_code == 202
     done = server.wait_state(rid, "completed", "failed", timeout=120)
     assert done["state"] == "completed" and done["progress"]["stored"] == done["progress"]["total"]
+
+
+def test_a_resume_asked_while_the_failed_runs_worker_still_closes_waits_for_it(
+    server: Server, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The failure recorded, the worker still closing the run (on a busy machine, seen in CI):
+    a resume then waits for the worker and restarts the run, not 409 "running, not paused"."""
+    import backend.acquisition.patch_loop as runner_module
+
+    runner = server.services.runner
+    full, closing = threading.Event(), threading.Event()
+    real_write, real_record = runner_module.write_patch, runner._record
+
+    def write_patch(*args: Any, **kwargs: Any) -> str:
+        if full.is_set():
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real_write(*args, **kwargs)
+
+    def record(run_id: int, **kwargs: Any) -> bool:
+        done = real_record(run_id, **kwargs)
+        closing.wait(10)  # the worker lingers past its recorded end
+        return done
+
+    monkeypatch.setattr(runner_module, "write_patch", write_patch)
+    monkeypatch.setattr(runner, "_record", record)
+    rid = _start(server)
+    server.wait(rid, lambda r: r["progress"]["stored"] >= 2)
+    full.set()
+    assert server.wait_state(rid, "failed", "completed", timeout=120)["state"] == "failed"
+    assert runner.active_run == rid  # its worker still closes it
+    full.clear()
+    monkeypatch.setattr(runner, "_record", real_record)
+    threading.Timer(0.3, closing.set).start()
+    assert server.post(f"/api/runs/{rid}/resume").status_code == 202
+    assert server.wait_state(rid, "completed", "failed", timeout=120)["state"] == "completed"
