@@ -377,7 +377,7 @@ def test_oblong_pixels_keep_the_slopes_across_the_lines_smoothed() -> None:
     # a variation draw (merge_variations.py 1067): 3 x 4 patches of the real MoS2 image in
     # pixels of 10 x 21 nm under 1.8 nm of noise; with the slopes smoothed by a fine pixel
     # along y too (half of one there) the start put its patches 40-170 nm off (109 nm RMS)
-    # and the merge left 7 patches held (silent) 80-145 nm off
+    # and the merge left 7 patches held (silent) 55-145 nm off
     image = np.load(SHARED_DATA / "mos2.npy")
     surface = ImageSurface(image, (3.973e-6 / 512, 3.973e-6 / 256))
     drift = DriftModel(
