@@ -10,8 +10,9 @@ One merge is five steps over small records (:mod:`merge.records`), each timed on
 3. :func:`_solve` -> :class:`Solution`: the simultaneous refinement (:mod:`merge.refine`) or the
    paper's loop (:mod:`merge.paper`);
 4. report: the assessment of the final transforms (:mod:`merge.report`,
-   :func:`merge.finish.judge`); where it cannot vouch for the XY of a fifth of the patches,
-   :func:`second_opinion` refines again from the stage's placement and keeps the better fit;
+   :func:`merge.finish.judge`); where it cannot vouch for the XY of a fifth of the patches, or
+   the start's pairs allowed other placements, :func:`merge.opinions.second_opinion` refines
+   again from those and keeps the fit with the least misfit;
 5. render: one height map (:mod:`merge.render`) (:func:`merge.finish.finish` does both).
 
 Self-calibration (``MergeConfig.self_calibrate``) wraps it: a first merge, the scanner's bend
@@ -34,7 +35,8 @@ from merge.core.parallel import one_blas_thread
 from merge.core.patchset import Patch, PatchSet
 from merge.core.progress import Report, stage, tracking
 from merge.core.transforms import PatchTransform
-from merge.finish import Judged, finish, judge
+from merge.finish import finish, judge
+from merge.opinions import TYPICAL_ITERATIONS, second_opinion
 from merge.records import Layout, Placement, Solution, Stopwatch
 from merge.refine import (
     DEFAULT_LEVELS,
@@ -55,9 +57,6 @@ Progress = Callable[[int, float], None]
 #: Polled between iterations; returning True stops the merge with MergeCancelled.
 Cancel = Callable[[], bool]
 
-#: Iterations a merge typically takes (9-10 from 100 to 2,500 patches): the refinement's
-#: share of the progress bar.
-TYPICAL_ITERATIONS = 10
 #: Prior standard deviation of a patch's XY correction in the refinement, as a fraction of the
 #: searched stage error: it decides only where the data are silent (flat, 1-D structure).
 SHIFT_PRIOR_FRACTION = 0.25
@@ -178,89 +177,14 @@ def merge_once(
     # the repeat nearest the stage
     if cfg.method == "default" and placed.pair_information is not None and not said:
         first = (solution, judged)
+
+        def refit(other: Placement, counted: Progress) -> Solution:
+            return _solve(patches, layout, other, cfg, progress=counted, cancel=cancel)
+
         solution, judged = second_opinion(
-            patches, layout, placed, cfg, watch, first, progress=progress, cancel=cancel
+            patches, layout, placed, cfg, watch, first, refit=refit, progress=progress
         )
     return finish(patches, layout, solution, cfg, watch, judged=judged)
-
-
-#: Share of the linked patches whose XY the report cannot vouch for (not ``xy_constrained``)
-#: from which the start's placement is in doubt as a whole (:func:`second_opinion`).
-DOUBT_SHARE = 0.2
-#: How much lower the residual RMS of the merge from the stage's placement must be to replace
-#: the merge from the start's (:func:`second_opinion`).
-BETTER_FIT = 0.01
-
-
-def second_opinion(
-    patches: Sequence[Patch],
-    layout: Layout,
-    placed: Placement,
-    cfg: MergeConfig,
-    watch: Stopwatch,
-    first: tuple[Solution, Judged],
-    *,
-    progress: Progress | None,
-    cancel: Cancel | None,
-) -> tuple[Solution, Judged]:
-    """Where the report cannot vouch for the XY of :data:`DOUBT_SHARE` of the linked patches
-    or more, the refinement again from the stage's placement (every patch where the stage put
-    it, the widest level over all of them), and the fit of the two that leaves the lower
-    residual RMS, by :data:`BETTER_FIT` at least (else the ``first``, the start's).
-
-    The start's pairs can place a whole block of patches a few cells off while claiming a
-    tenth of one (a 22 x 45 px TGX1 patch's overlaps filled by ramp flanks: a correlation
-    peak shifted along an edge, a tail of a ramp that is its own copy scaled), and the
-    refinement then settles in the local minimum next to it, where the report finds the
-    patches unconfirmed (no chain of measured overlaps ties them). The stage's placement does
-    not depend on those pairs; both minima are of the same data, so the lower misfit is the
-    likelier placement (of five such TGX1 draws, the fit from the true places left 4-22 %
-    less residual RMS than the start's every time). Over 460 variation draws
-    (``benchmarks/merge_variations.py``), at 25-50 % overlaps (draws 0-39, 500-559,
-    1000-1199) TGX1's 510, 535 and 540 went from 16.6, 20.6 and 13.6 x the floor to 1.6, 1.1
-    and 1.5, no draw worse (1030 and 1105 stay gross: the stage's placement leads to a
-    minimum as wrong, with more misfit); at 15-25 % (draws 0-39, 500-539, 1000-1199) MoS2's
-    silent patches 9 -> 2 (draw 1012 2.8 -> 1.0 x, 537 1.7 -> 1.25), TGX1's 1060 and 1195
-    13 -> 1.5 and 2.5 x, and one draw worse, TGX1's 520, gross either way (17.8 -> 37 x, 8
-    patches unconfirmed instead of 4).
-    Restarting only the unconfirmed patches from the stage mended two of the five and left
-    four silent patches on the real grating, so every patch restarts. A merge whose patches
-    the report holds costs nothing more; one in doubt, a second refinement and report.
-    :func:`merge_once` asks for none on a sample it said periodic: a patch a whole repeat
-    off fits about as well (on the real grating the choice mended 2 gross draws and made 4
-    worse)."""
-    solution, judged = first
-    reports = judged[0]
-    linked = np.flatnonzero(layout.linked)
-    doubted = sum(not reports[c].xy_constrained for c in linked.tolist())
-    if not len(linked) or doubted < DOUBT_SHARE * len(linked) or not solution.history:
-        return first
-    stage_placed = Placement(
-        [PatchTransform(centre=np.array(p.center)) for p in patches],
-        ~layout.linked,
-        placed.pair_information,
-        placed.repeat,
-    )
-    done = solution.iterations
-
-    def counted_on(iteration: int, residual: float) -> None:
-        """The second fit's iterations numbered on from the first's."""
-        if progress is not None:
-            progress(done + iteration, residual)
-
-    detail = "refining again from the stage's placement"
-    with watch.step("second_opinion"), stage("refine", TYPICAL_ITERATIONS, detail):
-        other = _solve(patches, layout, stage_placed, cfg, progress=counted_on, cancel=cancel)
-    if not other.history or other.history[-1] >= (1.0 - BETTER_FIT) * solution.history[-1]:
-        return first
-    reports, unheld = judge(patches, layout, other, cfg, watch)
-    said = (
-        f"the start's placement was not borne out ({doubted} of {len(linked)} patches' XY "
-        "unconfirmed after the merge from it): the merge from the stage's placement fits the "
-        f"overlaps better (residual RMS {solution.history[-1] * 1e9:.2f} -> "
-        f"{other.history[-1] * 1e9:.2f} nm) and is the one kept"
-    )
-    return other, (reports, [said, *unheld])
 
 
 def layout_of(patch_set: PatchSet, cfg: MergeConfig) -> Layout:
@@ -308,7 +232,11 @@ def _start(patch_set: PatchSet, layout: Layout, cfg: MergeConfig) -> Placement:
         for tc, tilt, p in zip(start.translation, start.tilt, patches, strict=True)
     ]
     return Placement(
-        transforms, start.xy_complete | ~layout.linked, start.pair_information, start.repeat
+        transforms,
+        start.xy_complete | ~layout.linked,
+        start.pair_information,
+        start.repeat,
+        start.alternatives,
     )
 
 

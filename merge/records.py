@@ -45,12 +45,26 @@ class Placement:
     what it measured of each of the layout's pairs (``pair_information`` (k, 2, 2), 1 / m²;
     None where it measured no XY); ``repeat`` (k,), metres from each pair's shift to one as
     likely where the overlap repeats itself (infinite where none; None where no XY
-    measured: :attr:`merge.start.CoarseStart.repeat`)."""
+    measured: :attr:`merge.start.CoarseStart.repeat`); ``alternatives`` (m, n, 3), metres,
+    the translations of other placements the start's pairs allow as well
+    (:attr:`merge.start.CoarseStart.alternatives`; None or m = 0: none)."""
 
     transforms: list[PatchTransform]
     measured_both: NDArray[np.bool_]
     pair_information: FloatArray | None = None
     repeat: FloatArray | None = None
+    alternatives: FloatArray | None = None
+
+    def alternative(self, i: int) -> Placement:
+        """The ``i``-th alternative as a placement: the same patches with its translations
+        (and the start's drift planes)."""
+        if self.alternatives is None or not 0 <= i < len(self.alternatives):
+            raise ValueError(f"no alternative placement {i}")
+        transforms = [
+            PatchTransform(t=t, slope=tr.slope, centre=tr.centre)
+            for t, tr in zip(self.alternatives[i], self.transforms, strict=True)
+        ]
+        return Placement(transforms, self.measured_both, self.pair_information, self.repeat)
 
     @property
     def complete(self) -> bool:

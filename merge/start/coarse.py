@@ -29,7 +29,7 @@ their pairs again; :func:`_z_offsets` levels them all.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
@@ -37,6 +37,7 @@ from numpy.typing import NDArray
 from merge.core.patchset import Patch
 from merge.core.progress import checkpoint
 from merge.start.averaging import Lattice, averaged_on_lattice
+from merge.start.hypotheses import split_votes
 from merge.start.lattice import overlap_z_difference
 from merge.start.measure import (
     ALONG_EDGE,
@@ -97,6 +98,9 @@ class CoarseStart:
     repeat : (k,) metres from each pair's shift to the nearest as likely one a valley
         separates from it, where the overlap repeats itself (:data:`REPEAT_SCORE`); infinite
         elsewhere. The start took the repeat nearest where the stage put the pair.
+    alternatives : (m, n, 3) metres, the translations of other placements the pairs allow as
+        well, where their votes split (:mod:`merge.start.hypotheses`; m = 0 mostly): the
+        refinement from each is judged by its misfit against the one from ``translation``.
     """
 
     translation: FloatArray
@@ -106,6 +110,7 @@ class CoarseStart:
     xy_measurable: NDArray[np.bool_]
     pair_information: FloatArray
     repeat: FloatArray
+    alternatives: FloatArray = field(default_factory=lambda: np.zeros((0, 0, 3)))
 
 
 def coarse_start(
@@ -138,8 +143,13 @@ def coarse_start(
     complete = np.zeros(n, dtype=bool)
     weighed = np.zeros((len(pairs), 2, 2))
     repeat = np.full(len(pairs), np.inf)
+    alternatives = np.zeros((0, n, 3))
     if estimate_xy and len(pairs):
-        translation[:, :2], complete, weighed = _xy_offsets(lat, corr, max_shift)
+        translation[:, :2], complete, weighed, others = _xy_offsets(lat, corr, max_shift)
+        alternatives = np.zeros((len(others), n, 3))
+        alternatives[:, :, :2] = others
+        for other in alternatives:
+            other[:, 2] = _z_offsets(lat, other)
         for i, offsets in corr.repeats.items():
             # a repeat of a clear peak (whether the network kept the pair, its information says)
             if offsets and corr.score[i] >= REPEAT_SCORE:
@@ -158,14 +168,16 @@ def coarse_start(
         xy_measurable=measurable,
         pair_information=weighed,
         repeat=repeat,
+        alternatives=alternatives,
     )
 
 
 def _xy_offsets(
     lat: Lattice, corr: Correlations, max_shift: float
-) -> tuple[FloatArray, NDArray[np.bool_], FloatArray]:
-    """Every patch's XY (n, 2), metres, whether its pairs measured both axes, and every pair's
-    information as the network weighed it (k, 2, 2): a first pass over the pairs but the
+) -> tuple[FloatArray, NDArray[np.bool_], FloatArray, FloatArray]:
+    """Every patch's XY (n, 2), metres, whether its pairs measured both axes, every pair's
+    information as the network weighed it (k, 2, 2), and the XY of the placements the pairs
+    allow as well (m, n, 2; :mod:`merge.start.hypotheses`): a first pass over the pairs but the
     spared corners (:func:`spare_corners`), the network solved, the spared corners of patches
     whose links found nothing or conflict measured too and the network solved again, the
     patches in doubt placed against all their neighbours, their pairs and the doubtful ones
@@ -205,12 +217,26 @@ def _xy_offsets(
             centre = (e[0] + pred[1] / lat.cell, e[1] + pred[0] / lat.cell)
             measure(lat, corr, j, centre, 2.0, radius=radius)
         sol = solve_pair_differences(n, pairs, corr.xy_m, corr.xy_w, prior=xy_prior)
-    weighed = corr.xy_w * sol.robust[:, None, None]
+    x, complete, weighed = _settled(lat, corr, sol)
+    others = split_votes(n, pairs, corr.xy_m, corr.xy_w, sol, cell=lat.cell, prior=xy_prior)
+    alternatives = np.array([_settled(lat, corr, other)[0] for other in others]).reshape(-1, n, 2)
+    return x, complete, weighed, alternatives
+
+
+def _settled(
+    lat: Lattice, corr: Correlations, sol: NetworkSolution
+) -> tuple[FloatArray, NDArray[np.bool_], FloatArray]:
+    """The network's solution ``sol`` less the directions a patch's pairs hardly measure
+    (:func:`~merge.start.trust.drop_unconstrained`): XY (n, 2) metres, whether measured both
+    ways (n,), and every pair's information as it was weighed (k, 2, 2)."""
+    robust = np.minimum(sol.robust, 1.0)  # a pair taken for right weighs as a trusted one
+    weighed = corr.xy_w * robust[:, None, None]
     # a direction held by the texture beside edges: a textured pair the network trusts
-    held = np.any(corr.xy_w, axis=(1, 2)) * sol.robust  # a dropped odd score holds nothing
+    held = np.any(corr.xy_w, axis=(1, 2)) * robust  # a dropped odd score holds nothing
     textured = corr.along_w * held[:, None, None]
     least = TRUSTED * ALONG_EDGE / lat.cell**2
-    return (*drop_unconstrained(sol.x, pairs, weighed, texture=textured, least=least), weighed)
+    x, complete = drop_unconstrained(sol.x, lat.pairs, weighed, texture=textured, least=least)
+    return x, complete, weighed
 
 
 def spare_corners(lat: Lattice) -> NDArray[np.bool_]:

@@ -21,15 +21,21 @@ from merge.core.sparse import solve_symmetric
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
 
+#: Robust factor of a pair taken for right (``honoured``): its measurement then holds to a
+#: hundredth of its own uncertainty against the rest.
+HONOURED = 1e4
+
 
 @dataclass(frozen=True)
 class NetworkSolution:
-    """Offsets ``x`` (n, d), robust factor per pair (k,), residuals (k, d), components (n,)."""
+    """Offsets ``x`` (n, d), robust factor per pair (k,), residuals (k, d), components (n,),
+    and the residual scale the last robust round weighed them by (Mahalanobis units)."""
 
     x: FloatArray
     robust: FloatArray
     residuals: FloatArray
     component: IntArray
+    scale: float = 1.0
 
 
 def solve_pair_differences(
@@ -41,6 +47,8 @@ def solve_pair_differences(
     scale_floor: float = 1.0,
     robust_iterations: int = 8,
     prior: float = 0.0,
+    honoured: int | None = None,
+    scale: float | None = None,
 ) -> NetworkSolution:
     """Solve ``x_a - x_b = m_ab`` for all pairs in the weighted, robust least-squares sense.
 
@@ -64,6 +72,16 @@ def solve_pair_differences(
         Information (1 / σ²) of a prior holding every offset near zero. Directions no pair
         measures (the stripes of a 1-D grating, a flat overlap) then stay at zero instead of
         being left to round-off; 0 leaves only a numerical regulariser.
+    honoured : int, keyword-only
+        A pair taken for right, whatever the others say: its robust factor stays
+        :data:`HONOURED` through every round, so the loops it breaks weigh down the pairs
+        that disagree with it instead (a hypothesis, :mod:`merge.start.hypotheses`). Its
+        ``robust`` is then that factor.
+    scale : float, keyword-only
+        A residual scale (Mahalanobis units) held through every round instead of the one the
+        residuals' median sets (and ``scale_floor``): hypotheses judged by one measure of
+        agreement (a pair taken for right deforms the least-squares solution all around it,
+        and the median would grow with it until nothing disagrees).
     """
     pairs = np.asarray(pairs, dtype=np.intp).reshape(-1, 2)
     m = np.asarray(measured, dtype=np.float64)
@@ -86,9 +104,16 @@ def solve_pair_differences(
     kept = np.flatnonzero(use)
     graph = coo_matrix((np.ones(int(use.sum())), (pairs[use, 0], pairs[use, 1])), shape=(n, n))
     _, comp = connected_components(graph, directed=False)
+    if honoured is not None and not 0 <= honoured < k:
+        raise ValueError(f"honoured must index a pair (0 to {k - 1}), got {honoured}")
     factor = np.ones(k)
+    if honoured is not None:
+        factor[honoured] = HONOURED
     x = np.zeros((n, d))
     res = m.copy()
+    if scale is not None and not (np.isfinite(scale) and scale > 0):
+        raise ValueError(f"scale must be a positive number, got {scale}")
+    spread = scale_floor if scale is None else scale
     for it in range(robust_iterations + 1):
         checkpoint()  # a round of 10,000 patches takes a second
         x = _solve(n, pairs[kept], m[kept], W0[kept] * factor[kept, None, None], prior)
@@ -96,9 +121,14 @@ def solve_pair_differences(
         if it == robust_iterations or not use.any():
             break
         r = np.sqrt(np.maximum(np.einsum("ki,kij,kj->k", res, W0, res), 0.0))
-        scale = max(1.4826 * float(np.median(r[use])), scale_floor)
-        factor = 1.0 / (1.0 + (r / (2.5 * scale)) ** 2)
-    return NetworkSolution(x=x, robust=factor, residuals=res, component=comp.astype(np.intp))
+        if scale is None:
+            spread = max(1.4826 * float(np.median(r[use])), scale_floor)
+        factor = 1.0 / (1.0 + (r / (2.5 * spread)) ** 2)
+        if honoured is not None:
+            factor[honoured] = HONOURED
+    return NetworkSolution(
+        x=x, robust=factor, residuals=res, component=comp.astype(np.intp), scale=spread
+    )
 
 
 def _solve(

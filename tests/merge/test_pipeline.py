@@ -11,7 +11,15 @@ import pytest
 from hardware.sim.drift import DriftModel
 from hardware.sim.surfaces import Chessboard
 from hardware.sim.synth import SynthPatch
-from merge import MergeCancelled, MergeConfig, Patch, PatchSet, PatchTransform, pipeline, run
+from merge import (
+    MergeCancelled,
+    MergeConfig,
+    Patch,
+    PatchSet,
+    PatchTransform,
+    pipeline,
+    run,
+)
 from merge.core.kabsch import weighted_rigid_transform
 from merge.pipeline import PERIODIC
 from tests.conftest import Synthetic, make_synthetic, stripes_mosaic, tip_drawn_paper_grid
@@ -248,61 +256,3 @@ def test_a_periodic_sample_is_said_to_repeat_itself_and_a_random_one_is_not(
     every = float(said[0].split("every ")[1].split(" nm")[0])
     assert 270 <= every <= 340
     assert not any(w.startswith(PERIODIC) for w in run(small_mosaic.patch_set).warnings)
-
-
-def tgx1_small_patches() -> Synthetic:
-    """2 x 6 TGX1-like patches of 22 x 45 px (27 nm pixels, 300 nm ramps): overlaps filled by
-    ramp flanks, where the start's pairs place a block of patches a few cells off (a draw of
-    ``benchmarks/merge_variations.py``, 535, rounded)."""
-    drift = DriftModel(
-        stage_sigma=65e-9,
-        rotation_sigma_deg=0.27,
-        z_step_mean=20e-9,
-        z_step_sigma=17e-9,
-        noise=0.65e-9,
-    )
-    return make_synthetic(
-        Chessboard(seed=735001),
-        rows=2,
-        cols=6,
-        seed=735001,
-        drift=drift,
-        patch_size=(0.6e-6, 1.2e-6),
-        pixels=(22, 45),
-        overlap=(0.48, 0.4),
-    )
-
-
-def test_a_start_the_report_doubts_is_checked_by_a_merge_from_the_stage(
-    monkeypatch: pytest.MonkeyPatch,
-) -> None:
-    mosaic = tgx1_small_patches()
-    with monkeypatch.context() as m:
-        m.setattr(pipeline, "DOUBT_SHARE", 1.01)  # no second opinion
-        alone = run(mosaic.patch_set)
-    assert mosaic.registration_error(alone.transforms)[0] > 20e-9  # the start's minimum
-    assert sum(not p.xy_constrained for p in alone.patches) >= 0.2 * len(alone.patches)
-    steps: list[int] = []
-    result = run(mosaic.patch_set, progress=lambda i, r: steps.append(i))
-    assert mosaic.registration_error(result.transforms)[0] < 2e-9
-    assert "second_opinion" in result.timings
-    said = [w for w in result.warnings if w.startswith("the start's placement was not borne")]
-    assert len(said) == 1
-    assert result.history[-1] < 0.99 * alone.history[-1]
-    assert steps == list(range(1, len(steps) + 1))  # both fits' iterations, numbered on
-
-
-def test_the_start_s_merge_stands_where_the_stage_s_fits_no_better(
-    small_mosaic: Synthetic, monkeypatch: pytest.MonkeyPatch
-) -> None:
-    plain = run(small_mosaic.patch_set)
-    monkeypatch.setattr(pipeline, "DOUBT_SHARE", 0.0)  # a second opinion on every merge
-    asked = run(small_mosaic.patch_set)
-    assert "second_opinion" in asked.timings
-    assert not any(w.startswith("the start's placement") for w in asked.warnings)
-    for a, b in zip(plain.transforms, asked.transforms, strict=True):
-        assert np.array_equal(a.t, b.t) and np.array_equal(a.R, b.R)
-    # on a periodic sample no misfit tells the two apart: none is asked for
-    stripes = run(stripes_mosaic().patch_set)
-    assert any(w.startswith(PERIODIC) for w in stripes.warnings)
-    assert "second_opinion" not in stripes.timings

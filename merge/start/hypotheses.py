@@ -1,0 +1,122 @@
+"""Other placements the start's pairs allow, where their votes cannot tell which is right.
+
+The network (:mod:`merge.start.network`) weighs every pair by how well it agrees with the rest
+and settles where most pairs agree. Inside a large mosaic a wrong pair is outvoted: the loops
+through it (three or four) all disagree with it. In a small one, or across a row of a mosaic
+only two or three pairs tie, the votes can split evenly: a corner pair whose peak slid along an
+edge and the side pair beside it that says otherwise, each with one other pair on its side.
+The iterations then keep whichever side the plain least squares began nearest, and the patches
+beyond it land a whole edge's length off while every pair the network kept holds them (TGX1's
+small patches, variation draw 5975: two columns 175 nm off; MoS2, draw 5307: a row 60-100 nm
+off, every patch of it held). The overlaps' misfit after the refinement can tell such
+placements apart, where the pairs' votes cannot: from the right one the same data leave less
+residual (5975: 1.51 nm RMS against 1.78; 5307: 0.95 against 1.11).
+
+So each pair the network doubts (:data:`~merge.start.trust.DOUBT`) is taken for right in turn
+(``honoured``, :func:`~merge.start.network.solve_pair_differences`). If the placement it
+leads to is held by at most one pair fewer than the network's own (the votes split), it is an
+alternative for the refinement to judge (:func:`merge.opinions.second_opinion`). Where a wrong
+pair is outvoted, believing it turns the loops through it into doubters: more votes lost than
+that, and nothing is tried.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+from merge.start.network import NetworkSolution, solve_pair_differences
+from merge.start.trust import DOUBT
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.intp]
+
+#: Most alternatives offered (each costs the merge a refinement to judge it).
+MOST = 3
+#: Patches times hypotheses solved at most: every doubted pair of a mosaic of up to 60
+#: patches (where votes split: few loops tie it), 2 of 400, none past 1,000 (a round of the
+#: network over 10,000 patches takes a second; a fifth of them is a block so many pairs tie
+#: that their votes do not split).
+BUDGET = 1000
+#: Pairs a placement may be held by fewer than the network's own and still split the vote.
+SPLIT_VOTES = 1
+#: Alternatives that move no patch by more than this many cells from the network's placement
+#: (or from an alternative already kept) are the same placement.
+SAME_CELLS = 1.0
+#: Share of the patches an alternative must move (by more than :data:`SAME_CELLS`): fewer
+#: cannot change the misfit of the whole mosaic by what tells two fits apart
+#: (:data:`merge.opinions.BETTER_FIT`), and each costs a refinement of all of it (a corner
+#: patch of a large mosaic held by two pairs against one).
+MOVED_SHARE = 0.2
+
+
+def split_votes(
+    n: int,
+    pairs: IntArray,
+    measured: FloatArray,
+    weights: FloatArray,
+    base: NetworkSolution,
+    *,
+    cell: float,
+    prior: float = 0.0,
+) -> list[NetworkSolution]:
+    """The placements the start's pairs allow as well as the network's ``base``.
+
+    Parameters
+    ----------
+    n : int
+        Number of patches.
+    pairs, measured, weights :
+        As for :func:`~merge.start.network.solve_pair_differences`: (k, 2) patch indices, (k, 2)
+        measured XY differences (metres) and (k, 2, 2) their information (1 / m²).
+    base : NetworkSolution
+        The network's own solution of them.
+    cell : float, keyword-only
+        The start's cell, metres: placements within :data:`SAME_CELLS` of it are the same.
+    prior : float, keyword-only
+        As for the network.
+
+    Returns
+    -------
+    list of NetworkSolution
+        Up to :data:`MOST` placements, those held by the most pairs first; each the network's
+        solution with a pair it doubts taken for right (its ``robust`` factor
+        :data:`~merge.start.network.HONOURED`), weighed on ``base``'s residual scale; each
+        moves :data:`MOVED_SHARE` of the patches or more. The most informative doubted pairs
+        are tried, :data:`BUDGET` patch-solves at most.
+    """
+    if cell <= 0 or not np.isfinite(cell):
+        raise ValueError("cell must be a positive number of metres")
+    measured_any = np.trace(weights, axis1=1, axis2=2) > 0
+    held = int((measured_any & (base.robust >= DOUBT)).sum())
+    doubted = np.flatnonzero(measured_any & (base.robust < DOUBT))
+    # the most informative first: a precise measurement the others disagree with
+    doubted = doubted[np.argsort(-np.trace(weights[doubted], axis1=1, axis2=2), kind="stable")]
+    found: list[tuple[int, int, NetworkSolution]] = []
+    for j in doubted[: BUDGET // max(n, 1)].tolist():
+        sol = solve_pair_differences(
+            n, pairs, measured, weights, prior=prior, honoured=j, scale=base.scale
+        )
+        votes = int((measured_any & (sol.robust >= DOUBT)).sum())
+        if votes >= held - SPLIT_VOTES:
+            found.append((-votes, j, sol))
+    out: list[NetworkSolution] = []
+    least = max(1, int(np.ceil(MOVED_SHARE * n)))
+    for _, _, sol in sorted(found, key=lambda f: (f[0], f[1])):
+        if len(out) >= MOST:
+            break
+        moved = _moved(sol.x, base.x) > SAME_CELLS * cell
+        if moved.sum() < least:
+            continue
+        if all((_moved(sol.x, other.x) > SAME_CELLS * cell).any() for other in out):
+            out.append(sol)
+    return out
+
+
+def _moved(x: FloatArray, other: FloatArray) -> FloatArray:
+    """(n,) distance (metres) each patch lies apart in two placements (n, 2), their median
+    offset (the gauge; the median leaves the patches that stayed in place) aside."""
+    d = x - other
+    d -= np.median(d, axis=0)
+    out: FloatArray = np.hypot(d[:, 0], d[:, 1])
+    return out
