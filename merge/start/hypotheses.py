@@ -43,11 +43,12 @@ SPLIT_VOTES = 1
 #: Alternatives that move no patch by more than this many cells from the network's placement
 #: (or from an alternative already kept) are the same placement.
 SAME_CELLS = 1.0
-#: Share of the patches an alternative must move (by more than :data:`SAME_CELLS`): fewer
-#: cannot change the misfit of the whole mosaic by what tells two fits apart
-#: (:data:`merge.opinions.BETTER_FIT`), and each costs a refinement of all of it (a corner
-#: patch of a large mosaic held by two pairs against one).
-MOVED_SHARE = 0.2
+#: Share of the patches an alternative must move (by more than :data:`SAME_CELLS`): a patch
+#: put on a wrong match raises its own misfit by a fifth to a half (MoS2 and TGX1 draws), so
+#: fewer than a twentieth of the patches cannot change the misfit of the whole mosaic by what
+#: tells two fits apart (:data:`merge.opinions.BETTER_FIT`, 1 %), and each alternative costs
+#: a refinement of all of it (a corner patch of a large mosaic held by two pairs against one).
+MOVED_SHARE = 0.05
 
 
 def split_votes(

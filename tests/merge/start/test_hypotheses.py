@@ -55,22 +55,26 @@ def test_a_slip_within_a_cell_is_the_same_placement() -> None:
 
 
 @pytest.mark.parametrize(
-    ("wrong", "why"),
+    ("side", "wrong", "offered"),
     [
-        ((5, 6), "a side pair inside: the loops through it all disagree with it"),
-        ((2, 3), "a corner patch's: two pairs against one, but one patch of 16 moves"),
+        (5, (6, 7), 0),  # a side pair inside: the loops through it all disagree with it
+        (5, (3, 4), 0),  # a corner patch's, two pairs against one: one patch of 25 moves
+        (3, (1, 2), 1),  # the same in a 3 x 3: one patch of 9, for the misfit to judge
     ],
 )
-def test_an_outvoted_pair_offers_nothing(wrong: tuple[int, int], why: str) -> None:
-    # 4 x 4 patches with side and corner pairs
-    yy, xx = np.mgrid[0:4, 0:4]
+def test_what_a_wrong_pair_of_a_grid_offers(
+    side: int, wrong: tuple[int, int], offered: int
+) -> None:
+    # side x side patches with side and corner pairs, one pair 150 nm off
+    yy, xx = np.mgrid[0:side, 0:side]
     grid = np.c_[xx.ravel(), yy.ravel()] * 500e-9
     x = grid + np.random.default_rng(2).normal(0.0, 30e-9, grid.shape)
+    n = side * side
     pairs = np.array(
         [
             (a, b)
-            for a in range(16)
-            for b in range(a + 1, 16)
+            for a in range(n)
+            for b in range(a + 1, n)
             if max(abs(xx.flat[a] - xx.flat[b]), abs(yy.flat[a] - yy.flat[b])) == 1
         ]
     )
@@ -78,9 +82,10 @@ def test_an_outvoted_pair_offers_nothing(wrong: tuple[int, int], why: str) -> No
     j = int(np.flatnonzero((pairs == wrong).all(axis=1))[0])
     m[j] += [150e-9, 0.0]
     W = np.repeat(np.eye(2)[None] / (2e-9) ** 2, len(pairs), axis=0)
-    base = solve_pair_differences(16, pairs, m, W)
-    assert base.robust[j] < DOUBT, why
-    assert split_votes(16, pairs, m, W, base, cell=CELL) == []
+    base = solve_pair_differences(n, pairs, m, W)
+    assert base.robust[j] < DOUBT
+    np.testing.assert_allclose(_gauged(base.x), _gauged(x), atol=1e-10)
+    assert len(split_votes(n, pairs, m, W, base, cell=CELL)) == offered
 
 
 def test_split_votes_wants_a_cell() -> None:
