@@ -91,3 +91,33 @@ def test_a_patch_its_texture_does_not_confirm_is_not_called_held() -> None:
     assert len(warnings) == 2
     assert "'doubted'" in warnings[0] and "rises by only 0.4 standard errors" in warnings[0]
     assert "'apart'" in warnings[1] and "no move off it" in warnings[1]
+
+
+def test_a_patch_its_overlaps_do_not_fit_is_not_called_held() -> None:
+    # a residual twenty times what the noise explains: the patch lies on a wrong match, however
+    # sharp the fit; on noise-free heights there is nothing to judge a misfit by
+    patches = [_patch("fits", 0.0), _patch("astray", 6e-8)]
+    flat = Patch(id="flat", heights=np.zeros((8, 8)), origin=(1.2e-7, 0.0), pixel_size=(1e-8, 1e-8))
+    noise = patches[1].noise
+    misfit = 20.0 * np.sqrt(2.0) * noise
+
+    def sharp(residual: float) -> PatchFit:
+        return PatchFit(
+            correspondences=40,
+            residual_rms=residual,
+            xy_sigma=1e-10,
+            z_sigma=1e-10,
+            xy_sigma_local=1e-10,
+        )
+
+    fits = [sharp(noise), sharp(misfit), sharp(misfit)]
+    reports, warnings = patch_reports(
+        [*patches, flat],
+        [PatchTransform()] * 3,
+        fits,
+        np.array([True, True, True]),
+        registered=True,
+    )
+    assert [r.xy_constrained for r in reports] == [True, False, True]
+    assert len(warnings) == 1 and "'astray'" in warnings[0] and "do not fit" in warnings[0]
+    assert "20 x" in warnings[0]
