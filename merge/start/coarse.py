@@ -30,6 +30,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from functools import partial
 
 import numpy as np
 from numpy.typing import NDArray
@@ -37,7 +38,7 @@ from numpy.typing import NDArray
 from merge.core.patchset import Patch
 from merge.core.progress import checkpoint
 from merge.start.averaging import Lattice, averaged_on_lattice
-from merge.start.hypotheses import split_votes
+from merge.start.hypotheses import distinct, of_correlations
 from merge.start.lattice import overlap_z_difference
 from merge.start.measure import (
     ALONG_EDGE,
@@ -203,24 +204,64 @@ def _xy_offsets(
         drop_odd_scores(corr.score, corr.xy_w, excess=corr.excess, significance=SIGNIFICANCE)
         sol = solve_pair_differences(n, pairs, corr.xy_m, corr.xy_w, prior=xy_prior)
         unmeasured = (np.trace(corr.xy_w, axis1=1, axis2=2) == 0) & ~spare
-    doubtful = (unmeasured | (sol.robust < DOUBT)) & ~spare
+    mend = partial(
+        _second_pass, lat, unmeasured=unmeasured, spare=spare, radius=radius, prior=xy_prior
+    )
+    # where the first solve's votes split, each other side mended on its own: the second pass
+    # re-measures near the placement it predicts (the network's own would re-measure the
+    # pairs that measured the other side near its side, and lose what they said)
+    branches = []
+    for first in of_correlations(corr, pairs, sol, cell=lat.cell, prior=xy_prior):
+        branch = corr.branch()
+        branch.xy_m[first.pair] = first.measured
+        branches.append(
+            (branch, mend(branch, first.solution, honoured=first.pair, scale=sol.scale))
+        )
+    sol = mend(corr, sol)
+    x, complete, weighed = _settled(lat, corr, sol)
+    lasts = [
+        (corr, h.solution) for h in of_correlations(corr, pairs, sol, cell=lat.cell, prior=xy_prior)
+    ]
+    others = [_settled(lat, c, o)[0] for c, o in lasts + branches]
+    kept = distinct(x, others, cell=lat.cell)
+    return x, complete, weighed, np.array([others[i] for i in kept]).reshape(-1, n, 2)
+
+
+def _second_pass(
+    lat: Lattice,
+    corr: Correlations,
+    sol: NetworkSolution,
+    *,
+    unmeasured: NDArray[np.bool_],
+    spare: NDArray[np.bool_],
+    radius: float,
+    prior: float,
+    honoured: int | None = None,
+    scale: float | None = None,
+) -> NetworkSolution:
+    """The network's solution ``sol`` mended: the patches in doubt placed against all their
+    neighbours, their pairs and the doubtful ones measured again (``corr``, in place) near the
+    shift the placement predicts, and the network solved again (with the pair ``honoured``
+    still taken for right, on the residual ``scale``: a hypothesis's branch)."""
+    n, pairs = len(lat.grids), lat.pairs
+    can = lat.measurable_pairs()
+    doubtful = (unmeasured | (np.minimum(sol.robust, 1.0) < DOUBT)) & ~spare
     # the spared corners, not measured, are no links of the placements
     x_start, moved = _place_doubtful(lat, corr, sol, unmeasured | spare, radius, can & ~spare)
     # second pass: doubtful pairs, and those of placed patches, re-measured near the shift the
     # network (mended by the placements) predicts
     redo = np.flatnonzero(doubtful | moved[pairs[:, 0]] | moved[pairs[:, 1]])
-    if len(redo):
-        for j in redo.tolist():
-            checkpoint()
-            pred = x_start[pairs[j, 0]] - x_start[pairs[j, 1]]
-            e = lat.expected(j)
-            centre = (e[0] + pred[1] / lat.cell, e[1] + pred[0] / lat.cell)
-            measure(lat, corr, j, centre, 2.0, radius=radius)
-        sol = solve_pair_differences(n, pairs, corr.xy_m, corr.xy_w, prior=xy_prior)
-    x, complete, weighed = _settled(lat, corr, sol)
-    others = split_votes(n, pairs, corr.xy_m, corr.xy_w, sol, cell=lat.cell, prior=xy_prior)
-    alternatives = np.array([_settled(lat, corr, other)[0] for other in others]).reshape(-1, n, 2)
-    return x, complete, weighed, alternatives
+    if not len(redo):
+        return sol
+    for j in redo.tolist():
+        checkpoint()
+        pred = x_start[pairs[j, 0]] - x_start[pairs[j, 1]]
+        e = lat.expected(j)
+        centre = (e[0] + pred[1] / lat.cell, e[1] + pred[0] / lat.cell)
+        measure(lat, corr, j, centre, 2.0, radius=radius)
+    return solve_pair_differences(
+        n, pairs, corr.xy_m, corr.xy_w, prior=prior, honoured=honoured, scale=scale
+    )
 
 
 def _settled(

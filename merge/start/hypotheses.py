@@ -8,12 +8,17 @@ edge and the side pair beside it that says otherwise, each with one other pair o
 The iterations then keep whichever side the plain least squares began nearest, and the patches
 beyond it land a whole edge's length off while every pair the network kept holds them (TGX1's
 small patches, variation draw 5975: two columns 175 nm off; MoS2, draw 5307: a row 60-100 nm
-off, every patch of it held). The overlaps' misfit after the refinement can tell such
-placements apart, where the pairs' votes cannot: from the right one the same data leave less
-residual (5975: 1.51 nm RMS against 1.78; 5307: 0.95 against 1.11).
+off, every patch of it held). Or no vote is cast at all: of two peaks as likely in a pair's
+map (a repeat, :attr:`merge.start.peaks.CorrelationPeak.repeats`) the one nearest where the
+stage put the pair is taken, and where the stage erred by more than half their distance and
+no other pair ties the patches beyond it, nothing says otherwise (5307 at 15-25 % overlaps: a
+row's one link 300 nm off, its repeat 12 nm). The overlaps' misfit after the refinement can
+tell such placements apart, where the pairs cannot: from the right one the same data leave
+less residual (5975: 1.51 nm RMS against 1.78; 5307: 0.95 against 1.11).
 
-So each pair the network doubts (:data:`~merge.start.trust.DOUBT`) is taken for right in turn
-(``honoured``, :func:`~merge.start.network.solve_pair_differences`). If the placement it
+So each pair the network doubts (:data:`~merge.start.trust.DOUBT`), and each repeat of a
+pair's peak at the repeat's shift, is taken for right in turn (a :class:`Hypothesis`,
+``honoured`` by :func:`~merge.start.network.solve_pair_differences`). If the placement it
 leads to is held by at most one pair fewer than the network's own (the votes split), it is an
 alternative for the refinement to judge (:func:`merge.opinions.second_opinion`). Where a wrong
 pair is outvoted, believing it turns the loops through it into doubters: more votes lost than
@@ -22,9 +27,13 @@ that, and nothing is tried.
 
 from __future__ import annotations
 
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+
 import numpy as np
 from numpy.typing import NDArray
 
+from merge.start.measure import Correlations
 from merge.start.network import NetworkSolution, solve_pair_differences
 from merge.start.trust import DOUBT
 
@@ -51,6 +60,16 @@ SAME_CELLS = 1.0
 MOVED_SHARE = 0.05
 
 
+@dataclass(frozen=True)
+class Hypothesis:
+    """A pair taken for right: its index, the XY difference (2,) metres it is taken to
+    measure (its own, or a repeat's), and the network's solution with it honoured."""
+
+    pair: int
+    measured: FloatArray
+    solution: NetworkSolution
+
+
 def split_votes(
     n: int,
     pairs: IntArray,
@@ -60,7 +79,8 @@ def split_votes(
     *,
     cell: float,
     prior: float = 0.0,
-) -> list[NetworkSolution]:
+    repeats: Mapping[int, Sequence[tuple[int, int]]] | None = None,
+) -> list[Hypothesis]:
     """The placements the start's pairs allow as well as the network's ``base``.
 
     Parameters
@@ -76,15 +96,17 @@ def split_votes(
         The start's cell, metres: placements within :data:`SAME_CELLS` of it are the same.
     prior : float, keyword-only
         As for the network.
+    repeats : mapping, keyword-only
+        Per pair, the offsets (dy, dx), cells, of the peaks as likely as its own in its map
+        (:attr:`merge.start.measure.Correlations.repeats`); default none.
 
     Returns
     -------
-    list of NetworkSolution
-        Up to :data:`MOST` placements, those held by the most pairs first; each the network's
-        solution with a pair it doubts taken for right (its ``robust`` factor
-        :data:`~merge.start.network.HONOURED`), weighed on ``base``'s residual scale; each
-        moves :data:`MOVED_SHARE` of the patches or more. The most informative doubted pairs
-        are tried, :data:`BUDGET` patch-solves at most.
+    list of Hypothesis
+        Up to :data:`MOST` placements (:func:`distinct` from ``base``), those held by the most
+        pairs first, weighed on ``base``'s residual scale. The doubted pairs are tried first,
+        the most informative first, then the repeats of measured pairs, the best scoring pair
+        first (``score``): :data:`BUDGET` patch-solves at most.
     """
     if cell <= 0 or not np.isfinite(cell):
         raise ValueError("cell must be a positive number of metres")
@@ -93,24 +115,50 @@ def split_votes(
     doubted = np.flatnonzero(measured_any & (base.robust < DOUBT))
     # the most informative first: a precise measurement the others disagree with
     doubted = doubted[np.argsort(-np.trace(weights[doubted], axis1=1, axis2=2), kind="stable")]
-    found: list[tuple[int, int, NetworkSolution]] = []
-    for j in doubted[: BUDGET // max(n, 1)].tolist():
+    tries = [(j, measured[j]) for j in doubted.tolist()]
+    for j, offsets in sorted((repeats or {}).items()):
+        if measured_any[j]:
+            tries += [(j, measured[j] + cell * np.array([dx, dy])) for dy, dx in offsets]
+    found: list[tuple[int, int, Hypothesis]] = []
+    for order, (j, m_j) in enumerate(tries[: BUDGET // max(n, 1)]):
+        taken = measured.copy()
+        taken[j] = m_j
         sol = solve_pair_differences(
-            n, pairs, measured, weights, prior=prior, honoured=j, scale=base.scale
+            n, pairs, taken, weights, prior=prior, honoured=j, scale=base.scale
         )
         votes = int((measured_any & (sol.robust >= DOUBT)).sum())
         if votes >= held - SPLIT_VOTES:
-            found.append((-votes, j, sol))
-    out: list[NetworkSolution] = []
+            found.append((-votes, order, Hypothesis(j, m_j, sol)))
+    found.sort(key=lambda f: (f[0], f[1]))
+    kept = distinct(base.x, [f[2].solution.x for f in found], cell=cell)
+    return [found[i][2] for i in kept]
+
+
+def of_correlations(
+    corr: Correlations, pairs: IntArray, base: NetworkSolution, *, cell: float, prior: float
+) -> list[Hypothesis]:
+    """:func:`split_votes` of what the start measured of its ``pairs`` (``corr``: shifts,
+    information and the repeats of their peaks)."""
+    return split_votes(
+        len(base.x), pairs, corr.xy_m, corr.xy_w, base, cell=cell, prior=prior, repeats=corr.repeats
+    )
+
+
+def distinct(base: FloatArray, placements: Sequence[FloatArray], *, cell: float) -> list[int]:
+    """Which of ``placements`` (each (n, 2) metres, in order of preference) are others than
+    ``base``'s and each other's: up to :data:`MOST`, each moving :data:`MOVED_SHARE` of the
+    patches or more from ``base`` by more than :data:`SAME_CELLS` cells (``cell`` metres), and
+    some patch that far from every one kept before it."""
+    n = len(base)
     least = max(1, int(np.ceil(MOVED_SHARE * n)))
-    for _, _, sol in sorted(found, key=lambda f: (f[0], f[1])):
+    out: list[int] = []
+    for i, x in enumerate(placements):
         if len(out) >= MOST:
             break
-        moved = _moved(sol.x, base.x) > SAME_CELLS * cell
-        if moved.sum() < least:
+        if (_moved(x, base) > SAME_CELLS * cell).sum() < least:
             continue
-        if all((_moved(sol.x, other.x) > SAME_CELLS * cell).any() for other in out):
-            out.append(sol)
+        if all((_moved(x, placements[o]) > SAME_CELLS * cell).any() for o in out):
+            out.append(i)
     return out
 
 

@@ -12,7 +12,7 @@ The thresholds all these steps share are here.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -109,6 +109,21 @@ class Correlations:
             np.full(k, np.nan),
             np.full(k, np.nan),
             {},
+        )
+
+    def branch(self) -> Correlations:
+        """A copy whose measurements can be changed apart from these (a hypothesis's second
+        pass, :mod:`merge.start.hypotheses`); the NCC maps and textures, computed once, are
+        shared."""
+        return replace(
+            self,
+            xy_m=self.xy_m.copy(),
+            xy_w=self.xy_w.copy(),
+            along_w=self.along_w.copy(),
+            score=self.score.copy(),
+            excess=self.excess.copy(),
+            ridges=dict(self.ridges),
+            repeats=dict(self.repeats),
         )
 
     def keep(self, i: int, m: tuple[FloatArray, FloatArray, tuple[int, int]]) -> None:

@@ -41,6 +41,9 @@ def test_a_start_the_report_doubts_is_checked_by_a_merge_from_the_stage(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     mosaic = tgx1_small_patches()
+    # the start's alternatives mend this draw on their own (0.5 nm): the stage's placement is
+    # what is tested here
+    monkeypatch.setattr(hypotheses, "MOST", 0)
     with monkeypatch.context() as m:
         m.setattr(opinions, "DOUBT_SHARE", 1.01)  # no second opinion
         alone = run(mosaic.patch_set)
@@ -107,3 +110,37 @@ def test_a_split_vote_of_the_start_s_pairs_is_decided_by_the_misfit(
     assert result.history[-1] < 0.9 * alone.history[-1]
     said = [w for w in result.warnings if w.startswith("the start's pairs allowed two")]
     assert len(said) == 1
+
+
+def test_a_repeat_of_the_start_s_lone_link_is_decided_by_the_misfit(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # a variation draw (merge_variations.py 5960, of the fresh block): 3 x 2 TGX1-like patches
+    # of 30 x 60 px. A pair of two peaks as likely took the one nearest where the stage put
+    # it; the stage had erred by more than half their distance, and the merge came out 32 x
+    # the map's floor. Its repeat, taken for right, leads to the true places
+    drift = DriftModel(
+        stage_sigma=7.784601757113954e-08,
+        rotation_sigma_deg=0.40388041746862713,
+        z_step_mean=1.6129952815326056e-08,
+        z_step_sigma=2.7869805962635926e-08,
+        noise=7.889415288394337e-10,
+    )
+    mosaic = make_synthetic(
+        Chessboard(seed=6160001),
+        rows=3,
+        cols=2,
+        seed=6160001,
+        drift=drift,
+        patch_size=(0.6e-6, 1.2e-6),
+        pixels=(30, 60),
+        overlap=(0.41707835001742494, 0.3845619992036606),
+    )
+    with monkeypatch.context() as m:
+        m.setattr(hypotheses, "MOST", 0)  # no alternatives
+        alone = run(mosaic.patch_set)
+    assert mosaic.registration_error(alone.transforms)[0] > 50e-9
+    result = run(mosaic.patch_set)
+    assert mosaic.registration_error(result.transforms)[0] < 2e-9
+    assert all(p.xy_constrained for p in result.patches)
+    assert result.history[-1] < 0.9 * alone.history[-1]

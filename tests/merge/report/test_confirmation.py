@@ -17,6 +17,7 @@ from merge.refine.rows import residuals
 from merge.refine.state import MosaicState
 from merge.report import confirmation
 from merge.report.confirmation import COMPASS, CONFIRMS, moved_misfit_rise, unconfirmed
+from merge.start import hypotheses
 from tests.conftest import make_synthetic, still
 
 #: A grating's flat face (1.5 nm of roughness at a pixel's scale) without any drift.
@@ -118,11 +119,16 @@ def test_a_patch_without_neighbours_has_nothing_to_confirm_it() -> None:
     assert unconfirmed(patches, far, pairs, []) == {}
 
 
-def test_texture_under_the_noise_no_longer_claims_a_place_it_does_not_hold() -> None:
+def test_texture_under_the_noise_no_longer_claims_a_place_it_does_not_hold(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
     # flat roughness of 1.5 nm under 1.9 nm of noise in 22 x 45 px patches (a draw of
     # benchmarks/merge_variations.py): the start measured few pairs; the refinement put two
     # patches 120 and 185 nm off their neighbours, each claiming 6 nm, until their texture had
-    # to confirm the place
+    # to confirm the place. (The start's alternatives, off here, find a fit of 3 % less misfit
+    # that leaves every patch moving when the iterations run out: all loose, for another
+    # reason than the one tested here)
+    monkeypatch.setattr(hypotheses, "MOST", 0)
     drift = DriftModel(
         stage_sigma=62e-9,
         rotation_sigma_deg=0.23,
