@@ -42,10 +42,14 @@ IntArray = NDArray[np.intp]
 
 #: Most alternatives offered (each costs the merge a refinement to judge it).
 MOST = 3
-#: Patches times hypotheses solved at most: every doubted pair of a mosaic of up to 60
-#: patches (where votes split: few loops tie it), 2 of 400, none past 1,000 (a round of the
-#: network over 10,000 patches takes a second; a fifth of them is a block so many pairs tie
-#: that their votes do not split).
+#: Mosaics of more patches are offered no alternative: many loops tie their blocks, so a lone
+#: link or an even split is rare, and each alternative costs a refinement of all of them (on
+#: the grating sweep's 5 x 10 paper grids, whose edges' bumps repeat in a few pairs, 1-2
+#: alternatives in 5 of 48 runs doubled a merge of under 3 s and changed nothing). The
+#: variation draws they mended held 6-18 patches.
+LARGEST = 40
+#: Patches times hypotheses solved at most (a network solve each; a periodic sample's pairs
+#: all repeat): every doubted pair and repeat of a 2 x 2 mosaic, 27 of a 6 x 6.
 BUDGET = 1000
 #: Pairs a placement may be held by fewer than the network's own and still split the vote.
 SPLIT_VOTES = 1
@@ -105,8 +109,9 @@ def split_votes(
     list of Hypothesis
         Up to :data:`MOST` placements (:func:`distinct` from ``base``), those held by the most
         pairs first, weighed on ``base``'s residual scale. The doubted pairs are tried first,
-        the most informative first, then the repeats of measured pairs, the best scoring pair
-        first (``score``): :data:`BUDGET` patch-solves at most.
+        the most informative first, then the repeats of measured pairs in the pairs' order:
+        :data:`BUDGET` patch-solves at most, and none for a mosaic of more than
+        :data:`LARGEST` patches.
     """
     if cell <= 0 or not np.isfinite(cell):
         raise ValueError("cell must be a positive number of metres")
@@ -120,7 +125,7 @@ def split_votes(
         if measured_any[j]:
             tries += [(j, measured[j] + cell * np.array([dx, dy])) for dy, dx in offsets]
     found: list[tuple[int, int, Hypothesis]] = []
-    for order, (j, m_j) in enumerate(tries[: BUDGET // max(n, 1)]):
+    for order, (j, m_j) in enumerate(tries[: BUDGET // max(n, 1) if n <= LARGEST else 0]):
         taken = measured.copy()
         taken[j] = m_j
         sol = solve_pair_differences(

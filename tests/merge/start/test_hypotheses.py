@@ -1,6 +1,7 @@
 import numpy as np
 import pytest
 
+from merge.start import hypotheses
 from merge.start.hypotheses import split_votes
 from merge.start.network import solve_pair_differences
 from merge.start.trust import DOUBT
@@ -110,3 +111,10 @@ def test_a_repeat_of_a_lone_link_is_offered() -> None:
     assert [h.pair for h in found] == [1, 1]
     np.testing.assert_allclose(found[0].measured, x[1] - x[2], atol=1e-15)
     np.testing.assert_allclose(_gauged(found[0].solution.x), _gauged(x), atol=1e-10)
+
+
+def test_a_large_mosaic_is_offered_no_alternative(monkeypatch: pytest.MonkeyPatch) -> None:
+    _, pairs, m, W = _two_blocks(150e-9)
+    base = solve_pair_differences(6, pairs, m, W)
+    monkeypatch.setattr(hypotheses, "LARGEST", 5)
+    assert split_votes(6, pairs, m, W, base, cell=CELL) == []
