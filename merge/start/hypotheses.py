@@ -45,7 +45,7 @@ MOST = 3
 #: Mosaics of more patches are offered no alternative: many loops tie their blocks, so a lone
 #: link or an even split is rare, and each alternative costs a refinement of all of them (on
 #: the grating sweep's 5 x 10 paper grids, whose edges' bumps repeat in a few pairs, 1-2
-#: alternatives in 5 of 48 runs doubled a merge of under 3 s and changed nothing). The
+#: alternatives in 5 of 36 runs doubled a merge of under 3 s and changed nothing). The
 #: variation draws they mended held 6-18 patches.
 LARGEST = 40
 #: Patches times hypotheses solved at most (a network solve each; a periodic sample's pairs
