@@ -8,33 +8,46 @@ import pytest
 
 from hardware.sim.drift import DriftModel
 from hardware.sim.surfaces import Chessboard
-from merge import opinions, run
+from merge import MergeResult, opinions, run
 from merge.pipeline import PERIODIC
 from merge.start import hypotheses
 from tests.conftest import Synthetic, make_synthetic, stripes_mosaic
+
+
+def tgx1_draw(
+    seed: int,
+    grid: tuple[int, int],
+    pixels: tuple[int, int],
+    overlap: tuple[float, float],
+    drift: tuple[float, float, float, float, float],
+) -> Synthetic:
+    """A variation draw of ``benchmarks/merge_variations.py`` on TGX1-like 0.6 x 1.2 µm
+    patches: ``grid`` (rows, columns), and the drift's stage and rotation sigmas, Z steps'
+    mean and sigma and noise, as drawn."""
+    stage, rotation, z_mean, z_sigma, noise = drift
+    return make_synthetic(
+        Chessboard(seed=seed),
+        rows=grid[0],
+        cols=grid[1],
+        seed=seed,
+        drift=DriftModel(
+            stage_sigma=stage,
+            rotation_sigma_deg=rotation,
+            z_step_mean=z_mean,
+            z_step_sigma=z_sigma,
+            noise=noise,
+        ),
+        patch_size=(0.6e-6, 1.2e-6),
+        pixels=pixels,
+        overlap=overlap,
+    )
 
 
 def tgx1_small_patches() -> Synthetic:
     """2 x 6 TGX1-like patches of 22 x 45 px (27 nm pixels, 300 nm ramps): overlaps filled by
     ramp flanks, where the start's pairs place a block of patches a few cells off (a draw of
     ``benchmarks/merge_variations.py``, 535, rounded)."""
-    drift = DriftModel(
-        stage_sigma=65e-9,
-        rotation_sigma_deg=0.27,
-        z_step_mean=20e-9,
-        z_step_sigma=17e-9,
-        noise=0.65e-9,
-    )
-    return make_synthetic(
-        Chessboard(seed=735001),
-        rows=2,
-        cols=6,
-        seed=735001,
-        drift=drift,
-        patch_size=(0.6e-6, 1.2e-6),
-        pixels=(22, 45),
-        overlap=(0.48, 0.4),
-    )
+    return tgx1_draw(735001, (2, 6), (22, 45), (0.48, 0.4), (65e-9, 0.27, 20e-9, 17e-9, 0.65e-9))
 
 
 def test_a_start_the_report_doubts_is_checked_by_a_merge_from_the_stage(
@@ -75,6 +88,13 @@ def test_the_start_s_merge_stands_where_the_stage_s_fits_no_better(
     assert "second_opinion" not in stripes.timings
 
 
+def without_alternatives(mosaic: Synthetic, monkeypatch: pytest.MonkeyPatch) -> MergeResult:
+    """The merge of ``mosaic`` with the start offering no alternative placement."""
+    with monkeypatch.context() as m:
+        m.setattr(hypotheses, "MOST", 0)
+        return run(mosaic.patch_set)
+
+
 def test_a_split_vote_of_the_start_s_pairs_is_decided_by_the_misfit(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
@@ -83,26 +103,20 @@ def test_a_split_vote_of_the_start_s_pairs_is_decided_by_the_misfit(
     # along an edge and a side pair, measured again near where it predicted, agreed with it;
     # the side pair that measured the truth was outvoted two to one, and the right two
     # columns merged 84 nm off with every patch held (silent, 102 x the map's floor)
-    drift = DriftModel(
-        stage_sigma=7.749184172996995e-08,
-        rotation_sigma_deg=0.4066210074674741,
-        z_step_mean=2.0753931732371844e-08,
-        z_step_sigma=2.387288984362431e-08,
-        noise=1.1370395401689056e-09,
+    mosaic = tgx1_draw(
+        6175001,
+        (2, 4),
+        (45, 90),
+        (0.3698118551621469, 0.3393648792987294),
+        (
+            7.749184172996995e-08,
+            0.4066210074674741,
+            2.0753931732371844e-08,
+            2.387288984362431e-08,
+            1.1370395401689056e-09,
+        ),
     )
-    mosaic = make_synthetic(
-        Chessboard(seed=6175001),
-        rows=2,
-        cols=4,
-        seed=6175001,
-        drift=drift,
-        patch_size=(0.6e-6, 1.2e-6),
-        pixels=(45, 90),
-        overlap=(0.3698118551621469, 0.3393648792987294),
-    )
-    with monkeypatch.context() as m:
-        m.setattr(hypotheses, "MOST", 0)  # no alternatives
-        alone = run(mosaic.patch_set)
+    alone = without_alternatives(mosaic, monkeypatch)
     assert mosaic.registration_error(alone.transforms)[0] > 50e-9
     assert all(p.xy_constrained for p in alone.patches)  # and nothing said
     result = run(mosaic.patch_set)
@@ -119,26 +133,20 @@ def test_a_repeat_of_the_start_s_lone_link_is_decided_by_the_misfit(
     # of 30 x 60 px. A pair of two peaks as likely took the one nearest where the stage put
     # it; the stage had erred by more than half their distance, and the merge came out 32 x
     # the map's floor. Its repeat, taken for right, leads to the true places
-    drift = DriftModel(
-        stage_sigma=7.784601757113954e-08,
-        rotation_sigma_deg=0.40388041746862713,
-        z_step_mean=1.6129952815326056e-08,
-        z_step_sigma=2.7869805962635926e-08,
-        noise=7.889415288394337e-10,
+    mosaic = tgx1_draw(
+        6160001,
+        (3, 2),
+        (30, 60),
+        (0.41707835001742494, 0.3845619992036606),
+        (
+            7.784601757113954e-08,
+            0.40388041746862713,
+            1.6129952815326056e-08,
+            2.7869805962635926e-08,
+            7.889415288394337e-10,
+        ),
     )
-    mosaic = make_synthetic(
-        Chessboard(seed=6160001),
-        rows=3,
-        cols=2,
-        seed=6160001,
-        drift=drift,
-        patch_size=(0.6e-6, 1.2e-6),
-        pixels=(30, 60),
-        overlap=(0.41707835001742494, 0.3845619992036606),
-    )
-    with monkeypatch.context() as m:
-        m.setattr(hypotheses, "MOST", 0)  # no alternatives
-        alone = run(mosaic.patch_set)
+    alone = without_alternatives(mosaic, monkeypatch)
     assert mosaic.registration_error(alone.transforms)[0] > 50e-9
     result = run(mosaic.patch_set)
     assert mosaic.registration_error(result.transforms)[0] < 2e-9
