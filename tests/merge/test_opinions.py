@@ -8,7 +8,8 @@ import pytest
 
 from hardware.sim.drift import DriftModel
 from hardware.sim.surfaces import Chessboard
-from merge import MergeResult, opinions, run
+from merge import MergeResult, PatchReport, PatchTransform, opinions, run
+from merge.opinions import keeps_overlaps
 from merge.pipeline import PERIODIC
 from merge.start import hypotheses
 from tests.conftest import Synthetic, make_synthetic, stripes_mosaic
@@ -152,3 +153,26 @@ def test_a_repeat_of_the_start_s_lone_link_is_decided_by_the_misfit(
     assert mosaic.registration_error(result.transforms)[0] < 2e-9
     assert all(p.xy_constrained for p in result.patches)
     assert result.history[-1] < 0.9 * alone.history[-1]
+
+
+def _report(name: str, points: int) -> PatchReport:
+    return PatchReport(
+        id=name,
+        transform=PatchTransform(),
+        rotation=np.eye(3),
+        translation=np.zeros(3),
+        overlaps=True,
+        correspondences=points,
+        residual_rms=1e-9 if points else float("nan"),
+        xy_constrained=bool(points),
+        xy_sigma=1e-9,
+        z_sigma=1e-9,
+    )
+
+
+def test_a_fit_that_slides_a_patch_off_its_neighbours_does_not_replace_one_that_keeps_it() -> None:
+    before = [_report("a", 400), _report("b", 300), _report("c", 0)]
+    # fewer points where a block went back where it belongs: still a candidate
+    assert keeps_overlaps(before, [_report("a", 200), _report("b", 150), _report("c", 0)])
+    # a patch that overlapped and now overlaps nothing shed its misfit with its points
+    assert not keeps_overlaps(before, [_report("a", 400), _report("b", 0), _report("c", 0)])
