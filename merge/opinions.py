@@ -150,8 +150,8 @@ def second_opinion(
         )
     else:
         said = (
-            "the start's pairs allowed two placements (their votes split): the merge from the "
-            f"other fits the overlaps better (residual RMS {before:.2f} -> {after:.2f} nm) and "
-            "is the one kept"
+            "the start's pairs allowed another placement (their votes split, or a pair's peak "
+            "repeats itself): the merge from it fits the overlaps better (residual RMS "
+            f"{before:.2f} -> {after:.2f} nm) and is the one kept"
         )
     return best, (reports, [said, *unheld])
