@@ -72,8 +72,8 @@ def second_opinion(
     """The refinement again from the stage's placement, where the report cannot vouch for the
     XY of :data:`DOUBT_SHARE` of the linked patches or more, and from each of the start's
     alternatives (``placed.alternatives``); the fit of them all that leaves the lowest
-    residual RMS, by :data:`BETTER_FIT` at least below the ``first`` (the start's), else the
-    ``first``.
+    residual RMS, by :data:`BETTER_FIT` at least below the ``first`` (the start's), of those
+    that keep every patch's overlaps (:func:`keeps_overlaps`), else the ``first``.
 
     The stage's placement: the start's pairs can place a whole block of patches a few cells
     off while claiming a tenth of one (a 22 x 45 px TGX1 patch's overlaps filled by ramp

@@ -100,8 +100,9 @@ class CoarseStart:
         separates from it, where the overlap repeats itself (:data:`REPEAT_SCORE`); infinite
         elsewhere. The start took the repeat nearest where the stage put the pair.
     alternatives : (m, n, 3) metres, the translations of other placements the pairs allow as
-        well, where their votes split (:mod:`merge.start.hypotheses`; m = 0 mostly): the
-        refinement from each is judged by its misfit against the one from ``translation``.
+        well, where their votes split or a peak repeats itself (:mod:`merge.start.hypotheses`;
+        m = 0 mostly): the refinement from each is judged by its misfit against the one from
+        ``translation``.
     """
 
     translation: FloatArray
