@@ -59,8 +59,9 @@ SAME_CELLS = 1.0
 #: Share of the patches an alternative must move (by more than :data:`SAME_CELLS`): a patch
 #: put on a wrong match raises its own misfit by a fifth to a half (MoS2 and TGX1 draws), so
 #: fewer than a twentieth of the patches cannot change the misfit of the whole mosaic by what
-#: tells two fits apart (:data:`merge.opinions.BETTER_FIT`, 1 %), and each alternative costs
-#: a refinement of all of it (a corner patch of a large mosaic held by two pairs against one).
+#: told two fits apart (1 % of the residual RMS, before :data:`merge.opinions.EVIDENCE`), and
+#: each alternative costs a refinement of all of it (a corner patch of a large mosaic held by
+#: two pairs against one).
 MOVED_SHARE = 0.05
 
 
