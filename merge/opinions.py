@@ -83,9 +83,10 @@ def second_opinion(
     XY of :data:`DOUBT_SHARE` of the linked patches or more, and from each of the start's
     alternatives (``placed.alternatives``). Each is compared with the ``first`` (the start's)
     on the points both overlap (:func:`merge.report.common_points.common_misfit`): it must
-    explain :data:`EVIDENCE` points' worth of misfit better there. Of those, the one with the
-    most evidence that keeps every patch's overlaps (:func:`keeps_overlaps`) is kept, else the
-    ``first``.
+    explain :data:`EVIDENCE` points' worth of misfit better there. Those are taken in the order
+    of that evidence, each weighed against the fit kept so far the same way (their evidence
+    against the start's is over different points); a fit is kept only if it keeps every patch's
+    overlaps (:func:`keeps_overlaps`). None kept: the ``first``.
 
     The residual RMS over each fit's own overlap points judged them before: a fit that slid a
     patch partly off its neighbours shed its misfit with them and won (MoS2 draw 5372: a corner
