@@ -46,12 +46,12 @@ DOUBT_SHARE = 0.2
 #: the start's, on the points both overlap (:attr:`CommonMisfit.evidence
 #: <merge.report.common_points.CommonMisfit>`), to replace it. Points are not independent: a
 #: tip-drawn flank or a fold misfits along its length, and a patch's residuals move together over
-#: tens of pixels. Of the fits from alternatives that were wrong (TGX1 and flat faces at 15-25 %
-#: overlaps, their few thousand common points) none explained more than 275; of those that
-#: found the true places, the least 377 (a flat face's 2 x 3 patches), the rest 550 or more
-#: (variation draws of the fresh block 5000-5999). A share of the misfit instead (1 % less
-#: RMS) refused a MoS2 fit from the true places that explained 5,570 points' worth over its
-#: 280,000 (draw 5202).
+#: tens of pixels. Over the 1,514 variation draws of the fresh block 5000-5999 that had fits
+#: from other placements, the summed error of the worst patch of the fits kept is flat from 250
+#: to 350 points' worth and grows either side (100: 5 % more, none: 24 %). Below the bar stay
+#: wrong fits of small mosaics (TGX1 5385 and 5610 at 15-25 %: 259 and 275) and some true
+#: places too (TGX1 5525: 183, MoS2 5152: 298). A share of the RMS instead (1 % less) refused
+#: a MoS2 fit from the true places that explained 5,570 points' worth over its 280,000 (5202).
 EVIDENCE = 300.0
 
 
