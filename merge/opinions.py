@@ -53,6 +53,21 @@ DOUBT_SHARE = 0.2
 #: places too (TGX1 5525: 183, MoS2 5152: 298). A share of the RMS instead (1 % less) refused
 #: a MoS2 fit from the true places that explained 5,570 points' worth over its 280,000 (5202).
 EVIDENCE = 300.0
+#: ... and this many times the square root of the points both overlap: the spread of the
+#: evidence between two fits equally good grows with the points, and over MoS2's hundreds of
+#: thousands 300 points' worth is a thousandth of the misfit. A fit with a patch 440 nm off
+#: explained 337 more than the start's right one over 300,000 points (draw 1077 of a block
+#: checked on: 1.09 -> 2.85 x the floor). Over the fresh block and draws 1000-1199 (1,753 draws
+#: with candidates; evidence against the start's), the fits kept that were worse than the
+#: start's by 5 nm or more: 18 with 300 points' worth alone, 13 with 3 roots, 11 with 4.
+EVIDENCE_ROOTS = 3.0
+
+
+def convincing(common: CommonMisfit) -> bool:
+    """Whether a fit explains the points both overlap better than another by enough: by
+    :data:`EVIDENCE` points' worth of misfit and :data:`EVIDENCE_ROOTS` square roots of their
+    count."""
+    return common.evidence >= max(EVIDENCE, EVIDENCE_ROOTS * float(np.sqrt(common.points)))
 
 
 def keeps_overlaps(before: Sequence[PatchReport], after: Sequence[PatchReport]) -> bool:
@@ -83,7 +98,7 @@ def second_opinion(
     XY of :data:`DOUBT_SHARE` of the linked patches or more, and from each of the start's
     alternatives (``placed.alternatives``). Each is compared with the ``first`` (the start's)
     on the points both overlap (:func:`merge.report.common_points.common_misfit`): it must
-    explain :data:`EVIDENCE` points' worth of misfit better there. Those are taken in the order
+    explain the misfit better there by enough (:func:`convincing`). Those are taken in the order
     of that evidence, each weighed against the fit kept so far the same way (their evidence
     against the start's is over different points); a fit is kept only if it keeps every patch's
     overlaps (:func:`keeps_overlaps`). None kept: the ``first``.
@@ -154,7 +169,7 @@ def second_opinion(
             common = common_misfit(
                 bank, layout.pairs, solution.transforms, other.transforms, scale=scale
             )
-            if common.evidence >= EVIDENCE:
+            if convincing(common):
                 fits.append((common, order, name, other))
     # the most evidence first, each against the fit kept so far (two candidates' evidence
     # against the start's is over different points), of those that keep the overlaps: a fit
@@ -168,7 +183,7 @@ def second_opinion(
             versus = common_misfit(
                 bank, layout.pairs, held.transforms, other.transforms, scale=scale
             )
-            if versus.evidence < EVIDENCE:
+            if not convincing(versus):
                 continue
         reports, unheld = judge(patches, layout, other, cfg, watch)
         if keeps_overlaps(judged[0], reports):
