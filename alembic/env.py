@@ -7,6 +7,7 @@ from logging.config import fileConfig
 from alembic import context
 from sqlalchemy import engine_from_config, pool
 
+from backend.db import access_models  # noqa: F401  (its tables join the metadata)
 from backend.db.models import Base
 from backend.settings import Settings
 

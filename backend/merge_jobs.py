@@ -101,8 +101,10 @@ class MergeService:
         method: str,
         parameters: dict[str, Any],
         patches: list[int] | None,
+        requested_by: str = "auto",
     ) -> int:
-        """Queue a merge of the run's stored patches (``patches``: indices, or all)."""
+        """Queue a merge of the run's stored patches (``patches``: indices, or all), asked
+        for by ``requested_by``."""
         with self.sessions() as session:
             run = session.get(Run, run_id)
             if run is None:
@@ -125,6 +127,7 @@ class MergeService:
                 method=method,
                 parameters=parameters,
                 patch_ids=chosen,
+                requested_by=requested_by[:64],
             )
             session.add(job)
             session.commit()

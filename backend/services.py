@@ -21,6 +21,8 @@ from backend.db.session import make_engine, migrate, session_factory
 from backend.events import EventBus
 from backend.live_merge import LiveMergeService
 from backend.merge_jobs import MergeService
+from backend.security.authority import Authority
+from backend.security.lock import OperatorLock
 from backend.sem_files import sem_view
 from backend.settings import Settings
 from backend.status_cache import StatusCache
@@ -68,6 +70,8 @@ class Services:
     merges: MergeService
     token: str
     token_created: bool
+    authority: Authority
+    lock: OperatorLock
     viewer: Viewer | None = None
     token_announced: bool = False
     status: StatusCache = field(default_factory=StatusCache)
@@ -99,6 +103,8 @@ class Services:
         sessions = session_factory(engine, data_dir=settings.data_dir)
         events = EventBus(sessions)
         token, created = load_or_create_token(settings)
+        authority = Authority(settings, sessions, token)
+        authority.check_ready()
         microscope = open_microscope(instrument_url(settings))
         merges = MergeService(sessions, events, data_dir=settings.data_dir)
         runner = Runner(
@@ -136,6 +142,8 @@ class Services:
             merges,
             token,
             created,
+            authority,
+            OperatorLock(sessions),
             viewer,
             status=status,
         )

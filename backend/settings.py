@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Literal
 
 from pydantic import Field, SecretStr, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
@@ -46,6 +47,31 @@ class Settings(BaseSettings):
         ge=0,
         description="bytes kept free in data_dir: a run does not start, nor scan its next "
         "patch, when a patch would leave less",
+    )
+
+    auth: Literal["single", "users"] = Field(
+        default="single",
+        description="single: one secret token, reads open (a one-person bench); users: "
+        "logins, roles, keys and the operator lock, every request with an identity",
+    )
+    anonymous_read: bool = Field(
+        default=False, description="users mode: let requests without an identity read"
+    )
+    access_ttl: int = Field(
+        default=900, ge=30, le=86400, description="life of an access token (users mode), s"
+    )
+    refresh_ttl: int = Field(
+        default=7 * 86400, ge=300, description="life of a login session without use, s"
+    )
+    login_attempts: int = Field(
+        default=5, ge=1, description="failed logins of a name or an address before a pause"
+    )
+    pam_service: str = Field(default="login", description="the PAM service users log in by")
+    pam_confdir: Path | None = Field(
+        default=None, description="a PAM configuration directory instead of /etc/pam.d"
+    )
+    secure_cookies: bool = Field(
+        default=False, description="mark the session cookies Secure (the server behind HTTPS)"
     )
 
     @field_validator("api_token")

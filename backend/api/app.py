@@ -9,23 +9,31 @@ from contextlib import asynccontextmanager
 from pathlib import Path
 
 from fastapi import FastAPI, Request
-from fastapi.dependencies.models import Dependant
 from fastapi.exceptions import RequestValidationError
 from fastapi.middleware.cors import CORSMiddleware
 from fastapi.responses import JSONResponse
 from fastapi.routing import APIRoute
 from fastapi.staticfiles import StaticFiles
 from sqlalchemy.exc import OperationalError
-from starlette.routing import Match
 
 from backend.acquisition.control import Conflict, NotFound
 from backend.acquisition.planner import PlanError
 from backend.acquisition.state import TransitionError
-from backend.api import correlative, events, instrument, merges, runs, sem, uploads
-from backend.api.deps import UNAUTHORISED, bearer_matches, require_operator
-from backend.api.guard import CHANGES, Gate, content_security_policy, loopback_names, safe_errors
+from backend.api import (
+    access,
+    accounts,
+    correlative,
+    events,
+    instrument,
+    merges,
+    runs,
+    sem,
+    uploads,
+)
+from backend.api.guard import Gate, content_security_policy, loopback_names, safe_errors
 from backend.db.space import StorageFull, full_message, is_full
 from backend.merge_jobs import JobError
+from backend.security.lock import Locked
 from backend.services import Services
 from backend.settings import Settings
 from hardware.errors import ProcedureError
@@ -34,9 +42,13 @@ from hardware.microscope import ConfigurationError
 log = logging.getLogger("mosaic_afm.server")
 
 
-def _needs_token(dependant: Dependant) -> bool:
-    """Whether a route depends (at any depth) on :func:`require_operator`."""
-    return any(d.call is require_operator or _needs_token(d) for d in dependant.dependencies)
+#: The API's routers, in the order they are matched.
+ROUTERS = (uploads, runs, merges, correlative, instrument, sem, events, accounts)
+
+
+def api_routes() -> list[APIRoute]:
+    """Every route of the API (what the route table must name)."""
+    return [r for m in ROUTERS for r in m.router.routes if isinstance(r, APIRoute)]
 
 
 #: The operator's pages (static files: HTML, CSS, ES modules).
@@ -76,24 +88,23 @@ def create_app(settings: Settings | None = None, *, services: Services | None = 
         app.add_middleware(
             CORSMiddleware,
             allow_origins=cfg.cors_origins,
-            allow_methods=["GET", "POST"],
-            allow_headers=["Authorization", "Content-Type", "X-Operator", "Last-Event-ID"],
+            allow_methods=["GET", "POST", "DELETE"],
+            allow_headers=[
+                "Authorization",
+                "Content-Type",
+                "X-Operator",
+                "X-CSRF-Token",
+                "Last-Event-ID",
+            ],
         )
 
-    def refuse(request: Request) -> JSONResponse | None:
-        """A change without the token, refused before its body is read."""
-        if request.method in CHANGES and _guarded(request):
-            services = getattr(app.state, "services", None)
-            header = request.headers.get("authorization")
-            if services is not None and not bearer_matches(header, services.token):
-                return JSONResponse(
-                    {"detail": UNAUTHORISED}, 401, headers={"WWW-Authenticate": "Bearer"}
-                )
-        return None
-
+    keeper = access.Gatekeeper(
+        access.RouteTable(api_routes(), access.ROUTES),
+        lambda: getattr(app.state, "services", None),
+    )
     app.add_middleware(
         Gate,
-        refuse=refuse,
+        keeper=keeper,
         hosts=cfg.hosts if cfg.hosts is not None else loopback_names(cfg.host),
         upload_limit=cfg.max_upload_bytes,
         json_limit=cfg.max_json_bytes,
@@ -136,16 +147,12 @@ def create_app(settings: Settings | None = None, *, services: Services | None = 
         (LookupError, 404),
         (ConfigurationError, 409),
         (ProcedureError, 409),
+        (Locked, 423),
     ):
         app.add_exception_handler(exc_type, handler(status))
 
-    for module in (uploads, runs, merges, correlative, instrument, sem, events):
+    for module in ROUTERS:
         app.include_router(module.router)
-    guarded = [r for r in app.routes if isinstance(r, APIRoute) and _needs_token(r.dependant)]
-
-    def _guarded(request: Request) -> bool:
-        return any(r.matches(request.scope)[0] == Match.FULL for r in guarded)
-
     app.mount("/", StaticFiles(directory=FRONTEND, html=True), name="pages")
     if services is not None:
         app.state.services = services  # usable before (or without) the lifespan, as in tests

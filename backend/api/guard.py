@@ -10,7 +10,7 @@ from __future__ import annotations
 import ipaddress
 import json
 import logging
-from collections.abc import Callable
+from typing import Protocol
 
 from starlette.exceptions import HTTPException
 from starlette.requests import Request
@@ -18,9 +18,6 @@ from starlette.responses import JSONResponse
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 log = logging.getLogger("mosaic_afm.server")
-
-#: Methods that may change something: their routes that ask for the operator need the token.
-CHANGES = frozenset({"POST", "PUT", "PATCH", "DELETE"})
 
 #: Routes that take files (multipart); every other body is JSON and small.
 UPLOADS = frozenset({"/api/sem/upload", "/api/runs/offline"})
@@ -84,25 +81,39 @@ def counted(receive: Receive, limit: int) -> Receive:
     return inner
 
 
+class Keeper(Protocol):
+    """Who a request comes from and whether it may go on (:mod:`backend.api.access`)."""
+
+    def admit(self, request: Request) -> JSONResponse | None:
+        """None to let ``request`` through, else the answer that refuses it."""
+
+    def audited(self, request: Request) -> bool:
+        """Whether ``request``'s answer is written to the audit trail."""
+
+    async def record(self, request: Request, status: int, body: bytes) -> None:
+        """Write the audit row of ``request`` answered with ``status`` and ``body``."""
+
+
 class Gate:
     """The checks above, as ASGI middleware around the whole app.
 
-    ``refuse(request)`` answers a change without its token (None: let it through);
-    ``hosts`` are the Host names answered (empty: any); ``limits`` are the body limits
-    (bytes) of uploads and of every other route."""
+    ``keeper`` says who a request comes from and refuses what they may not do, before the
+    body is read, and writes the audit row of a change before its answer leaves (a client
+    that sees the answer finds the row); ``hosts`` are the Host names answered (empty: any);
+    ``limits`` are the body limits (bytes) of uploads and of every other route."""
 
     def __init__(
         self,
         inner: ASGIApp,
         *,
-        refuse: Callable[[Request], JSONResponse | None],
+        keeper: Keeper,
         hosts: list[str],
         upload_limit: int,
         json_limit: int,
         policy: str,
     ) -> None:
         self.inner = inner
-        self.refuse = refuse
+        self.keeper = keeper
         self.hosts = frozenset(h.lower() for h in hosts)
         self.upload_limit = upload_limit
         self.json_limit = json_limit
@@ -120,16 +131,26 @@ class Gate:
         request = Request(scope)
         refused = self._refusal(request)
         if refused is not None:
+            await self.keeper.record(request, refused.status_code, bytes(refused.body))
             await refused(scope, receive, send)
             return
         limit = self._limit(scope["path"])
         started = False
+        held: Message | None = None  # an audited answer's start, until its first body part
+        audited = self.keeper.audited(request)
 
         async def secured(message: Message) -> None:
-            nonlocal started
+            nonlocal started, held
             if message["type"] == "http.response.start":
                 started = True
                 message = {**message, "headers": [*message.get("headers", []), *self.headers]}
+                if audited:
+                    held = message
+                    return
+            elif message["type"] == "http.response.body" and held is not None:
+                start, held = held, None
+                await self.keeper.record(request, start["status"], message.get("body", b""))
+                await send(start)
             await send(message)
 
         try:
@@ -153,7 +174,7 @@ class Gate:
                     {"detail": "this server does not answer for that Host name (MOSAIC_HOSTS)"},
                     400,
                 )
-        refused = self.refuse(request)
+        refused = self.keeper.admit(request)
         if refused is not None:
             return refused
         length = request.headers.get("content-length")

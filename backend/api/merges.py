@@ -37,6 +37,7 @@ def merge_out(job: MergeJob) -> MergeOut:
         message=job.message,
         created_at=job.created_at,
         finished_at=job.finished_at,
+        requested_by=job.requested_by,
         mosaic_npy=f"/api/merges/{job.id}/mosaic.npy" if done else None,
         mosaic_json=f"/api/merges/{job.id}/mosaic.json" if done else None,
     )
@@ -80,7 +81,7 @@ def _check_scale(run: Run, p: MergeParams) -> None:
 
 @router.post("/api/runs/{run_id}/merges", status_code=202, response_model=MergeOut)
 def start_merge(
-    run_id: RunId, body: MergeIn, services: ServicesDep, session: SessionDep, _: OperatorDep
+    run_id: RunId, body: MergeIn, services: ServicesDep, session: SessionDep, operator: OperatorDep
 ) -> MergeOut:
     """Queue a merge of the run's stored patches (all, or the listed indices)."""
     _check_scale(get_run(session, run_id), body.parameters)
@@ -103,7 +104,11 @@ def start_merge(
     except ValueError as exc:
         raise HTTPException(422, f"parameters: {exc}") from None
     job_id = services.merges.submit(
-        run_id, method=body.method, parameters=parameters, patches=body.patches
+        run_id,
+        method=body.method,
+        parameters=parameters,
+        patches=body.patches,
+        requested_by=operator,
     )
     return merge_out(_job(session, job_id))
 

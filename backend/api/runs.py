@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
+from contextlib import contextmanager
 from typing import Annotated, Any
 
 import numpy as np
@@ -127,6 +129,8 @@ def run_out(run: Run, services: Services, session: Session, *, patches: bool) ->
         rows=run.rows,
         cols=run.cols,
         instrument=run.instrument,
+        created_by=run.created_by,
+        started_by=run.started_by,
         progress=ProgressOut(stored=stored, total=len(run.patches)),
         current_patch=current.index if current else run.current_patch,
         current_step=current.step if current else None,
@@ -188,6 +192,22 @@ def get_run(session: Session, run_id: int) -> Run:
     return run
 
 
+@contextmanager
+def _started_by(session: Session, run_id: int, operator: str) -> Iterator[None]:
+    """The run names ``operator`` as who started it, before the runner's events say it
+    started (pages read the run then); named as before if the start is refused."""
+    run = get_run(session, run_id)
+    before, run.started_by = run.started_by, operator[:64]
+    session.commit()
+    try:
+        yield
+    except BaseException:
+        session.expire_all()
+        get_run(session, run_id).started_by = before
+        session.commit()
+        raise
+
+
 def _current(run_id: int, services: Services, session: Session) -> RunOut:
     """The run as it is now, after the runner changed it from another session."""
     session.expire_all()
@@ -237,6 +257,7 @@ def create_run(
         rescans=[],
         instrument=services.microscope.description,
         message=f"planned by {operator}",
+        created_by=operator[:64],
         data_file="",
         sem_id=sem.id if sem is not None else None,
         sem_calibration_id=sem.calibration_id if sem is not None else None,
@@ -279,8 +300,8 @@ def start_run(
 ) -> RunOut:
     """Start a planned run, or resume a failed or interrupted one from its first patch
     not stored."""
-    get_run(session, run_id)
-    services.runner.start(run_id, actor=operator)
+    with _started_by(session, run_id, operator):
+        services.runner.start(run_id, actor=operator)
     return _current(run_id, services, session)
 
 
@@ -299,8 +320,8 @@ def resume_run(
     run_id: RunId, services: ServicesDep, session: SessionDep, operator: OperatorDep
 ) -> RunOut:
     """Resume a paused run (or restart a failed or interrupted one)."""
-    get_run(session, run_id)
-    services.runner.resume(run_id, actor=operator)
+    with _started_by(session, run_id, operator):
+        services.runner.resume(run_id, actor=operator)
     return _current(run_id, services, session)
 
 

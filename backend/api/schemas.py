@@ -317,6 +317,8 @@ class RunOut(BaseModel):
     current_step: str | None
     pending_request: str | None = Field(description="pause or abort asked, not yet in effect")
     message: str | None
+    created_by: str | None = Field(default=None, description="who planned the run")
+    started_by: str | None = Field(default=None, description="who last started or resumed it")
     merges: list[int]
     rescan: RescanIn
     rescans: list[RescanOut] = Field(description="every re-scan decided: patch, try, reason")
@@ -339,6 +341,9 @@ class MergeOut(BaseModel):
     message: str | None
     created_at: datetime
     finished_at: datetime | None
+    requested_by: str | None = Field(
+        default=None, description="who asked for the merge ('auto': the run's own)"
+    )
     mosaic_npy: str | None
     mosaic_json: str | None
 

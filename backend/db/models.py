@@ -83,6 +83,10 @@ class Run(Base):
     #: placed by the image's own metadata or the nominal geometry
     sem_id: Mapped[int | None] = mapped_column(Integer, nullable=True)
     sem_calibration_id: Mapped[int | None] = mapped_column(Integer, nullable=True)
+    #: who planned the run and who last started (or resumed) it: a user's name, or in the
+    #: single-user mode the name the request gave (``X-Operator``)
+    created_by: Mapped[str | None] = mapped_column(String(64), nullable=True)
+    started_by: Mapped[str | None] = mapped_column(String(64), nullable=True)
 
     patches: Mapped[list[PatchRecord]] = relationship(
         back_populates="run", order_by="PatchRecord.index", cascade="all, delete-orphan"
@@ -146,6 +150,8 @@ class MergeJob(Base):
     residual: Mapped[float | None] = mapped_column(Float, nullable=True)
     message: Mapped[str | None] = mapped_column(String(2000), nullable=True)
     result_group: Mapped[str | None] = mapped_column(String(128), nullable=True)
+    #: who asked for the merge (``auto`` for the merge a finished run starts by itself)
+    requested_by: Mapped[str | None] = mapped_column(String(64), nullable=True)
 
 
 class Event(Base):
