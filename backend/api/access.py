@@ -298,7 +298,7 @@ class Gatekeeper:
             address=client,
             action=entry.route.name,
             target=f"{request.method} {request.url.path}",
-            run_id=run_id if isinstance(run_id, int) else None,
+            run_id=int(run_id) if str(run_id).isdigit() and len(str(run_id)) < 16 else None,
             status=status,
             detail=detail,
         )

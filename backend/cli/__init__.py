@@ -16,6 +16,7 @@ from backend.cli import (
     sim_sharksem_cmd,
     store_cmd,
     synth_cmd,
+    users_cmd,
 )
 from backend.cli.common import UsageError
 
@@ -36,6 +37,7 @@ def build_parser() -> argparse.ArgumentParser:
     serve_cmd.add_parser(sub)
     formats_cmd.add_parsers(sub)
     store_cmd.add_parsers(sub)
+    users_cmd.add_parsers(sub)
     return parser
 
 

@@ -38,9 +38,12 @@ def migrate(url: str, revision: str = "head") -> None:
     cfg.set_main_option("script_location", str(ALEMBIC_DIR))
     cfg.set_main_option("sqlalchemy.url", url)
     cfg.attributes["configure_logger"] = False
-    if url.startswith("sqlite:///"):
-        Path(url.removeprefix("sqlite:///")).parent.mkdir(parents=True, exist_ok=True)
+    path = Path(url.removeprefix("sqlite:///")) if url.startswith("sqlite:///") else None
+    if path is not None:
+        path.parent.mkdir(parents=True, exist_ok=True)
     command.upgrade(cfg, revision)
+    if path is not None and path.exists():
+        path.chmod(0o600)  # it holds users' password hashes and who did what: its owner's only
 
 
 def session_factory(engine: Engine, *, data_dir: Path | None = None) -> sessionmaker[Session]:

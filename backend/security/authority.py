@@ -11,6 +11,7 @@ command) takes effect within :data:`REMEMBER` seconds.
 from __future__ import annotations
 
 import logging
+import math
 import threading
 import time
 from dataclasses import dataclass, field
@@ -154,20 +155,21 @@ class Authority:
 
     def _remembered(self, secret: str, *, cookie: bool) -> Principal | None:
         key = digest(secret)
-        now = time.monotonic()
+        now = time.time()
         with self._lock:
             seen = self._seen.get(key)
-        if seen is not None and now - seen[1] < REMEMBER:
-            found: Principal | None = seen[0]
+        if seen is not None and now < seen[1]:
+            found = seen[0]
         else:
-            found = self._look_up(secret)
-            if found is None:
+            looked = self._look_up(secret)
+            if looked is None:
                 return None
+            found, ends = looked
             with self._lock:
                 if len(self._seen) > 10_000:
                     self._seen.clear()
-                self._seen[key] = (found, now)
-        if found is not None and cookie:
+                self._seen[key] = (found, min(now + REMEMBER, ends))
+        if cookie:
             found = Principal(**{**found.__dict__, "cookie": True})
         return found
 
@@ -176,7 +178,8 @@ class Authority:
         with self._lock:
             self._seen.clear()
 
-    def _look_up(self, secret: str) -> Principal | None:
+    def _look_up(self, secret: str) -> tuple[Principal, float] | None:
+        """The principal of a key or access token, and when it ends (Unix seconds)."""
         prefix = key_prefix(secret)
         with self.sessions() as s:
             if prefix is not None:
@@ -193,19 +196,22 @@ class Authority:
                 if user is None or user.disabled:
                     return None
                 allowed = sc.role_scopes(user.role) & frozenset(row.scopes)
-                return Principal(user.name, user.role, allowed, user.id, "key", key_id=row.id)
-            sid = read_access(self.secret, secret, time.time())
-            if sid is None:
+                ends = row.expires_at.timestamp() if row.expires_at is not None else math.inf
+                return Principal(user.name, user.role, allowed, user.id, "key", key_id=row.id), ends
+            read = read_access(self.secret, secret, time.time())
+            if read is None:
                 return None
+            sid, expires = read
             login = s.get(LoginSession, sid)
             if login is None or login.revoked_at is not None or login.expires_at <= _now():
                 return None
             user = s.get(User, login.user_id)
             if user is None or user.disabled:
                 return None
-            return Principal(
+            who = Principal(
                 user.name, user.role, sc.role_scopes(user.role), user.id, "session", session_id=sid
             )
+            return who, min(expires, login.expires_at.timestamp())
 
     # -- logins -------------------------------------------------------------------------------
 

@@ -62,15 +62,16 @@ def make_access(secret: bytes, session_id: int, expires: int) -> str:
     return f"{payload}.{sign(secret, payload)}"
 
 
-def read_access(secret: bytes, token: str, now: float) -> int | None:
-    """The session id an access token stands for, or None (forged, malformed or expired)."""
+def read_access(secret: bytes, token: str, now: float) -> tuple[int, int] | None:
+    """The session id an access token stands for and its expiry (Unix seconds), or None
+    (forged, malformed or expired)."""
     parts = token.split(".")
     if len(parts) != 4 or parts[0] != ACCESS or not parts[1].isdigit() or not parts[2].isdigit():
         return None
     payload = ".".join(parts[:3])
     if not same(parts[3], sign(secret, payload)) or int(parts[2]) <= now:
         return None
-    return int(parts[1])
+    return int(parts[1]), int(parts[2])
 
 
 def make_refresh(session_id: int) -> tuple[str, str]:

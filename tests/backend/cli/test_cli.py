@@ -210,3 +210,27 @@ def test_the_progress_bar_tells_the_stage_and_the_time_to_go() -> None:
         "merge: refining, level 2 of 2:  50 %, 50 s to go, residual 1.500 nm",
     ]
     assert duration(3725) == "1 h 02 min"
+
+
+def test_users_add_reads_the_password_from_stdin_and_list_shows_no_secret(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    import io
+
+    data = str(tmp_path / "data")
+    monkeypatch.setattr("sys.stdin", io.StringIO("a long password\n"))
+    assert main(["users", "--data-dir", data, "add", "ada", "--role", "operator"]) == 0
+    monkeypatch.setattr("sys.stdin", io.StringIO("short\n"))
+    assert main(["users", "--data-dir", data, "add", "bob", "--role", "admin"]) == 2
+    assert "at least 8 characters" in capsys.readouterr().err
+    monkeypatch.setattr("sys.stdin", io.StringIO("another password\n"))
+    assert main(["users", "--data-dir", data, "add", "ada", "--role", "admin"]) == 2
+    assert "already a user 'ada'" in capsys.readouterr().err
+    assert main(["users", "--data-dir", data, "role", "ada", "admin"]) == 0
+    assert main(["users", "--data-dir", data, "disable", "ada"]) == 0
+    capsys.readouterr()
+    assert main(["users", "--data-dir", data, "list"]) == 0
+    listed = capsys.readouterr().out
+    assert "ada" in listed and "admin" in listed and "disabled" in listed
+    assert "a long password" not in listed and "argon2" not in listed
+    assert main(["users", "--data-dir", data, "enable", "nobody"]) == 2
