@@ -298,10 +298,16 @@ class Gatekeeper:
             address=client,
             action=entry.route.name,
             target=f"{request.method} {request.url.path}",
-            run_id=int(run_id) if str(run_id).isdigit() and len(str(run_id)) < 16 else None,
+            run_id=_run_id(run_id),
             status=status,
             detail=detail,
         )
+
+
+def _run_id(value: Any) -> int | None:
+    """A run's id from a path parameter or an answer (a string of digits or an int)."""
+    text = str(value)
+    return int(text) if text.isdigit() and len(text) < 16 else None
 
 
 def _json(body: bytes) -> Any:
