@@ -87,7 +87,7 @@ class ServerProcess:
                     raise PortTaken(said)
                 raise RuntimeError(f"the server exited: {said}")
             try:
-                if httpx.get(self.url + "/api/instrument", timeout=2).status_code == 200:
+                if httpx.get(self.url + "/api/auth/whoami", timeout=2).status_code == 200:
                     return self
             except httpx.HTTPError:
                 pass

@@ -1,6 +1,26 @@
-// The REST API: JSON in and out, the bearer token on every change, errors as messages.
+// The REST API: JSON in and out, errors as messages. Single-user mode: the bearer token on
+// every change. Users mode: the login's HttpOnly cookie goes by itself, every change carries
+// the CSRF header, and an expired access token is refreshed once before the page gives up.
 
 const TOKEN_KEY = "mosaic-afm-token";
+let mode = "single";
+
+/** The server's mode, from /api/auth/whoami: "single" or "users". */
+export function setMode(value) {
+  mode = value;
+}
+
+function cookie(name) {
+  const found = document.cookie.split("; ").find((c) => c.startsWith(`${name}=`));
+  return found ? decodeURIComponent(found.slice(name.length + 1)) : "";
+}
+
+/** A new access cookie from the refresh cookie; false when the session has ended. */
+export async function refreshSession() {
+  if (mode !== "users") return true;
+  const r = await fetch("/api/auth/refresh", { method: "POST", headers: { "X-CSRF-Token": cookie("mosaic_csrf") } });
+  return r.ok;
+}
 
 export function token() {
   return localStorage.getItem(TOKEN_KEY) || "";
@@ -34,10 +54,13 @@ function fieldOf(detail) {
   return null;
 }
 
-export async function request(method, url, body) {
+export async function request(method, url, body, retried = false) {
   const headers = {};
   const options = { method, headers };
-  if (method !== "GET") {
+  if (mode === "users") {
+    if (method !== "GET") headers["X-CSRF-Token"] = cookie("mosaic_csrf");
+  } else if (method !== "GET" || token()) {
+    // reads are open in the single mode; the token lets this browser read the audit trail
     headers.Authorization = `Bearer ${token()}`;
     headers["X-Operator"] = "browser";
   }
@@ -52,6 +75,10 @@ export async function request(method, url, body) {
     response = await fetch(url, options);
   } catch (err) {
     throw new ApiError(0, `the server did not answer (${err.message})`);
+  }
+  if (response.status === 401 && mode === "users" && !retried && !url.startsWith("/api/auth/")) {
+    if (await refreshSession()) return request(method, url, body, true);
+    location.assign("/login.html");
   }
   if (response.status === 204) return null;
   const text = await response.text();
@@ -69,3 +96,4 @@ export async function request(method, url, body) {
 
 export const get = (url) => request("GET", url);
 export const post = (url, body) => request("POST", url, body);
+export const del = (url, body) => request("DELETE", url, body);

@@ -1,11 +1,12 @@
 // The operator's page: SEM and ROI, run control, patches, merge, instrument, 3D viewer.
 // Live updates come from the server's event stream (/api/events), never from polling.
 
-import { ApiError, get, post, setToken, token } from "./api.js";
+import { ApiError, get, post, refreshSession, setToken, token } from "./api.js";
 import { duration, nm, um } from "./format.js";
 import { buildPatchGrid, markQuality, showPatch } from "./patches.js";
 import { plotProfile, plotResiduals } from "./plot.js";
 import { SemView } from "./sem.js";
+import { loadLock, startSession, wireLock } from "./session.js";
 
 const $ = (id) => document.getElementById(id);
 const state = { run: null, job: null, residuals: [], startedAt: null, lastEvent: 0 };
@@ -586,16 +587,19 @@ function onEvent(event) {
     act(loadCalibration);
   } else if (event.kind === "fault" || event.kind === "simulation") {
     act(loadInstrument);
+  } else if (event.kind === "lock") {
+    act(loadLock);
   }
 }
 
 function listen() {
   const source = new EventSource(`/api/events?after=${state.lastEvent}`);
-  for (const kind of ["run", "patch", "progress", "merge", "fault", "request", "recovery", "sem", "simulation", "reconcile"]) {
+  for (const kind of ["run", "patch", "progress", "merge", "fault", "request", "recovery", "sem", "simulation", "reconcile", "lock"]) {
     source.addEventListener(kind, (e) => onEvent(JSON.parse(e.data)));
   }
   source.onerror = () => {
-    if (source.readyState === EventSource.CLOSED) setTimeout(listen, 2000);
+    // closed (an expired login's stream is refused): a new access cookie first, then again
+    if (source.readyState === EventSource.CLOSED) setTimeout(() => refreshSession().finally(listen), 2000);
   };
 }
 
@@ -606,17 +610,23 @@ async function openViewer() {
   const viewer = await act(() => get("/api/instrument/viewer"));
   const say = (text) => ($("viewer").srcdoc = `<p style='font:14px system-ui'>${text}</p>`);
   if (!viewer || !viewer.enabled) return say("The 3D viewer is off (MOSAIC_VIEWER=false).");
-  if (!token()) return say("Enter the API token (above) to open the 3D viewer.");
+  const users = state.mode === "users";
+  if (!users && !token()) return say("Enter the API token (above) to open the 3D viewer.");
   try {
     await post("/api/instrument/viewer/session");
   } catch (err) {
-    return say(`The 3D viewer needs the API token: ${err.message}`);
+    return say(`The 3D viewer needs ${users ? "a login" : "the API token"}: ${err.message}`);
   }
   $("viewer").removeAttribute("srcdoc");
   $("viewer").src = `${location.protocol}//${location.hostname}:${viewer.port}/`;
 }
 
 async function start() {
+  const who = await act(startSession);
+  if (!who) return; // on the way to the login page (or the server did not answer)
+  state.mode = who.mode;
+  wireLock(userAct);
+  await act(loadLock);
   $("token").value = token();
   $("token").addEventListener("change", (e) => setToken(e.target.value));
   await act(loadInstrument);
