@@ -4,7 +4,9 @@ Start a server first (``make run``), then::
 
     MOSAIC_API_TOKEN=... python examples/scripted_run.py --url http://127.0.0.1:8000 --out out/run
 
-The token is the server's (``MOSAIC_API_TOKEN``, or the file ``api_token`` in its data dir).
+The token is the server's (``MOSAIC_API_TOKEN``, or the file ``api_token`` in its data dir);
+on a server in the users mode (``MOSAIC_AUTH=users``) it is an API key with the scopes
+``read``, ``runs`` and ``merges`` (``POST /api/keys``), which also reads.
 Writes ``mosaic.npy`` and ``mosaic.json`` into ``--out`` and prints a one-line summary.
 """
 
@@ -53,14 +55,14 @@ def main(argv: list[str] | None = None) -> int:
     if not args.token:
         parser.error("give --token or set MOSAIC_API_TOKEN (the server's api_token file)")
     auth = {"Authorization": f"Bearer {args.token}", "X-Operator": "scripted_run.py"}
-    with httpx.Client(base_url=args.url, timeout=60) as client:
-        r = client.post("/api/runs", json=PLAN, headers=auth)
+    with httpx.Client(base_url=args.url, timeout=60, headers=auth) as client:
+        r = client.post("/api/runs", json=PLAN)
         if r.status_code != 201:
             print(f"planning refused ({r.status_code}): {r.json()['detail']}", file=sys.stderr)
             return 2
         run = r.json()
         print(f"run {run['id']}: {run['rows']} x {run['cols']} patches", file=sys.stderr)
-        client.post(f"/api/runs/{run['id']}/start", headers=auth).raise_for_status()
+        client.post(f"/api/runs/{run['id']}/start").raise_for_status()
         run = wait(
             client,
             f"/api/runs/{run['id']}",
@@ -70,9 +72,7 @@ def main(argv: list[str] | None = None) -> int:
         if run["state"] != "completed":
             print(f"run ended {run['state']}: {run['message']}", file=sys.stderr)
             return 1
-        job = client.post(
-            f"/api/runs/{run['id']}/merges", json={"method": "default"}, headers=auth
-        ).json()
+        job = client.post(f"/api/runs/{run['id']}/merges", json={"method": "default"}).json()
         job = wait(
             client,
             f"/api/merges/{job['id']}",

@@ -66,7 +66,7 @@ def create_app(settings: Settings | None = None, *, services: Services | None = 
         svc = services if services is not None else await asyncio.to_thread(Services.open, cfg)
         svc.events.attach(asyncio.get_running_loop())
         app.state.services = svc
-        if svc.token_created and not svc.token_announced:
+        if svc.token_created and not svc.token_announced and not svc.authority.users_mode:
             svc.token_announced = True
             print(
                 f"API token (also in {cfg.data_dir / 'api_token'}): {svc.token}",

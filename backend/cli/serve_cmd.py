@@ -27,6 +27,7 @@ def run(args: argparse.Namespace) -> int:
     from pydantic import ValidationError
 
     from backend.api.app import create_app
+    from backend.security.authority import NoUsers
     from backend.services import DatabaseDamaged, Services
     from backend.settings import Settings
     from hardware.microscope import ConfigurationError
@@ -52,7 +53,7 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError(f"bad settings: {problems}") from None
     try:
         services = Services.open(settings)
-    except DatabaseDamaged as exc:
+    except (DatabaseDamaged, NoUsers) as exc:
         raise UsageError(str(exc)) from None
     except (ConfigurationError, MCSError, NanonisError) as exc:
         raise UsageError(f"cannot open the instrument {settings.instrument!r}: {exc}") from None
@@ -63,12 +64,18 @@ def run(args: argparse.Namespace) -> int:
         ) from None
     base = f"http://{settings.host}:{settings.port}"
     viewer = services.viewer
+    access = (
+        f"users (log in at {base}/login.html; add users: mosaic-afm users add)"
+        if settings.auth == "users"
+        else f"single user (the API token in {settings.data_dir / 'api_token'})"
+    )
     print(
         f"Mosaic AFM on {services.microscope.description}\n"
         f"  pages:     {base}/\n"
         f"  API:       {base}/api/runs\n"
         f"  API docs:  {base}/docs\n"
         f"  events:    {base}/api/events\n"
+        f"  access:    {access}\n"
         f"  3D viewer: {viewer.url if viewer is not None else 'off (MOSAIC_VIEWER=false)'}",
         flush=True,
     )

@@ -69,6 +69,10 @@ class Principal:
 ANONYMOUS = Principal("anonymous", "observer", frozenset({sc.READ}), -1, "anonymous")
 
 
+class NoUsers(RuntimeError):
+    """The users mode, with nobody who can log in."""
+
+
 class Refused(Exception):
     """A login, refresh or key request refused: ``status`` and a ``detail`` that says why."""
 
@@ -127,7 +131,7 @@ class Authority:
         with self.sessions() as s:
             active = s.scalars(select(User).where(User.disabled.is_(False))).first()
         if active is None:
-            raise RuntimeError(
+            raise NoUsers(
                 "MOSAIC_AUTH=users but no user is configured: add one with "
                 "'mosaic-afm users add NAME --role admin' (it reads the password from stdin)"
             )

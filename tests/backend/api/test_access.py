@@ -16,7 +16,7 @@ from backend.api.access import ROUTES, RouteTable
 from backend.api.app import api_routes
 from backend.db.session import make_engine, migrate, session_factory
 from backend.security import scopes as sc
-from backend.security.authority import add_user
+from backend.security.authority import NoUsers, add_user
 from backend.settings import Settings
 from tests.backend.api.conftest import Server, open_server, plan
 
@@ -128,7 +128,7 @@ def test_anonymous_reading_when_switched_on(tmp_path: Path) -> None:
 
 
 def test_the_users_mode_needs_a_user_to_start(tmp_path: Path) -> None:
-    with pytest.raises(RuntimeError, match="mosaic-afm users add NAME --role admin"):
+    with pytest.raises(NoUsers, match="mosaic-afm users add NAME --role admin"):
         list(open_server(tmp_path, auth="users"))
 
 

@@ -234,3 +234,11 @@ def test_users_add_reads_the_password_from_stdin_and_list_shows_no_secret(
     assert "ada" in listed and "admin" in listed and "disabled" in listed
     assert "a long password" not in listed and "argon2" not in listed
     assert main(["users", "--data-dir", data, "enable", "nobody"]) == 2
+
+
+def test_serve_in_the_users_mode_without_users_says_how_to_add_one(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    monkeypatch.setenv("MOSAIC_AUTH", "users")
+    assert main(["serve", "--data-dir", str(tmp_path), "--port", "1"]) == 2
+    assert "mosaic-afm users add NAME --role admin" in capsys.readouterr().err
