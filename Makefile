@@ -43,7 +43,7 @@ types: install
 	$(BIN)/mypy
 
 unit: install browser
-	$(BIN)/pytest -n 2 -q --durations=20
+	$(BIN)/pytest -n 2 --dist loadgroup -q --durations=20
 
 # System programs the tests use: Debian's chromium for the browser tests (Playwright's own
 # download does not work here) and gwyddion, the oracle of every format's orientation.
@@ -72,6 +72,7 @@ bench: install
 	$(BIN)/python benchmarks/correlative_bench.py
 	$(BIN)/python benchmarks/viewer_bench.py
 	$(BIN)/python benchmarks/live_bench.py
+	$(BIN)/python benchmarks/access_bench.py
 
 clean:
 	rm -rf $(VENV) $(OUT) .mypy_cache .ruff_cache .pytest_cache

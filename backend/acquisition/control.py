@@ -33,6 +33,8 @@ class Control:
     actor: str = "system"
     reason: str = ""
     shutdown: bool = False  # the server is stopping: the run stays resumable
+    #: the worker made the instrument safe and is recording the run's end (its events out)
+    concluded: bool = False
     wake: threading.Condition = field(default_factory=threading.Condition)
 
     def request(self) -> str | None:

@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING
 
 from sqlalchemy.orm import Session, sessionmaker
 
+from backend.acquisition.control import Control
 from backend.acquisition.state import PatchStep, RunState, StateMachine
 from backend.db.models import PatchRecord, Run
 from backend.db.patch_store import LIVE_GROUP, write_mosaic
@@ -55,7 +56,14 @@ class RunEnding:
         ) -> None: ...
 
     def _conclude(
-        self, run_id: int, target: RunState, reason: str, actor: str, *, safe: bool
+        self,
+        run_id: int,
+        target: RunState,
+        reason: str,
+        actor: str,
+        *,
+        safe: bool,
+        control: Control | None = None,
     ) -> None:
         """Safety first, then bookkeeping: make the instrument safe (a run whose safe state
         cannot be confirmed goes to ``fault``), then record the end; where the record cannot
@@ -64,6 +72,8 @@ class RunEnding:
             problem = self._try_safe_state()
             if problem is not None:
                 target, reason = RunState.FAULT, f"{reason}; {problem}"
+        if control is not None:
+            control.concluded = True  # a status read from now on waits for the worker's end
         self._end_live(run_id)
         with self._lock:
             self._unrecorded[run_id] = (target, reason, actor)

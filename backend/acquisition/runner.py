@@ -309,7 +309,19 @@ class Runner(RunEnding, PatchLoop, UnattendedSafety):
     # -- instrument status ------------------------------------------------------------------
 
     def instrument_status(self) -> dict[str, Any]:
-        """What the instrument is doing: live when idle, the worker's last reading when busy."""
+        """What the instrument is doing: live when idle, the worker's last reading when busy.
+        Once the worker has concluded its run (the instrument safe, the end being recorded and
+        announced), a read waits for it to end (up to a second): a page that reads the
+        instrument on hearing that a run completed must not find it still driven."""
+        with self._lock:
+            control, thread = self._control, self._thread
+        if (
+            control is not None
+            and control.concluded
+            and thread is not None
+            and thread is not threading.current_thread()
+        ):
+            thread.join(timeout=1.0)
         active = self.active_run
         if active is None and self._io.acquire(timeout=0.2):
             try:
@@ -336,7 +348,7 @@ class Runner(RunEnding, PatchLoop, UnattendedSafety):
         try:
             with self._io:
                 target, reason, actor, safe = self._attempt(control)
-                self._conclude(control.run_id, target, reason, actor, safe=safe)
+                self._conclude(control.run_id, target, reason, actor, safe=safe, control=control)
         except BaseException as exc:  # the last line of defence: no tip left down
             log.exception("run %s: the worker failed", control.run_id)
             self._conclude(

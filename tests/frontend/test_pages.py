@@ -16,6 +16,9 @@ from tests.frontend.conftest import CHROMIUM, _draw_small_roi, _shot, _state, _w
 pytestmark = [
     pytest.mark.slow,
     pytest.mark.skipif(not Path(CHROMIUM).exists(), reason="needs Debian's chromium"),
+    # one browser and its server at a time: two of them beside the rest on 2 cores made a
+    # page's timing-sensitive checks (a live mosaic while the run still scans) fail
+    pytest.mark.xdist_group("browser"),
 ]
 
 

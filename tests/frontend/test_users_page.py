@@ -14,6 +14,7 @@ import pytest
 
 from backend.server_process import ServerProcess, free_port
 from tests.frontend.conftest import CHROMIUM, FINISH_MS, _shot, playwright_api
+from tests.frontend.test_pages import pytestmark  # noqa: F401  (chromium, slow, one at a time)
 
 PASSWORD = "a password of the lab"
 

@@ -8,8 +8,11 @@ from __future__ import annotations
 import asyncio
 import io
 import sys
+import threading
+import time
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -172,6 +175,28 @@ def test_status_is_never_safe_while_a_run_has_the_instrument(server: Server) -> 
             seen.append(status)
     assert seen and all(s["safe_state"] is False for s in seen)
     assert server.client.get("/api/instrument").json()["safe_state"] is True
+
+
+def test_a_status_read_on_hearing_a_run_completed_finds_the_instrument_safe(
+    server: Server,
+) -> None:
+    """A page reads the instrument when it hears that a run ended; the worker that announced
+    it may still be recording (a loaded machine: here a listener that takes 0.3 s). The read
+    must not find the instrument still driven by the run: no later event would correct it."""
+    heard = threading.Event()
+
+    def slow_listener(event: dict[str, Any]) -> None:
+        if event["kind"] == "run" and event["data"].get("state") == "completed":
+            heard.set()
+            time.sleep(0.3)  # in the worker's thread, after its end is announced
+
+    server.services.events.listen(slow_listener)
+    run = server.create(plan(pixels=(16, 16)))
+    server.post(f"/api/runs/{run['id']}/start")
+    assert heard.wait(60)
+    status = server.client.get("/api/instrument").json()
+    assert status["active_run"] is None
+    assert status["safe_state"] is True
 
 
 def test_a_crash_is_a_fault_that_blocks_every_landing_until_a_reset_with_a_note(
