@@ -5,7 +5,7 @@ BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 OUT    ?= out
 
-.PHONY: install run test lint types unit browser bench demo clean
+.PHONY: install run test lint types unit browser bench demo docs clean
 
 # The project's own modules compiled once here: a shell with PYTHONDONTWRITEBYTECODE set would
 # otherwise compile them again at every start (~0.1 s of every CLI call).
@@ -57,7 +57,13 @@ browser:
 	  $$SUDO apt-get update -q && $$SUDO apt-get install -y -q $$missing; \
 	fi
 
-test: lint types unit
+# The documentation site (docs/_build/html/index.html): every warning is an error, the
+# gallery's examples run and make their figures.
+docs: install
+	$(BIN)/sphinx-build -W --keep-going -q -b html docs docs/_build/html
+	@echo "The documentation: docs/_build/html/index.html"
+
+test: lint types unit docs
 
 bench: install
 	$(BIN)/python benchmarks/merge_bench.py --quick --sweep 10 --gratings 10
@@ -75,4 +81,4 @@ bench: install
 	$(BIN)/python benchmarks/access_bench.py
 
 clean:
-	rm -rf $(VENV) $(OUT) .mypy_cache .ruff_cache .pytest_cache
+	rm -rf $(VENV) $(OUT) .mypy_cache .ruff_cache .pytest_cache docs/_build docs/_generated docs/auto_examples

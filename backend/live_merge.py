@@ -120,7 +120,7 @@ def _live_child(inbox: Any, outbox: Any, parent: int | None = None) -> None:
 
 
 def _snapshot(live: Any) -> tuple[NDArray[np.float64], dict[str, Any]]:
-    """The live mosaic and its document: the result contract of DESIGN.md (origin, pixel size,
+    """The live mosaic and its document: the result contract of docs/design.md (origin, pixel size,
     shape, every patch's transform) plus ``patches_merged``."""
     mosaic = live.mosaic()
     patches = []

@@ -108,11 +108,17 @@ class ForceLoop(Protocol):
 class ScanLines:
     """One raster patch as the scanner returns it.
 
-    heights : (ny, nx) metres, rows along y, NaN where the loop lost the surface.
-    line_times : (ny,) simulated or wall seconds at the start of every line.
-    origin : fine-mode (x, y) of pixel (0, 0) in the probe robot's fine frame, metres; the
+    Attributes
+    ----------
+    heights
+        (ny, nx) metres, rows along y, NaN where the loop lost the surface.
+    line_times
+        (ny,) simulated or wall seconds at the start of every line.
+    origin
+        fine-mode (x, y) of pixel (0, 0) in the probe robot's fine frame, metres; the
         sample position is this minus the sample stage's position.
-    pixel_size : (dx, dy) metres.
+    pixel_size
+        (dx, dy) metres.
     """
 
     heights: FloatArray
@@ -198,10 +204,16 @@ class PatchScanner(Protocol):
 class SEMImage:
     """An SEM image and where its pixels are on the stage: an affine map.
 
-    pixels : (ny, nx) grey levels, row 0 the top line as the SEM shows it.
-    origin : stage position (metres) of pixel (0, 0)'s centre.
-    pixel_size : metres per pixel along the image's columns and rows (positive).
-    matrix : the 2 x 2 map from a pixel step (column, row) to stage metres: rotation, scale,
+    Attributes
+    ----------
+    pixels
+        (ny, nx) grey levels, row 0 the top line as the SEM shows it.
+    origin
+        stage position (metres) of pixel (0, 0)'s centre.
+    pixel_size
+        metres per pixel along the image's columns and rows (positive).
+    matrix
+        the 2 x 2 map from a pixel step (column, row) to stage metres: rotation, scale,
         shear and the rows' direction; None is ``diag(pixel_size)`` (axis-aligned, rows along
         +y: how the images of earlier versions were placed).
     """

@@ -14,7 +14,7 @@ Pure numpy/scipy, laid out as its pipeline (:mod:`merge.pipeline` runs the stage
 The entry points:
 
 * :func:`merge.run` — merge a :class:`PatchSet` with a :class:`MergeConfig`;
-* :func:`merge.read_patch_set` / :func:`merge.write_result` — the file formats of DESIGN.md;
+* :func:`merge.read_patch_set` / :func:`merge.write_result` — the file formats of docs/design.md;
 * :func:`merge.read_scans` — a folder of scans from any AFM, placed by their offsets.
 """
 

@@ -14,22 +14,33 @@ METHODS: tuple[Method, ...] = ("default", "paper", "nominal", "zlevel")
 class MergeConfig:
     """How to merge a patch set.
 
-    method : "default" (coarse start, then full-resolution point-to-plane GPA on all patches),
+    Attributes
+    ----------
+    method
+        "default" (coarse start, then full-resolution point-to-plane GPA on all patches),
         "paper" (the published GPA-ICP on down-sampled points), "nominal" (no correction: the
         patches where the stage put them) or "zlevel" (Z offsets only).
-    cell : down-sampling cell side, metres; default the raster (line) spacing, i.e. the larger
+    cell
+        down-sampling cell side, metres; default the raster (line) spacing, i.e. the larger
         pixel pitch of the patches.
-    max_iter : iteration cap; default 40 for "default", 200 for "paper".
-    max_shift : largest XY error of a patch relative to its neighbour that the coarse start
+    max_iter
+        iteration cap; default 40 for "default", 200 for "paper".
+    max_shift
+        largest XY error of a patch relative to its neighbour that the coarse start
         searches, metres; default half the smaller side of the smallest patch.
-    coarse_cell : cell the coarse start correlates the patches on, metres; default
+    coarse_cell
+        cell the coarse start correlates the patches on, metres; default
         :func:`merge.start.coarse_cell` (a whole multiple of the finest pixel pitch, as fine
         as a budget of cells allows). Finer keeps finer texture, at a cost.
-    init : "auto" runs the robust coarse start (Z offsets and XY by correlation); "nominal"
+    init
+        "auto" runs the robust coarse start (Z offsets and XY by correlation); "nominal"
         starts from the nominal placement.
-    pixel_size : mosaic pixel pitch (dx, dy), metres; default the finest patch pitch.
-    feather : blending ramp at patch borders, fraction of a patch's smaller side.
-    self_calibrate : measure the scanner's own bend of rows and columns, shared by every patch
+    pixel_size
+        mosaic pixel pitch (dx, dy), metres; default the finest patch pitch.
+    feather
+        blending ramp at patch borders, fraction of a patch's smaller side.
+    self_calibrate
+        measure the scanner's own bend of rows and columns, shared by every patch
         (an open-loop piezo's hysteresis and creep), from the overlaps of a first merge, take
         it out of every patch and merge again (:mod:`merge.refine.scanner`; "default" method only).
         For scans from a scanner that does not read its own position; it costs a second merge.

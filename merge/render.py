@@ -30,10 +30,16 @@ IntArray = NDArray[np.intp]
 class Mosaic:
     """A rendered height map.
 
-    heights : (ny, nx) metres, NaN where no patch covers.
-    origin : (x, y) mosaic-frame position of pixel (0, 0), metres.
-    pixel_size : (dx, dy) metres.
-    coverage : (ny, nx) number of patches that contributed to every pixel.
+    Attributes
+    ----------
+    heights
+        (ny, nx) metres, NaN where no patch covers.
+    origin
+        (x, y) mosaic-frame position of pixel (0, 0), metres.
+    pixel_size
+        (dx, dy) metres.
+    coverage
+        (ny, nx) number of patches that contributed to every pixel.
     """
 
     heights: FloatArray

@@ -1,5 +1,5 @@
 """State machines whose every transition is committed to the database and published as an
-event before it takes effect (DESIGN.md: written before the next step starts)."""
+event before it takes effect (docs/design.md: written before the next step starts)."""
 
 from __future__ import annotations
 

@@ -1,6 +1,6 @@
 """The acquisition state machine: one explicit transition table for runs and for patches.
 
-Run states (DESIGN.md): ``planned -> running -> (paused) -> completed | aborted | failed``, and
+Run states (docs/design.md): ``planned -> running -> (paused) -> completed | aborted | failed``, and
 ``interrupted`` when the server stops mid-run. A failed or interrupted run resumes from the
 first patch not stored. ``fault`` is the blocking state of a run whose safe state (tip
 retracted, axes stopped) could not be confirmed: only an operator's reset leaves it, to

@@ -173,7 +173,7 @@ def merge_document(session: SessionDep, job_id: int) -> dict[str, Any]:
     responses={200: {"content": {NPY: {}}, "description": "mosaic heights, metres, .npy"}},
 )
 def mosaic_npy(job_id: JobId, session: SessionDep) -> Response:
-    """The merged height map (``mosaic.npy`` of DESIGN.md): metres, NaN where uncovered."""
+    """The merged height map (``mosaic.npy`` of docs/design.md): metres, NaN where uncovered."""
     heights, _ = merge_result(session, job_id)
     return npy_response(heights, f"merge{job_id}-mosaic.npy")
 
@@ -208,7 +208,7 @@ def with_registration(session: SessionDep, job_id: int, document: dict[str, Any]
 
 @router.get("/api/merges/{job_id}/mosaic.json")
 def mosaic_json(job_id: JobId, session: SessionDep) -> JSONResponse:
-    """The result document (``mosaic.json`` of DESIGN.md): grid, per-patch transforms and
+    """The result document (``mosaic.json`` of docs/design.md): grid, per-patch transforms and
     quality report, and the last accepted registration onto an SEM image."""
     _, document = merge_result(session, job_id)
     return JSONResponse(with_registration(session, job_id, document))

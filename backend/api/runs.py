@@ -437,7 +437,7 @@ def live_mosaic(run_id: RunId, services: ServicesDep, session: SessionDep) -> Re
 
 @router.get("/{run_id}/live/mosaic.json")
 def live_document(run_id: RunId, services: ServicesDep, session: SessionDep) -> dict[str, Any]:
-    """The live mosaic's document (the result contract of DESIGN.md: origin, pixel size,
+    """The live mosaic's document (the result contract of docs/design.md: origin, pixel size,
     shape, every patch's transform) and ``patches_merged``, how many stored patches it holds."""
     _, document = _live(run_id, services, session)
     return document

@@ -119,15 +119,25 @@ class SEMView:
 class Registration:
     """Where the SEM shows the mosaic (:attr:`transform`, ``T_sem_mosaic``) and how sure.
 
-    sigma_rotation_deg, sigma_scale : standard deviations of the rotation and scale.
-    sigma_offset : standard deviations of the offset's x and y, metres (the offset turns about
+    Attributes
+    ----------
+    sigma_rotation_deg, sigma_scale
+        standard deviations of the rotation and scale.
+    sigma_offset
+        standard deviations of the offset's x and y, metres (the offset turns about
         the stage's origin, so it carries the rotation's uncertainty times the distance).
-    sigma_here : standard deviation of where the mosaic's centre is mapped, metres.
-    score : correlation of the fitted SE contrast with the SEM image over the mosaic (0..1).
-    rival : the best correlation of a match elsewhere on the coarse search, over the best.
-    overlap : the part of the mosaic inside the SEM image.
-    affine : (2, 3) the general affine map ``[A | t]`` when one was asked for, else None.
-    weights : the SE contrast's fitted weights (constant, tilt, slope x, slope y).
+    sigma_here
+        standard deviation of where the mosaic's centre is mapped, metres.
+    score
+        correlation of the fitted SE contrast with the SEM image over the mosaic (0..1).
+    rival
+        the best correlation of a match elsewhere on the coarse search, over the best.
+    overlap
+        the part of the mosaic inside the SEM image.
+    affine
+        (2, 3) the general affine map ``[A | t]`` when one was asked for, else None.
+    weights
+        the SE contrast's fitted weights (constant, tilt, slope x, slope y).
     """
 
     transform: Similarity

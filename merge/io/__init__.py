@@ -1,4 +1,4 @@
-"""The files at the merge's edges (DESIGN.md): patch sets in, results out.
+"""The files at the merge's edges (docs/design.md): patch sets in, results out.
 
 In: ``manifest.json`` with one height file per patch (:mod:`~merge.io.manifest`), a folder
 of AFM files of any vendor format (:mod:`~merge.io.scans`, :mod:`~merge.io.formats`), or a

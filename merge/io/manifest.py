@@ -1,4 +1,4 @@
-"""Patch-set files: ``manifest.json`` beside one height file per patch (DESIGN.md).
+"""Patch-set files: ``manifest.json`` beside one height file per patch (docs/design.md).
 
 This is the I/O edge of the merge engine: it turns files into a validated :class:`PatchSet` and
 back. Every problem is a :class:`PatchSetError` whose message names the patch and the fix.

@@ -1,4 +1,4 @@
-"""Merge-result files (DESIGN.md): ``mosaic.npy``, ``mosaic.json`` and ``preview.png``."""
+"""Merge-result files (docs/design.md): ``mosaic.npy``, ``mosaic.json`` and ``preview.png``."""
 
 from __future__ import annotations
 

@@ -42,14 +42,23 @@ MISFIT = 5.0
 class PatchReport:
     """What the merge did to one patch and how well it fits.
 
-    transform : ``T_mosaic_patch`` (rigid motion plus in-patch drift plane, metres).
-    rotation, translation : the rigid transform closest to ``transform`` over the patch's points,
+    Attributes
+    ----------
+    transform
+        ``T_mosaic_patch`` (rigid motion plus in-patch drift plane, metres).
+    rotation, translation
+        the rigid transform closest to ``transform`` over the patch's points,
         for consumers that only understand ``q = R p + t``.
-    overlaps : whether any other patch can overlap it (otherwise it stays nominal).
-    correspondences : overlap points that entered the fit.
-    residual_rms : RMS normal distance of those points to the other patches, metres.
-    xy_constrained : whether its own overlaps pin down XY (a flat overlap constrains only Z).
-    xy_sigma, z_sigma : standard deviations of its translation (XY: the larger axis), metres,
+    overlaps
+        whether any other patch can overlap it (otherwise it stays nominal).
+    correspondences
+        overlap points that entered the fit.
+    residual_rms
+        RMS normal distance of those points to the other patches, metres.
+    xy_constrained
+        whether its own overlaps pin down XY (a flat overlap constrains only Z).
+    xy_sigma, z_sigma
+        standard deviations of its translation (XY: the larger axis), metres,
         marginal over the whole mosaic with its common motion fixed: a block of patches tied to
         the rest by little texture is as uncertain as the block (:mod:`merge.report.uncertainty`).
     """

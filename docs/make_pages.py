@@ -1,0 +1,180 @@
+"""Pages the documentation makes from the code at build time, so they never drift from it:
+
+- ``_generated/rest-routes.md``: every route of the REST API from the app's OpenAPI schema,
+  with the scope, lock and audit the route table (``backend/api/access.py``) gives it, and
+  every request and response body's fields;
+- ``_generated/benchmarks.md``: the benchmark tables, from ``benchmarks/results/*.json``.
+
+Run by ``conf.py``; ``python docs/make_pages.py`` writes them alone.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+ROOT = Path(__file__).resolve().parents[1]
+OUT = Path(__file__).resolve().parent / "_generated"
+
+
+def _type(schema: dict[str, Any]) -> str:
+    """A schema's type in a few characters: ``number``, ``list[RoiIn]``, ``string | null``."""
+    if "$ref" in schema:
+        name = schema["$ref"].rsplit("/", 1)[-1]
+        return f"[{name}](#{name.lower()})"
+    if "anyOf" in schema:
+        return " \\| ".join(_type(s) for s in schema["anyOf"])
+    if schema.get("type") == "array":
+        items = schema.get("items") or schema.get("prefixItems") or {}
+        if isinstance(items, list):
+            return "[" + ", ".join(_type(i) for i in items) + "]"
+        return f"list[{_type(items)}]"
+    if "enum" in schema:
+        return " \\| ".join(f"`{v}`" for v in schema["enum"])
+    if "const" in schema:
+        return f"`{schema['const']}`"
+    return str(schema.get("type", "any"))
+
+
+def _cell(text: object) -> str:
+    return str(text).replace("\n", " ").replace("|", "\\|")
+
+
+def _fields(schema: dict[str, Any]) -> list[str]:
+    required = set(schema.get("required", []))
+    rows = ["| field | type | required | what |", "| --- | --- | --- | --- |"]
+    for name, prop in schema.get("properties", {}).items():
+        what = prop.get("description", "")
+        if "default" in prop and prop["default"] not in (None, [], {}):
+            what = f"{what} (default `{json.dumps(prop['default'])}`)".strip()
+        rows.append(
+            f"| `{name}` | {_type(prop)} | {'yes' if name in required else ''} | {_cell(what)} |"
+        )
+    return rows if len(rows) > 2 else ["(no fields)"]
+
+
+def rest_routes() -> str:
+    from backend.api.access import ROUTES
+    from backend.api.app import create_app
+    from backend.settings import Settings
+
+    schema = create_app(Settings(data_dir=OUT / "nowhere")).openapi()
+    lines = [
+        "<!-- made by docs/make_pages.py from the app's OpenAPI schema and route table -->",
+        "",
+        "## Routes",
+        "",
+        "| method | path | scope | lock | audited | what |",
+        "| --- | --- | --- | --- | --- | --- |",
+    ]
+    operations = []
+    for path, methods in schema["paths"].items():
+        for method, op in methods.items():
+            access = ROUTES[(method.upper(), path)]
+            lock = "abort always" if access.safety else "423 if held" if access.lock else ""
+            summary = op.get("summary", "")
+            lines.append(
+                f"| {method.upper()} | `{path}` | {access.scope or 'anyone'} | {lock} | "
+                f"{'yes' if access.audit else ''} | {_cell(summary)} |"
+            )
+            operations.append((method, path, op))
+    lines += ["", "## Each route", ""]
+    for method, path, op in operations:
+        lines += [f"### {method.upper()} {path}", ""]
+        if op.get("description"):
+            lines += [op["description"].strip(), ""]
+        params = op.get("parameters", [])
+        if params:
+            lines += [
+                "| parameter | in | type | required | what |",
+                "| --- | --- | --- | --- | --- |",
+            ]
+            for p in params:
+                lines.append(
+                    f"| `{p['name']}` | {p['in']} | {_type(p.get('schema', {}))} | "
+                    f"{'yes' if p.get('required') else ''} | {_cell(p.get('description', ''))} |"
+                )
+            lines.append("")
+        body = op.get("requestBody", {}).get("content", {})
+        for media, content in body.items():
+            lines += [f"Body ({media}): {_type(content.get('schema', {}))}", ""]
+        for status, answer in op.get("responses", {}).items():
+            if status.startswith("2"):
+                content = answer.get("content", {})
+                shown = ", ".join(f"{m}: {_type(c.get('schema', {}))}" for m, c in content.items())
+                lines += [f"Answer {status}: {shown or answer.get('description', '')}", ""]
+    lines += ["## Bodies", ""]
+    for name, body_schema in schema.get("components", {}).get("schemas", {}).items():
+        lines += [f"### {name}", ""]
+        if body_schema.get("description"):
+            lines += [_cell(body_schema["description"]), ""]
+        lines += [*_fields(body_schema), ""]
+    return "\n".join(lines) + "\n"
+
+
+def _flat(value: Any, prefix: str = "") -> dict[str, Any]:
+    """A nested record as one row: ``{"a": {"b": 1}}`` -> ``{"a.b": 1}``."""
+    if isinstance(value, dict):
+        out: dict[str, Any] = {}
+        for k, v in value.items():
+            out.update(_flat(v, f"{prefix}{k}."))
+        return {k.rstrip("."): v for k, v in out.items()}
+    return {prefix: value}
+
+
+def _number(value: Any) -> str:
+    if isinstance(value, float):
+        return f"{value:.4g}"
+    if isinstance(value, list):
+        return (
+            "[" + ", ".join(_number(v) for v in value[:6]) + (", …" if len(value) > 6 else "") + "]"
+        )
+    return _cell(value)
+
+
+def _table(rows: list[dict[str, Any]]) -> list[str]:
+    columns: list[str] = []
+    for row in rows:
+        columns += [c for c in row if c not in columns]
+    lines = ["| " + " | ".join(columns) + " |", "|" + " --- |" * len(columns)]
+    for row in rows:
+        lines.append("| " + " | ".join(_number(row.get(c, "")) for c in columns) + " |")
+    return lines
+
+
+def benchmarks() -> str:
+    """One section per ``benchmarks/results/*.json``: its records as a table."""
+    found = sorted((ROOT / "benchmarks" / "results").glob("*.json"))
+    if not found:
+        return "No results yet: `make bench` writes them to `benchmarks/results/`.\n"
+    lines = ["<!-- made by docs/make_pages.py from benchmarks/results/*.json -->", ""]
+    for path in found:
+        data = json.loads(path.read_text())
+        lines += [f"## {path.stem}", "", f"From `benchmarks/results/{path.name}`.", ""]
+        if isinstance(data, list) and all(isinstance(r, dict) for r in data):
+            rows = [_flat(r) for r in data]
+        elif isinstance(data, dict) and all(isinstance(v, dict) for v in data.values()):
+            rows = [{"case": k, **_flat(v)} for k, v in data.items()]
+        else:
+            rows = [_flat(data)]
+        lines += [*_table(rows[:200]), ""]
+    return "\n".join(lines) + "\n"
+
+
+def _write(name: str, made: str) -> None:
+    target = OUT / name
+    if not target.exists() or target.read_text() != made:  # unchanged: no rebuild of the page
+        target.write_text(made)
+
+
+def main() -> None:
+    sys.path.insert(0, str(ROOT))
+    OUT.mkdir(exist_ok=True)
+    _write("rest-routes.md", rest_routes())
+    _write("benchmarks.md", benchmarks())
+
+
+if __name__ == "__main__":
+    main()
