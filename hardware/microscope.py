@@ -96,6 +96,7 @@ class Microscope:
         return land(self.robot_z, loop, probe)
 
     def close(self) -> None:
+        """Close every link and simulator this instrument opened."""
         for thing in self._closers:
             close = getattr(thing, "close", None)
             if callable(close):

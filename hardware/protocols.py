@@ -36,7 +36,9 @@ class PositionerAxis(Protocol):
         """Sensor read-back, metres; None for an axis without sensor."""
         ...
 
-    def status(self) -> AxisStatus: ...
+    def status(self) -> AxisStatus:
+        """The axis's status code as the controller reports it (stopped, stepping, holding...)."""
+        ...
 
     def step(self, steps: int, *, amplitude: int, frequency: int) -> None:
         """Open-loop steps (sign gives the direction)."""
@@ -59,7 +61,9 @@ class PositionerAxis(Protocol):
         """Fine-mode range, metres."""
         ...
 
-    def stop(self) -> None: ...
+    def stop(self) -> None:
+        """Stop the axis at once (part of the safe state)."""
+        ...
 
 
 @runtime_checkable
@@ -91,7 +95,9 @@ class ForceLoop(Protocol):
         """Open the loop and pull Z fully back in fine mode."""
         ...
 
-    def engaged(self) -> bool: ...
+    def engaged(self) -> bool:
+        """Whether the Z feedback is on (the tip held on the surface)."""
+        ...
 
     def saturated(self) -> bool:
         """True when Z hit an end of its fine range while engaged."""

@@ -57,13 +57,21 @@ class AxisStatus(IntEnum):
 class Link(Protocol):
     """What the driver needs of a serial port (``serial.Serial`` has it)."""
 
-    def write(self, data: bytes) -> int | None: ...
+    def write(self, data: bytes) -> int | None:
+        """Send ``data``; the count written."""
+        ...
 
-    def readline(self) -> bytes: ...
+    def readline(self) -> bytes:
+        """The next line received (up to its newline), or what came before the time-out."""
+        ...
 
-    def reset_input_buffer(self) -> None: ...
+    def reset_input_buffer(self) -> None:
+        """Drop whatever was received and not read."""
+        ...
 
-    def close(self) -> None: ...
+    def close(self) -> None:
+        """Close the port."""
+        ...
 
 
 def open_link(url: str, *, timeout: float = 1.0, baudrate: int = 115200) -> Link:
@@ -129,6 +137,7 @@ class MCSController:
     # -- plumbing ------------------------------------------------------------------------------
 
     def close(self) -> None:
+        """Close the link (once; a link already gone is not an error)."""
         if not self._closed:
             self._closed = True
             with contextlib.suppress(OSError):

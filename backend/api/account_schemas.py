@@ -11,10 +11,14 @@ from backend.security import scopes as sc
 
 
 class _In(BaseModel):
+    """A request body that refuses fields it does not know."""
+
     model_config = ConfigDict(extra="forbid")
 
 
 class LoginIn(_In):
+    """A login by name and password (``cookie``: the browser's, tokens in HttpOnly cookies)."""
+
     username: str = Field(min_length=1, max_length=64)
     password: str = Field(min_length=1, max_length=1024)
     cookie: bool = Field(
@@ -24,12 +28,16 @@ class LoginIn(_In):
 
 
 class RefreshIn(_In):
+    """A session's refresh token (absent: the browser's refresh cookie)."""
+
     refresh_token: str | None = Field(
         default=None, max_length=200, description="absent: the browser's refresh cookie"
     )
 
 
 class TokensOut(BaseModel):
+    """A login's tokens: a short-lived access token and the refresh token that renews it."""
+
     access_token: str | None = Field(description="None for a cookie login")
     refresh_token: str | None = Field(description="None for a cookie login")
     expires_in: int = Field(description="seconds the access token lives")
@@ -40,6 +48,8 @@ class TokensOut(BaseModel):
 
 
 class WhoOut(BaseModel):
+    """Who a request is from, and the server's mode."""
+
     mode: Literal["single", "users"]
     user: str | None = Field(description="None: nobody identified")
     role: str | None
@@ -49,6 +59,8 @@ class WhoOut(BaseModel):
 
 
 class SessionOut(BaseModel):
+    """One of the caller's login sessions that has not ended."""
+
     id: int
     created_at: datetime
     expires_at: datetime
@@ -57,6 +69,8 @@ class SessionOut(BaseModel):
 
 
 class KeyIn(_In):
+    """A new API key: its scopes (a subset of the caller's), life and note."""
+
     scopes: list[str] = Field(min_length=1, max_length=len(sc.ALL), description="a subset of yours")
     expires_in: int | None = Field(
         default=None, gt=0, le=10 * 365 * 86400, description="seconds; None: until revoked"
@@ -65,6 +79,8 @@ class KeyIn(_In):
 
 
 class KeyOut(BaseModel):
+    """An API key as listed: its prefix only, never the key."""
+
     id: int
     prefix: str = Field(description="the key's first characters (the rest is shown once)")
     scopes: list[str]
@@ -75,6 +91,8 @@ class KeyOut(BaseModel):
 
 
 class NewKeyOut(BaseModel):
+    """A new API key, shown this once."""
+
     id: int
     key: str = Field(description="the key itself: shown this once, never again")
     prefix: str
@@ -83,14 +101,20 @@ class NewKeyOut(BaseModel):
 
 
 class LockIn(_In):
+    """Take (or keep) the operator lock, with a note others see."""
+
     note: str = Field(default="", max_length=500)
 
 
 class UnlockIn(_In):
+    """Release the lock; an admin breaking another's gives the reason."""
+
     reason: str = Field(default="", max_length=500, description="an admin breaking the lock")
 
 
 class LockOut(BaseModel):
+    """Who holds the instrument, since when, why, and whether it is the caller."""
+
     held: bool
     holder: str | None
     note: str | None
@@ -99,6 +123,8 @@ class LockOut(BaseModel):
 
 
 class AuditOut(BaseModel):
+    """One row of the audit trail."""
+
     id: int
     at: datetime
     user: str
@@ -112,6 +138,8 @@ class AuditOut(BaseModel):
 
 
 class UserIn(_In):
+    """A new user: name, role and login provider (a local user's password)."""
+
     name: str = Field(min_length=1, max_length=64)
     role: Literal["observer", "operator", "admin"]
     password: str | None = Field(default=None, max_length=1024, description="local users")
@@ -119,6 +147,8 @@ class UserIn(_In):
 
 
 class UserOut(BaseModel):
+    """A user as listed (never a password or its hash)."""
+
     name: str
     role: str
     provider: str

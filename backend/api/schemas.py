@@ -20,6 +20,8 @@ PositiveMetres = Annotated[FiniteFloat, Field(gt=0, description="metres")]
 
 
 class Strict(BaseModel):
+    """A request body that refuses fields it does not know (a typo is a 422, not ignored)."""
+
     model_config = ConfigDict(extra="forbid")
 
 
@@ -46,6 +48,8 @@ class SemRoiIn(Strict):
 
 
 class PatchIn(Strict):
+    """One patch's scan range (metres) and pixels."""
+
     width: PositiveMetres
     height: PositiveMetres
     pixels: tuple[int, int] = Field(description="[nx, ny] pixels per patch")
@@ -87,6 +91,8 @@ class ResetIn(Strict):
 
 
 class AbortIn(Strict):
+    """Why a run is aborted (kept in its record and the audit trail)."""
+
     reason: str = Field(default="", max_length=500, description="why, for the record")
 
 
@@ -109,6 +115,8 @@ class MergeParams(Strict):
 
 
 class MergeIn(Strict):
+    """A merge of a run's stored patches: the method, which patches, and its options."""
+
     method: Literal["default", "paper", "nominal", "zlevel"] = "default"
     patches: list[Annotated[int, Field(ge=0, le=MAX_ID)]] | None = Field(
         default=None, description="patch indices to merge; default every stored patch"
@@ -224,6 +232,8 @@ class SimFaultIn(Strict):
 
 
 class PatchOut(BaseModel):
+    """One planned patch: its place in the grid, its origin on the stage (metres) and its step."""
+
     index: int
     row: int
     col: int
@@ -250,11 +260,15 @@ class RescanOut(BaseModel):
 
 
 class ProgressOut(BaseModel):
+    """Patches stored of the total planned."""
+
     stored: int
     total: int
 
 
 class PlanOut(BaseModel):
+    """A planned mosaic (nothing moved): its grid, ROI, extent and patches in snake order."""
+
     rows: int
     cols: int
     count: int
@@ -277,6 +291,8 @@ class RoiOut(BaseModel):
 
 
 class PatchShapeOut(BaseModel):
+    """A run's patch: scan range (metres) and pixels."""
+
     width: StoredFloat
     height: StoredFloat
     pixels: tuple[int, int] = Field(description="[nx, ny] pixels per patch")
@@ -296,6 +312,8 @@ class RunSemOut(BaseModel):
 
 
 class RunOut(BaseModel):
+    """A run: its plan, state, progress, the step of its current patch, re-scans and merges."""
+
     id: int
     state: str
     created_at: datetime
@@ -329,6 +347,8 @@ class RunOut(BaseModel):
 
 
 class MergeOut(BaseModel):
+    """A merge job: state, progress, residual, and where its mosaic is once done."""
+
     id: int
     run_id: int
     state: str
@@ -349,6 +369,8 @@ class MergeOut(BaseModel):
 
 
 class SemOut(BaseModel):
+    """A stored SEM image and where its pixels lie on the stage (an affine map)."""
+
     id: int
     created_at: datetime
     source: str
@@ -379,6 +401,8 @@ class SemStateOut(BaseModel):
 
 
 class InstrumentOut(BaseModel):
+    """The instrument now: state, positions (metres), frequency shift (Hz), safe state."""
+
     description: str
     simulated: bool
     state: Literal["idle", "running", "fault", "error"]
@@ -392,6 +416,8 @@ class InstrumentOut(BaseModel):
 
 
 class ErrorOut(BaseModel):
+    """Every error's answer: ``detail`` says what went wrong and what to fix."""
+
     detail: Any
 
 
@@ -412,6 +438,8 @@ class TransformOut(BaseModel):
 
 
 class RegistrationSigmaOut(BaseModel):
+    """A registration's standard deviations."""
+
     rotation_deg: float
     scale: float
     offset: tuple[float, float] = Field(description="metres (about the stage's origin)")
@@ -431,6 +459,8 @@ class CalibrationCheckOut(BaseModel):
 
 
 class RegistrationOut(BaseModel):
+    """A merged mosaic registered on an SEM image (``T_sem_mosaic``) and how sure."""
+
     id: int
     created_at: datetime
     merge_id: int

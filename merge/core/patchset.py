@@ -162,6 +162,7 @@ class PatchSet:
 
     @property
     def ids(self) -> list[str]:
+        """The patches' ids, in order."""
         return [p.id for p in self.patches]
 
     def subset(self, ids: Sequence[str]) -> PatchSet:
