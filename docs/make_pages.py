@@ -144,8 +144,38 @@ def _table(rows: list[dict[str, Any]]) -> list[str]:
     return lines
 
 
+def _scalar(value: Any) -> bool:
+    return not isinstance(value, dict | list) or (
+        isinstance(value, list) and all(not isinstance(v, dict | list) for v in value)
+    )
+
+
+def _tables(data: Any, title: str) -> list[str]:
+    """Every table a result holds: a list of records, or a mapping of names to records, is a
+    table (nested records flattened into dotted columns); other scalars go in a key/value
+    table; deeper mappings are walked, their keys making the titles."""
+    lines: list[str] = []
+    if isinstance(data, list) and data and all(isinstance(r, dict) for r in data):
+        return [f"**{title}**", "", *_table([_flat(r) for r in data][:200]), ""]
+    if not isinstance(data, dict):
+        return [f"**{title}**: {_number(data)}", ""]
+    scalars = {k: v for k, v in data.items() if _scalar(v)}
+    nested = {k: v for k, v in data.items() if not _scalar(v)}
+    if scalars:
+        lines += [f"**{title}**", "", "| | |", "| --- | --- |"]
+        lines += [f"| {_cell(k)} | {_number(v)} |" for k, v in scalars.items()] + [""]
+    records = {k: v for k, v in nested.items() if isinstance(v, dict)}
+    if records and all(_scalar(x) for v in records.values() for x in v.values()):
+        rows = [{"": k, **v} for k, v in records.items()]
+        lines += [f"**{title}**", "", *_table(rows), ""]
+        nested = {k: v for k, v in nested.items() if k not in records}
+    for key, value in nested.items():
+        lines += _tables(value, f"{title} · {key}")
+    return lines
+
+
 def benchmarks() -> str:
-    """One section per ``benchmarks/results/*.json``: its records as a table."""
+    """One section per ``benchmarks/results/*.json``: its records as tables."""
     found = sorted((ROOT / "benchmarks" / "results").glob("*.json"))
     if not found:
         return "No results yet: `make bench` writes them to `benchmarks/results/`.\n"
@@ -153,13 +183,7 @@ def benchmarks() -> str:
     for path in found:
         data = json.loads(path.read_text())
         lines += [f"## {path.stem}", "", f"From `benchmarks/results/{path.name}`.", ""]
-        if isinstance(data, list) and all(isinstance(r, dict) for r in data):
-            rows = [_flat(r) for r in data]
-        elif isinstance(data, dict) and all(isinstance(v, dict) for v in data.values()):
-            rows = [{"case": k, **_flat(v)} for k, v in data.items()]
-        else:
-            rows = [_flat(data)]
-        lines += [*_table(rows[:200]), ""]
+        lines += _tables(data, path.stem)
     return "\n".join(lines) + "\n"
 
 
