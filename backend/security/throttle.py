@@ -33,6 +33,9 @@ class Throttle:
         with self._lock:
             for key in keys:
                 times = [t for t in self._failures.get(key, []) if now - t < self.window]
+                if not times:  # nothing recent: forgotten (names tried once do not pile up)
+                    self._failures.pop(key, None)
+                    continue
                 self._failures[key] = times
                 extra = len(times) - self.attempts
                 if extra >= 0:
@@ -43,6 +46,10 @@ class Throttle:
     def failed(self, *keys: str) -> None:
         now = self.clock()
         with self._lock:
+            if len(self._failures) > 100_000:  # a flood of names: keep only the recent ones
+                self._failures = {
+                    k: v for k, v in self._failures.items() if now - v[-1] < self.window
+                }
             for key in keys:
                 self._failures.setdefault(key, []).append(now)
 
