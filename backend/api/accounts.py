@@ -37,6 +37,7 @@ from backend.security.authority import Refused, Tokens
 from backend.security.lock import Holder, Locked
 from backend.security.tokens import refresh_session, same
 from backend.services import Services
+from backend.viewer_access import COOKIE as VIEWER
 
 router = APIRouter(tags=["access"])
 
@@ -156,7 +157,8 @@ def logout(who: PrincipalDep, services: ServicesDep) -> Response:
         )
     services.authority.end_session(who.user_id, who.session_id)
     response = Response(status_code=204)
-    for name, path in ((ACCESS_COOKIE, "/"), (REFRESH_COOKIE, "/api/auth"), (CSRF_COOKIE, "/")):
+    gone = ((ACCESS_COOKIE, "/"), (REFRESH_COOKIE, "/api/auth"), (CSRF_COOKIE, "/"), (VIEWER, "/"))
+    for name, path in gone:
         response.delete_cookie(name, path=path)
     return response
 
