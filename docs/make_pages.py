@@ -174,8 +174,35 @@ def _tables(data: Any, title: str) -> list[str]:
     return lines
 
 
+def _scale_plot(data: Any) -> str | None:
+    """Time and memory against the number of patches (``merge_scale.json``), as a figure."""
+    sizes = [r for r in data.get("sizes", []) if "patches" in r and "wall_s" in r]
+    if len(sizes) < 2:
+        return None
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 3.4), constrained_layout=True)
+    for pixels in sorted({r["pixels"] for r in sizes}):
+        rows = sorted((r for r in sizes if r["pixels"] == pixels), key=lambda r: r["patches"])
+        n = [r["patches"] for r in rows]
+        ax.loglog(n, [r["wall_s"] for r in rows], "o-", label=f"time, {pixels} px patches")
+        ax.loglog(n, [r["peak_gb"] * 10 for r in rows], "s--", label=f"memory x 10 GB, {pixels} px")
+    ax.set(xlabel="patches", ylabel="seconds", title="the CLI's merge, 2 cores")
+    ax.legend(fontsize=8)
+    fig.savefig(OUT / "merge_scale.png", dpi=110)
+    plt.close(fig)
+    return "![Time and memory against the number of patches](/_generated/merge_scale.png)"
+
+
+PLOTS = {"merge_scale": _scale_plot}
+
+
 def benchmarks() -> str:
-    """One section per ``benchmarks/results/*.json``: its records as tables."""
+    """One section per ``benchmarks/results/*.json``: its records as tables (and a figure
+    where :data:`PLOTS` has one)."""
     found = sorted((ROOT / "benchmarks" / "results").glob("*.json"))
     if not found:
         return "No results yet: `make bench` writes them to `benchmarks/results/`.\n"
@@ -183,6 +210,10 @@ def benchmarks() -> str:
     for path in found:
         data = json.loads(path.read_text())
         lines += [f"## {path.stem}", "", f"From `benchmarks/results/{path.name}`.", ""]
+        plot = PLOTS.get(path.stem)
+        figure = plot(data) if plot is not None else None
+        if figure:
+            lines += [figure, ""]
         lines += _tables(data, path.stem)
     return "\n".join(lines) + "\n"
 
