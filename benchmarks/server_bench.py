@@ -103,6 +103,8 @@ def latency_under_load(
     samples = {u: [t for out in per_client for t in out[u]] for u in urls}
     stop.set()
     client.post(f"/api/runs/{big['id']}/abort", json={"reason": "benchmark over"}, headers=AUTH)
+    # the abort may answer while the tip is still retracted: the next case's run waits for it
+    wait_for(client, f"/api/runs/{big['id']}", lambda b: b["state"] not in ("running", "paused"))
     worker.join(60)
     every = np.concatenate([np.asarray(v) for v in samples.values()])
     return {

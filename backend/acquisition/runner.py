@@ -142,7 +142,11 @@ class Runner(RunEnding, PatchLoop, UnattendedSafety):
 
     def start(self, run_id: int, *, actor: str) -> None:
         """Start (or resume from its first patch not stored) a planned, failed or
-        interrupted run; :class:`StorageFull` when the data directory has no room."""
+        interrupted run; :class:`StorageFull` when the data directory has no room. A run
+        that has ended (the instrument safe) while its worker still records it is waited
+        for (up to 5 s), not refused: a script that starts the next run on hearing that the
+        last one ended must not be told the instrument is busy."""
+        self._await_concluded(5.0)
         self.flush()
         with self._lock:
             if self._unrecorded:
@@ -308,11 +312,8 @@ class Runner(RunEnding, PatchLoop, UnattendedSafety):
 
     # -- instrument status ------------------------------------------------------------------
 
-    def instrument_status(self) -> dict[str, Any]:
-        """What the instrument is doing: live when idle, the worker's last reading when busy.
-        Once the worker has concluded its run (the instrument safe, the end being recorded and
-        announced), a read waits for it to end (up to a second): a page that reads the
-        instrument on hearing that a run completed must not find it still driven."""
+    def _await_concluded(self, timeout: float) -> None:
+        """Wait up to ``timeout`` s for a worker that has concluded its run to end."""
         with self._lock:
             control, thread = self._control, self._thread
         if (
@@ -321,7 +322,14 @@ class Runner(RunEnding, PatchLoop, UnattendedSafety):
             and thread is not None
             and thread is not threading.current_thread()
         ):
-            thread.join(timeout=1.0)
+            thread.join(timeout=timeout)
+
+    def instrument_status(self) -> dict[str, Any]:
+        """What the instrument is doing: live when idle, the worker's last reading when busy.
+        Once the worker has concluded its run (the instrument safe, the end being recorded and
+        announced), a read waits for it to end (up to a second): a page that reads the
+        instrument on hearing that a run completed must not find it still driven."""
+        self._await_concluded(1.0)
         active = self.active_run
         if active is None and self._io.acquire(timeout=0.2):
             try:

@@ -199,6 +199,28 @@ def test_a_status_read_on_hearing_a_run_completed_finds_the_instrument_safe(
     assert status["safe_state"] is True
 
 
+def test_the_next_run_starts_on_hearing_that_the_last_one_ended(server: Server) -> None:
+    """A script starts its next run as soon as it hears the last one was aborted; the worker
+    that announced it may still be recording (here a listener taking 0.3 s): the start waits
+    for it rather than answering that the instrument is busy."""
+    heard = threading.Event()
+
+    def slow_listener(event: dict[str, Any]) -> None:
+        if event["kind"] == "run" and event["data"].get("state") == "aborted":
+            heard.set()
+            time.sleep(0.3)
+
+    server.services.events.listen(slow_listener)
+    first = server.create(plan(size=4e-6, pixels=(32, 32)))
+    second = server.create()
+    server.post(f"/api/runs/{first['id']}/start")
+    server.wait(first["id"], lambda r: r["progress"]["stored"] >= 1)
+    server.post(f"/api/runs/{first['id']}/abort")
+    assert heard.wait(60)
+    started = server.post(f"/api/runs/{second['id']}/start")
+    assert started.status_code == 202, started.text
+
+
 def test_a_crash_is_a_fault_that_blocks_every_landing_until_a_reset_with_a_note(
     server: Server,
 ) -> None:
