@@ -40,6 +40,8 @@ def test_a_mosaic_from_roi_to_merged_preview(
     pg, errors = page
     pg.click("#sem-acquire")
     pg.wait_for_selector("#sem-canvas[data-sem-id]")
+    # the single-user mode: no login, no lock bar (one identity cannot conflict with itself)
+    assert not pg.is_visible("#lock-panel") and not pg.is_visible("#logout")
     sem = httpx.get(server.url + "/api/sem").json()[-1]
     # the 512 px image fits the 640 x 480 canvas: scale 480 / 512, centred horizontally
     box = pg.locator("#sem-canvas").bounding_box()
