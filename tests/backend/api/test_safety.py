@@ -177,20 +177,27 @@ def test_status_is_never_safe_while_a_run_has_the_instrument(server: Server) -> 
     assert server.client.get("/api/instrument").json()["safe_state"] is True
 
 
+def slowed_after(server: Server, state: str) -> threading.Event:
+    """Set when a run's end in ``state`` is announced; the worker that announced it then
+    takes 0.3 s more in its own thread (as on a loaded machine)."""
+    heard = threading.Event()
+
+    def slow_listener(event: dict[str, Any]) -> None:
+        if event["kind"] == "run" and event["data"].get("state") == state:
+            heard.set()
+            time.sleep(0.3)
+
+    server.services.events.listen(slow_listener)
+    return heard
+
+
 def test_a_status_read_on_hearing_a_run_completed_finds_the_instrument_safe(
     server: Server,
 ) -> None:
     """A page reads the instrument when it hears that a run ended; the worker that announced
     it may still be recording (a loaded machine: here a listener that takes 0.3 s). The read
     must not find the instrument still driven by the run: no later event would correct it."""
-    heard = threading.Event()
-
-    def slow_listener(event: dict[str, Any]) -> None:
-        if event["kind"] == "run" and event["data"].get("state") == "completed":
-            heard.set()
-            time.sleep(0.3)  # in the worker's thread, after its end is announced
-
-    server.services.events.listen(slow_listener)
+    heard = slowed_after(server, "completed")
     run = server.create(plan(pixels=(16, 16)))
     server.post(f"/api/runs/{run['id']}/start")
     assert heard.wait(60)
@@ -203,14 +210,7 @@ def test_the_next_run_starts_on_hearing_that_the_last_one_ended(server: Server) 
     """A script starts its next run as soon as it hears the last one was aborted; the worker
     that announced it may still be recording (here a listener taking 0.3 s): the start waits
     for it rather than answering that the instrument is busy."""
-    heard = threading.Event()
-
-    def slow_listener(event: dict[str, Any]) -> None:
-        if event["kind"] == "run" and event["data"].get("state") == "aborted":
-            heard.set()
-            time.sleep(0.3)
-
-    server.services.events.listen(slow_listener)
+    heard = slowed_after(server, "aborted")
     first = server.create(plan(size=4e-6, pixels=(32, 32)))
     second = server.create()
     server.post(f"/api/runs/{first['id']}/start")
