@@ -3,7 +3,9 @@
 // the CSRF header, and an expired access token is refreshed once before the page gives up.
 
 const TOKEN_KEY = "mosaic-afm-token";
-let mode = "single";
+// unknown until /api/auth/whoami answers: no credential is sent before (a single-mode token
+// left in this browser would otherwise hide a users-mode login's cookie)
+let mode = null;
 
 /** The server's mode, from /api/auth/whoami: "single" or "users". */
 export function setMode(value) {
@@ -59,7 +61,7 @@ export async function request(method, url, body, retried = false) {
   const options = { method, headers };
   if (mode === "users") {
     if (method !== "GET") headers["X-CSRF-Token"] = cookie("mosaic_csrf");
-  } else if (method !== "GET" || token()) {
+  } else if (mode === "single" && (method !== "GET" || token())) {
     // reads are open in the single mode; the token lets this browser read the audit trail
     headers.Authorization = `Bearer ${token()}`;
     headers["X-Operator"] = "browser";
