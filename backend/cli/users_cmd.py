@@ -55,11 +55,10 @@ def read_password() -> str:
 def run_users(args: argparse.Namespace) -> int:
     from sqlalchemy import select
 
-    from backend.db.access_models import LoginSession, User
-    from backend.db.models import utcnow
+    from backend.db.access_models import User
     from backend.db.session import make_engine, migrate, session_factory
     from backend.security import audit
-    from backend.security.authority import add_user
+    from backend.security.authority import add_user, end_sessions
     from backend.security.passwords import hash_password
     from backend.settings import Settings
 
@@ -118,8 +117,7 @@ def run_users(args: argparse.Namespace) -> int:
         else:
             user.disabled = args.verb == "disable"
         if args.verb in ("disable", "passwd"):  # every session of theirs ends
-            for login in s.scalars(select(LoginSession).where(LoginSession.user_id == user.id)):
-                login.revoked_at = login.revoked_at or utcnow()
+            end_sessions(s, user.id)
         s.commit()
     log(f"{args.verb}_user", args.name)
     print(f"{args.verb}: {args.name} done (a running server sees it within seconds)")

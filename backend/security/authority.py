@@ -379,11 +379,16 @@ class Authority:
                 return False
             user.disabled = disabled
             if disabled:
-                for login in s.scalars(select(LoginSession).where(LoginSession.user_id == user.id)):
-                    login.revoked_at = login.revoked_at or _now()
+                end_sessions(s, user.id)
             s.commit()
         self.forget()
         return True
+
+
+def end_sessions(s: Session, user_id: int) -> None:
+    """End every login session of ``user_id`` (in ``s``, committed by the caller)."""
+    for login in s.scalars(select(LoginSession).where(LoginSession.user_id == user_id)):
+        login.revoked_at = login.revoked_at or _now()
 
 
 def add_user(
