@@ -51,7 +51,9 @@ def _score(client: object, job: dict[str, object], margin: float = 0.3e-6) -> ob
 
 @pytest.mark.slow
 def test_a_5_x_10_mosaic_over_http_merges_close_to_the_truth(tmp_path: Path) -> None:
-    server = ServerProcess(tmp_path, MOSAIC_AUTO_MERGE="true").start()
+    # the merge's accuracy over HTTP: no live merge beside the scan (the page tests run the
+    # server as it starts by default, live merge included, on mosaics of their own)
+    server = ServerProcess(tmp_path, MOSAIC_AUTO_MERGE="true", MOSAIC_LIVE_MERGE="false").start()
     try:
         with server.client() as client:
             run = client.post("/api/runs", json=PAPER_GRID, headers=AUTH).json()

@@ -82,6 +82,9 @@ def open_server(tmp_path: Path, **settings: Any) -> Iterator[Server]:
         data_dir=tmp_path,
         api_token=TOKEN,
         auto_merge=settings.pop("auto_merge", False),
+        # the live merge is a second process merging every stored patch: a core's worth of load
+        # the tests of it ask for (live_merge=True), and the others do without
+        live_merge=settings.pop("live_merge", False),
         viewer=settings.pop("viewer", False),
         instrument=settings.pop("instrument", "sim://?speed=max"),
         hosts=settings.pop("hosts", ["testserver"]),

@@ -38,11 +38,13 @@ class Rig:
 
 
 @pytest.fixture
-def rig(tmp_path: Path) -> Iterator[Rig]:
+def rig(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[Rig]:
+    # the live merge (and with it the quality gate's re-scans) only where a test asks for it
+    live = request.node.get_closest_marker("live_merge") is not None
     surface = surface_by_name("folded", seed=0, centred=True, size=SIM_SAMPLE_SIZE)
     with SimulatedAFM(surface, seed=0) as afm, NanonisServer(afm) as nanonis:
         url = nanonis.instrument_url + "&timeout=0.5"
-        for server in open_server(tmp_path, instrument=url):
+        for server in open_server(tmp_path, instrument=url, live_merge=live):
             yield Rig(server, nanonis)
 
 
@@ -150,6 +152,7 @@ def test_a_nanonis_fault_fails_the_run_in_the_safe_state_then_it_resumes(
     assert done["progress"]["stored"] == done["progress"]["total"]
 
 
+@pytest.mark.live_merge
 def test_z_at_its_limit_mid_frame_has_the_patch_scanned_again(rig: Rig) -> None:
     """The sample falls away under the tip mid-frame: Z runs into its limit on the lines after.
     The scan's own record fails the patch, the next landing finds the surface lower down, and

@@ -16,7 +16,7 @@ from tests.backend.api.conftest import Server, open_server, plan
 
 @pytest.fixture
 def merging(tmp_path: Path) -> Iterator[Server]:
-    yield from open_server(tmp_path, auto_merge=True)
+    yield from open_server(tmp_path, auto_merge=True, live_merge=True)
 
 
 def _mosaic_plan(**extra: Any) -> dict[str, Any]:
