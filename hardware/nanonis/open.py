@@ -2,21 +2,21 @@
 
 Options (query, every one checked at start-up):
 
-=================  ==========================================================================
-``stage``          ``mcs:URL``: the sample stage is a SmarAct MCS controller on a pyserial URL
-                   (channels 0 and 1 are X and Y). Absent: Nanonis's coarse motor module moves
-                   the stage (closed loop, so its motors need sensors).
-``landing``        ``woodpecker`` (default: the project's landing on the Z piezo and the Z
-                   motor) or ``auto`` (the controller's own auto-approach).
-``approach``       the Z motor direction towards the sample, ``Z-`` (default) or ``Z+``.
-``z_channel``      the signal slot of Z in the scan buffer (default 14).
-``angle``          scan frame angle, degrees clockwise (default 0).
-``backward_ratio`` backward over forward scan speed (default 1).
-``timeout``        seconds to wait for a response (default 5).
-``motor_group``    the coarse motor module's group (default 0).
-``sem``            ``sharksem://HOST:PORT``: a TESCAN SEM over SharkSEM
-                   (:mod:`hardware.sharksem.open`). Absent: no SEM (images are uploaded).
-=================  ==========================================================================
+==================  ==========================================================================
+``stage``           ``mcs:URL``: the sample stage is a SmarAct MCS controller on a pyserial URL
+                    (channels 0 and 1 are X and Y). Absent: Nanonis's coarse motor module moves
+                    the stage (closed loop, so its motors need sensors).
+``landing``         ``woodpecker`` (default: the project's landing on the Z piezo and the Z
+                    motor) or ``auto`` (the controller's own auto-approach).
+``approach``        the Z motor direction towards the sample, ``Z-`` (default) or ``Z+``.
+``z_channel``       the signal slot of Z in the scan buffer (default 14).
+``angle``           scan frame angle, degrees clockwise (default 0).
+``backward_ratio``  backward over forward scan speed (default 1).
+``timeout``         seconds to wait for a response (default 5).
+``motor_group``     the coarse motor module's group (default 0).
+``sem``             ``sharksem://HOST:PORT``: a TESCAN SEM over SharkSEM
+                    (:mod:`hardware.sharksem.open`). Absent: no SEM (images are uploaded).
+==================  ==========================================================================
 """
 
 from __future__ import annotations
