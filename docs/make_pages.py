@@ -127,6 +127,8 @@ def _flat(value: Any, prefix: str = "") -> dict[str, Any]:
 def _number(value: Any) -> str:
     if isinstance(value, float):
         return f"{value:.4g}"
+    if isinstance(value, list) and value and all(isinstance(v, dict) for v in value):
+        return f"{len(value)} records (in the JSON)"  # a case's draws: the row is their summary
     if isinstance(value, list):
         return (
             "[" + ", ".join(_number(v) for v in value[:6]) + (", …" if len(value) > 6 else "") + "]"
@@ -197,7 +199,40 @@ def _scale_plot(data: Any) -> str | None:
     return "![Time and memory against the number of patches](/_generated/merge_scale.png)"
 
 
-PLOTS = {"merge_scale": _scale_plot}
+def _gratings_plot(data: Any) -> str | None:
+    """The tip-drawn gratings' XY error over the bound, case by case (``merge_bench.json``)."""
+    tips = [r for r in data.get("tip_gratings", []) if "xy_over_crb" in r]
+    if not tips:
+        return None
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 3.4), constrained_layout=True)
+    labels = [f"{r['geometry']}, {r['step'] * 1e6:g} µm, {r['pixel'] * 1e9:.0f} nm" for r in tips]
+    x = range(len(tips))
+    ax.bar(x, [r["xy_over_crb"] for r in tips], color="tab:blue", label="XY / bound")
+    ax.plot(
+        x,
+        [r["map_over_floor_median"] for r in tips],
+        "o",
+        color="tab:orange",
+        label="map / floor, median",
+    )
+    ax.axhline(1.0, color="0.3", lw=0.8)
+    ax.set_yscale("log")
+    ax.set_xticks(list(x), labels, rotation=70, fontsize=7)
+    ax.set(title="tip-drawn chessboards: geometry, step, pixel")
+    ax.legend(fontsize=8)
+    fig.savefig(OUT / "merge_bench_gratings.png", dpi=110)
+    plt.close(fig)
+    return (
+        "![The tip-drawn gratings' XY error over the bound](/_generated/merge_bench_gratings.png)"
+    )
+
+
+PLOTS = {"merge_scale": _scale_plot, "merge_bench": _gratings_plot}
 
 
 def benchmarks() -> str:
