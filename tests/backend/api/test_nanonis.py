@@ -43,7 +43,8 @@ def rig(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[Rig]:
     live = request.node.get_closest_marker("live_merge") is not None
     surface = surface_by_name("folded", seed=0, centred=True, size=SIM_SAMPLE_SIZE)
     with SimulatedAFM(surface, seed=0) as afm, NanonisServer(afm) as nanonis:
-        url = nanonis.instrument_url + "&timeout=0.5"
+        # 2 s: on CI's shared cores a reply can take over half a second (the default is 5 s)
+        url = nanonis.instrument_url + "&timeout=2"
         for server in open_server(tmp_path, instrument=url, live_merge=live):
             yield Rig(server, nanonis)
 

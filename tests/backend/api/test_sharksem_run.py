@@ -35,7 +35,7 @@ def rig(tmp_path: Path) -> Iterator[Rig]:
             surface, seed=0, stage=afm.stage_position, sensor_scale=afm.stage_sensor_scale
         )
         with SharkSEMServer(seen).start() as sem:
-            url = f"{nanonis.instrument_url}&timeout=0.5&sem={sem.url}"
+            url = f"{nanonis.instrument_url}&timeout=2&sem={sem.url}"
             for server in open_server(tmp_path, instrument=url):
                 yield Rig(server, sem)
 
