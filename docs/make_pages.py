@@ -10,7 +10,9 @@ Run by ``conf.py``; ``python docs/make_pages.py`` writes them alone.
 
 from __future__ import annotations
 
+import ast
 import json
+import re
 import sys
 from pathlib import Path
 from typing import Any
@@ -169,7 +171,8 @@ def _tables(data: Any, title: str) -> list[str]:
     records = {k: v for k, v in nested.items() if isinstance(v, dict)}
     if records and all(_scalar(x) for v in records.values() for x in v.values()):
         rows = [{"": k, **v} for k, v in records.items()]
-        lines += [f"**{title}**", "", *_table(rows), ""]
+        named = f"{title} · {', '.join(records)}" if scalars else title
+        lines += [f"**{named}**", "", *_table(rows), ""]
         nested = {k: v for k, v in nested.items() if k not in records}
     for key, value in nested.items():
         lines += _tables(value, f"{title} · {key}")
@@ -235,6 +238,17 @@ def _gratings_plot(data: Any) -> str | None:
 PLOTS = {"merge_scale": _scale_plot, "merge_bench": _gratings_plot}
 
 
+def _what(stem: str) -> list[str]:
+    """What a benchmark measures: the first paragraph of its script's docstring."""
+    script = ROOT / "benchmarks" / f"{stem}.py"
+    if not script.exists():
+        return []
+    doc = ast.get_docstring(ast.parse(script.read_text())) or ""
+    first = " ".join(doc.split("\n\n")[0].split())
+    first = re.sub(r":\w+:`~?([^`]+)`", r"`\1`", first).replace("``", "`")  # reST roles -> code
+    return [first, ""] if first else []
+
+
 def benchmarks() -> str:
     """One section per ``benchmarks/results/*.json``: its records as tables (and a figure
     where :data:`PLOTS` has one)."""
@@ -244,7 +258,13 @@ def benchmarks() -> str:
     lines = ["<!-- made by docs/make_pages.py from benchmarks/results/*.json -->", ""]
     for path in found:
         data = json.loads(path.read_text())
-        lines += [f"## {path.stem}", "", f"From `benchmarks/results/{path.name}`.", ""]
+        lines += [
+            f"## {path.stem}",
+            "",
+            *_what(path.stem),
+            f"From `benchmarks/results/{path.name}`.",
+            "",
+        ]
         plot = PLOTS.get(path.stem)
         figure = plot(data) if plot is not None else None
         if figure:
