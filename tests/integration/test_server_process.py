@@ -90,7 +90,7 @@ def test_a_5_x_10_mosaic_over_http_merges_close_to_the_truth(tmp_path: Path) -> 
 @pytest.mark.slow
 def test_sigkill_mid_run_then_resume_stores_every_patch_exactly_once(tmp_path: Path) -> None:
     plan = {
-        "roi": {"x": -2e-6, "y": -2e-6, "width": 4e-6, "height": 4e-6},
+        "roi": {"x": -1.5e-6, "y": -1.5e-6, "width": 3e-6, "height": 3e-6},  # 4 x 4 patches
         "patch": {"width": 1e-6, "height": 1e-6, "pixels": [40, 40]},
         "overlap": [0.2, 0.2],
     }
