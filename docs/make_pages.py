@@ -138,6 +138,18 @@ def _number(value: Any) -> str:
     return _cell(value)
 
 
+def _explode(record: dict[str, Any]) -> list[dict[str, Any]]:
+    """A record holding a mapping of named records (``{"case": .., "methods": {"default":
+    {..}, ..}}``) as one row per name (``case``, ``method``, its fields), so that a table
+    has a column per measurement instead of one per measurement and name."""
+    for key, value in record.items():
+        if isinstance(value, dict) and value and all(isinstance(v, dict) for v in value.values()):
+            rest = {k: v for k, v in record.items() if k != key}
+            label = key[:-1] if key.endswith("s") else key
+            return [{**rest, label: name, **inner} for name, inner in value.items()]
+    return [record]
+
+
 def _table(rows: list[dict[str, Any]]) -> list[str]:
     columns: list[str] = []
     for row in rows:
@@ -160,7 +172,8 @@ def _tables(data: Any, title: str) -> list[str]:
     table; deeper mappings are walked, their keys making the titles."""
     lines: list[str] = []
     if isinstance(data, list) and data and all(isinstance(r, dict) for r in data):
-        return [f"**{title}**", "", *_table([_flat(r) for r in data][:200]), ""]
+        rows = [_flat(row) for record in data for row in _explode(record)]
+        return [f"**{title}**", "", *_table(rows[:200]), ""]
     if not isinstance(data, dict):
         return [f"**{title}**: {_number(data)}", ""]
     scalars = {k: v for k, v in data.items() if _scalar(v)}
