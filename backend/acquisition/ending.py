@@ -73,7 +73,7 @@ class RunEnding:
             if problem is not None:
                 target, reason = RunState.FAULT, f"{reason}; {problem}"
         if control is not None:
-            control.concluded = True  # a status read from now on waits for the worker's end
+            control.concluded = True  # nothing lands from now on: the status says so
         self._end_live(run_id)
         with self._lock:
             self._unrecorded[run_id] = (target, reason, actor)

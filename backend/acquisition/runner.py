@@ -326,11 +326,21 @@ class Runner(RunEnding, PatchLoop, UnattendedSafety):
 
     def instrument_status(self) -> dict[str, Any]:
         """What the instrument is doing: live when idle, the worker's last reading when busy.
-        Once the worker has concluded its run (the instrument safe, the end being recorded and
-        announced), a read waits for it to end (up to a second): a page that reads the
-        instrument on hearing that a run completed must not find it still driven."""
-        self._await_concluded(1.0)
+        A worker that has concluded its run (made safe, or retracted after its last patch:
+        nothing more lands) but still records and announces the end, or starts the run's
+        merge, no longer drives the instrument: it is reported idle, with the tip as the
+        worker left it. A page that reads the instrument on hearing that a run completed must
+        not find it still driven, however long the bookkeeping takes on loaded cores."""
+        with self._lock:
+            control = self._control
         active = self.active_run
+        if active is not None and control is not None and control.concluded:
+            return {
+                "active_run": None,
+                **self._snapshot,
+                "safe_state": not self.tip_down,
+                "loop_engaged": self.tip_down,
+            }
         if active is None and self._io.acquire(timeout=0.2):
             try:
                 self._snapshot = read_instrument(self.microscope)

@@ -528,8 +528,12 @@ $("overlay-blink").addEventListener("change", () => {
 
 // -- instrument -------------------------------------------------------------------------------
 
+let instrumentReads = 0;
+
 async function loadInstrument() {
+  const read = ++instrumentReads;
   const s = await get("/api/instrument");
+  if (read !== instrumentReads) return; // a later read is under way: an older answer must not overwrite it
   $("instrument-state").textContent = `instrument: ${s.state}`;
   $("instrument-state").className = `pill ${{ idle: "ok", running: "busy", fault: "bad", error: "bad" }[s.state]}`;
   const safe = $("safe-state");
@@ -560,8 +564,11 @@ function onEvent(event) {
   if (!chatter) logEvent(event);
   const mine = state.run && event.run_id === state.run.id;
   if (event.kind === "run" && event.run_id) {
-    act(() => (mine ? loadRun(event.run_id) : refreshRuns(event.run_id)));
-    act(loadInstrument);
+    // the instrument first: a run shown as ended beside a tip still shown engaged misleads
+    act(async () => {
+      await act(loadInstrument);
+      await (mine ? loadRun(event.run_id) : refreshRuns(event.run_id));
+    });
   } else if (event.kind === "patch" && mine) {
     state.run.current_patch = event.data.step === "stored" ? null : event.data.patch;
     state.run.current_step = event.data.step === "stored" ? null : event.data.step;

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import io
 import shutil
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -92,6 +93,27 @@ def test_a_run_scans_stores_and_serves_every_patch(server: Server) -> None:
     again = server.post(f"/api/runs/{run['id']}/start")
     assert again.status_code == 409 and "completed" in again.json()["detail"]
     assert server.client.get("/api/instrument").json()["safe_state"] is True
+
+
+def test_a_run_that_has_ended_is_reported_safe_while_its_worker_still_starts_the_merge(
+    server: Server,
+) -> None:
+    # on CI's loaded cores, starting the completed run's merge took more than the second the
+    # status used to wait for it, and the page said "TIP ENGAGED" beside "completed"
+    release = threading.Event()
+    server.services.runner.on_completed = lambda run_id: release.wait(30)
+    try:
+        run = server.create(plan(size=1.2e-6, patch=0.8e-6, pixels=(12, 12)))
+        server.post(f"/api/runs/{run['id']}/start")
+        server.wait_state(run["id"], "completed")
+        assert server.services.runner.active_run == run["id"]  # the worker has not ended
+        status = server.client.get("/api/instrument").json()
+        assert status["safe_state"] is True and status["loop_engaged"] is False
+        assert status["state"] == "idle" and status["active_run"] is None
+        assert status["positions"]["stage_x"] is not None
+    finally:
+        release.set()
+    assert server.services.runner.wait_idle(10)
 
 
 def test_transitions_are_written_and_streamed_in_order(server: Server) -> None:
