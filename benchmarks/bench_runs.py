@@ -84,10 +84,11 @@ def run_case(case: Case, work: Path) -> dict[str, Any]:
         wall, peak, told = run_cli(args, accept=(0, UNTRUSTED))
         res = read_result(out)
         tr = res.transforms
-        score, merr = scored_merge(synth, [tr[s.id] for s in synth], res.mosaic, surface)
-        exy, ez = score.xy, score.z
-        unconstrained = sum(not p["xy_constrained"] for p in res.document["patches"])
         reports = {p["id"]: p for p in res.document["patches"]}
+        held = np.array([reports[s.id]["xy_constrained"] for s in synth])
+        score, merr = scored_merge(synth, [tr[s.id] for s in synth], res.mosaic, surface, held=held)
+        exy, ez = score.xy, score.z
+        unconstrained = int((~held).sum())
         sigmas = np.array(
             [[_finite(reports[s.id]["xy_sigma"]), _finite(reports[s.id]["z_sigma"])] for s in synth]
         )
@@ -95,7 +96,6 @@ def run_case(case: Case, work: Path) -> dict[str, Any]:
         off = np.hypot(errors[:, 0], errors[:, 1])
         cols = np.array([s.col for s in synth])
         ends = (cols == cols.min()) | (cols == cols.max())  # the snake's rows end there
-        held = np.array([reports[s.id]["xy_constrained"] for s in synth])
         silent = held & (off > SILENT) & (off > SILENT_SIGMAS * sigmas[:, 0])
         rows[method] = {
             "reg_xy_nm": exy * 1e9,

@@ -38,7 +38,7 @@ from typing import Any
 import numpy as np
 from bench_cases import CASES, GROSS_MAP, ROOT, Case, floor_of, scored_merge
 
-from backend.synthetic import patch_set_from_synth, scored
+from backend.synthetic import patch_set_from_synth
 from hardware.sim.drift import DriftModel
 from hardware.sim.surfaces import ImageSurface
 from merge import pipeline
@@ -109,13 +109,12 @@ def run_variation(k: int, overlaps: tuple[float, float] = OVERLAPS) -> dict[str,
     wall = time.perf_counter() - start
     by_id = {p.id: p for p in result.patches}
     transforms = [by_id[s.id].transform for s in synth]
-    score, error = scored_merge(synth, transforms, result.mosaic, surface)
-    exy, ez, ratio = score.xy, score.z, error / floor_of(synth, surface)
-    off = np.hypot(*score.patches[:, :2].T)
     held = np.array([by_id[s.id].xy_constrained for s in synth])
     sigma = np.array([by_id[s.id].xy_sigma for s in synth])
-    if held.any() and not held.all():  # the held patches judged among themselves
-        off = np.hypot(*scored(synth, transforms, gauge_on=held).patches[:, :2].T)
+    # the held patches judged among themselves
+    score, error = scored_merge(synth, transforms, result.mosaic, surface, held=held)
+    exy, ez, ratio = score.xy, score.z, error / floor_of(synth, surface)
+    off = np.hypot(*score.patches[:, :2].T)
     return {
         "draw": k,
         "surface": SURFACES[k % len(SURFACES)],
