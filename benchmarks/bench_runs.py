@@ -15,6 +15,7 @@ import numpy as np
 
 from backend.synthetic import patch_set_from_synth, sigma_calibration
 from merge import read_result, write_patch_set
+from merge.report.verdict import REGISTERING
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_cases import ROOT, Case, floor_of, scored_merge  # a module beside this script
@@ -86,7 +87,13 @@ def run_case(case: Case, work: Path) -> dict[str, Any]:
         tr = res.transforms
         reports = {p["id"]: p for p in res.document["patches"]}
         held = np.array([reports[s.id]["xy_constrained"] for s in synth])
-        score, merr = scored_merge(synth, [tr[s.id] for s in synth], res.mosaic, surface, held=held)
+        # a method that registers XY is judged on the patches its report holds; one that does
+        # not (zlevel, nominal) measured no place, and its report's "held" says only what the
+        # overlaps could have pinned
+        gauged = held if method in REGISTERING else None
+        score, merr = scored_merge(
+            synth, [tr[s.id] for s in synth], res.mosaic, surface, held=gauged
+        )
         exy, ez = score.xy, score.z
         unconstrained = int((~held).sum())
         sigmas = np.array(
