@@ -3,7 +3,7 @@ fit that leaves the overlaps the least misfit (step 4 of :mod:`merge.pipeline`).
 
 The refinement settles in the minimum next to where the start put the patches. Where the start
 may have put a block of them wrong, another placement leads to another minimum of the same
-data, and the lower misfit is the likelier placement. Two such placements are tried:
+data, and the lower misfit is the likelier placement. Three such placements are tried:
 
 - the stage's (every patch where the stage put it), where the report cannot vouch for the XY
   of :data:`DOUBT_SHARE` of the linked patches: the start's pairs then placed a block a few
