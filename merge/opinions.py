@@ -141,7 +141,8 @@ def second_opinion(
     """
     solution, judged = first
     linked = np.flatnonzero(layout.linked)
-    doubted = sum(not judged[0][c].xy_constrained for c in linked.tolist())
+    loose = [c for c in linked.tolist() if not judged[0][c].xy_constrained]
+    doubted = len(loose)
     tried: list[tuple[str, Placement]] = []
     if len(linked) and doubted >= DOUBT_SHARE * len(linked):
         stage_placed = Placement(
@@ -152,7 +153,7 @@ def second_opinion(
         )
         tried.append(("stage", stage_placed))
     elif doubted:
-        tried.append(("loose", _loose_from_stage(patches, layout, placed, solution, judged)))
+        tried.append(("loose", _loose_from_stage(patches, placed, solution, loose)))
     count = 0 if placed.alternatives is None else len(placed.alternatives)
     tried += [("votes", placed.alternative(i)) for i in range(count)]
     if not tried or not solution.history:
@@ -203,10 +204,10 @@ def second_opinion(
     after = np.sqrt(common.after / common.points) * 1e9
     on = f"on the {common.points} points both overlap"
     if kind == "loose":
-        loose = [patches[c].id for c in linked.tolist() if not judged[0][c].xy_constrained]
+        names = [patches[c].id for c in loose]
         said = (
-            f"the merge could not confirm the place of {len(loose)} of {len(linked)} patches "
-            f"({listed(loose, 6)}): put back where the stage put them, the rest where the "
+            f"the merge could not confirm the place of {doubted} of {len(linked)} patches "
+            f"({listed(names, 6)}): put back where the stage put them, the rest where the "
             f"merge had them, it fits the overlaps better (residual RMS {on} {before:.2f} -> "
             f"{after:.2f} nm) and is the one kept"
         )
@@ -228,21 +229,19 @@ def second_opinion(
 
 def _loose_from_stage(
     patches: Sequence[Patch],
-    layout: Layout,
     placed: Placement,
     solution: Solution,
-    judged: Judged,
+    loose: Sequence[int],
 ) -> Placement:
-    """The first fit with the linked patches its report could not confirm (fewer than
-    :data:`DOUBT_SHARE`) put back where the stage put them, as patches the start did not
-    measure: a start that put one patch a feature's width off (a corner patch of a tip-drawn
-    chessboard, 1 µm patches at 20 nm pixels, 420 nm off where the stage had it 131 nm off;
-    ``merge_bench --gratings`` draw 3) leaves the refinement a minimum its overlaps do not
-    fit, and from the stage it settles 3 nm from the truth."""
+    """The first fit (``solution``) with the linked patches its report could not confirm
+    (``loose``, indices; fewer than :data:`DOUBT_SHARE`) put back where the stage put them, as
+    patches the start did not measure: a start that put one patch a feature's width off (a
+    corner patch of a tip-drawn chessboard, 1 µm patches at 20 nm pixels, 420 nm off where the
+    stage had it 131 nm off; ``merge_bench --gratings`` draw 3) leaves the refinement a minimum
+    its overlaps do not fit, and from the stage it settles 3 nm from the truth."""
     transforms = list(solution.transforms)
     measured = placed.measured_both.copy()
-    for c in np.flatnonzero(layout.linked).tolist():
-        if not judged[0][c].xy_constrained:
-            transforms[c] = PatchTransform(centre=np.array(patches[c].center))
-            measured[c] = False
+    for c in loose:
+        transforms[c] = PatchTransform(centre=np.array(patches[c].center))
+        measured[c] = False
     return Placement(transforms, measured, placed.pair_information, placed.repeat)
