@@ -64,6 +64,6 @@ def verdict(result: MergeResult) -> Verdict:
     line = (
         f"CONFIRMED: the places of {n - len(loose)} of {n} patches measured by their overlaps; "
         f"{len(loose)} not confirmed ({listed(loose, 6)}; the warnings say why): "
-        "their part of the mosaic lies where the stage or the start put it"
+        "their part of the mosaic lies where the merge left them, not where a measurement did"
     )
     return Verdict(True, line, isolated, loose)
