@@ -628,22 +628,28 @@ async function openViewer() {
   $("viewer").src = `${location.protocol}//${location.hostname}:${viewer.port}/`;
 }
 
+let viewerWanted = false; // the page has started: a token typed from now on opens the viewer
+
 async function start() {
+  // before the first wait: a token typed while the page still loads is kept, not overwritten
+  $("token").value = token();
+  $("token").addEventListener("change", (e) => {
+    setToken(e.target.value);
+    if (viewerWanted) act(openViewer);
+  });
   const who = await act(startSession);
   if (!who) return; // on the way to the login page (or the server did not answer)
   state.mode = who.mode;
   wireLock(userAct);
   await act(loadLock);
-  $("token").value = token();
-  $("token").addEventListener("change", (e) => setToken(e.target.value));
   await act(loadInstrument);
   await act(loadCalibration);
   await act(() => refreshRuns());
   const latest = await act(() => get("/api/events/latest"));
   state.lastEvent = latest ? latest.id : 0; // the page already shows what happened before
   listen();
-  await openViewer();
-  $("token").addEventListener("change", () => act(openViewer));
+  viewerWanted = true;
+  await openViewer(); // with the token typed so far (a token typed later opens it again)
   const sems = await act(() => get("/api/sem"));
   // the latest image, unless the operator already asked for one while the page started
   if (sems && sems.length && sem.loads === 0) await act(() => sem.load(sems[sems.length - 1]));

@@ -272,6 +272,28 @@ def test_the_pages_run_under_their_content_security_policy_and_open_the_viewer(
     assert errors == [], errors
 
 
+def test_a_token_typed_while_the_page_still_loads_opens_the_viewer(
+    browser: Any, server: ServerProcess
+) -> None:
+    """The page's first answer held until the token is typed: the token is kept and opens the
+    viewer (on loaded cores the page used to drop it and ask for it again)."""
+    context = browser.new_context(viewport={"width": 1280, "height": 800})
+    pg = context.new_page()
+    held: list[Any] = []
+    pg.route("**/api/auth/whoami", lambda route: held.append(route))
+    pg.goto(server.url + "/")
+    pg.fill("#token", TOKEN)
+    pg.press("#token", "Tab")
+    for _ in range(200):  # the page asked who it is before the token was typed
+        if held:
+            break
+        pg.wait_for_timeout(50)
+    held[0].continue_()
+    pg.wait_for_selector("#viewer[src]", state="attached", timeout=15_000)
+    assert pg.input_value("#token") == TOKEN
+    context.close()
+
+
 def test_the_api_token_header_works_for_scripts_too(server: ServerProcess) -> None:
     r = httpx.post(server.url + "/api/runs/999/start", headers=AUTH)
     assert r.status_code == 404
