@@ -640,13 +640,15 @@ async function start() {
   const who = await act(startSession);
   if (!who) return; // on the way to the login page (or the server did not answer)
   state.mode = who.mode;
+  // where the event stream will start, taken before anything is read: an event between the
+  // first reads and the stream's start (a lock released, a run ended) is replayed, never lost
+  const latest = await act(() => get("/api/events/latest"));
+  state.lastEvent = latest ? latest.id : 0;
   wireLock(userAct);
   await act(loadLock);
   await act(loadInstrument);
   await act(loadCalibration);
   await act(() => refreshRuns());
-  const latest = await act(() => get("/api/events/latest"));
-  state.lastEvent = latest ? latest.id : 0; // the page already shows what happened before
   listen();
   viewerWanted = true;
   await openViewer(); // with the token typed so far (a token typed later opens it again)

@@ -104,6 +104,17 @@ def _journey(pg: Any, server: ServerProcess, bob: dict[str, str]) -> None:
     pg.click("#login-button")
     pg.wait_for_selector("#login-error:has-text('wrong user name or password')")
     pg.fill("#password", PASSWORD)
+    # the page's start held after it shows the lock and before it listens to events
+    held: list[Any] = []
+    gate = {"open": False}
+
+    def hold(route: Any) -> None:
+        if gate["open"]:
+            route.continue_()
+        else:
+            held.append(route)
+
+    pg.route("**/api/instrument", hold)
     pg.click("#login-button")
     pg.wait_for_selector("#who:has-text('alice · admin')")
     # bob holds the instrument: his name and note are shown, taking it is not offered
@@ -112,8 +123,16 @@ def _journey(pg: Any, server: ServerProcess, bob: dict[str, str]) -> None:
     assert not pg.is_enabled("#lock-take")
     assert pg.inner_text("#lock-release") == "Break the lock"  # an admin's
     _shot(pg, "users-1-held")
-    # bob releases it; the page hears it on the event stream
+    # bob releases it while the page still starts; the page hears it on the event stream
     assert httpx.request("DELETE", server.url + "/api/lock", headers=bob).status_code == 200
+    for _ in range(200):
+        if held:
+            break
+        pg.wait_for_timeout(50)
+    assert held, "the page did not read the instrument"
+    gate["open"] = True
+    for route in held:
+        route.continue_()
     pg.wait_for_selector("#lock-state:has-text('Instrument free')")
     pg.fill("#lock-note", "mosaic of sample 12")
     pg.click("#lock-take")
