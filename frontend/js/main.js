@@ -157,9 +157,11 @@ $("plan-form").addEventListener("submit", (e) => {
 
 $("sem-acquire").addEventListener("click", () =>
   userAct(async () => {
+    // in line from the click: an older image arriving while the SEM acquires is not shown
+    const ticket = sem.claim();
     const field = Number($("sem-field").value) * 1e-6;
     const meta = await post("/api/sem/acquire", { centre: [0, 0], field, pixels: 512 });
-    await sem.load(meta);
+    await sem.load(meta, ticket);
   }),
 );
 
@@ -204,8 +206,9 @@ $("sem-upload").addEventListener("change", (e) =>
     form.append("file", file);
     const pixel = Number($("sem-pixel").value);
     if (pixel > 0) form.append("pixel_size", String(pixel * 1e-9));
+    const ticket = sem.claim(); // as for an acquired image: in line from the choice
     const meta = await post("/api/sem/upload", form);
-    await sem.load(meta);
+    await sem.load(meta, ticket);
   }),
 );
 

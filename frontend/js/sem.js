@@ -26,8 +26,12 @@ export class SemView {
     canvas.addEventListener("keydown", (e) => this.key(e));
   }
 
-  async load(meta) {
-    const ticket = ++this.loads;
+  /** A place in line for an image about to be asked for: an image claimed later wins. */
+  claim() {
+    return ++this.loads;
+  }
+
+  async load(meta, ticket = this.claim()) {
     const response = await fetch(`/api/sem/${meta.id}/image.png`);
     const blob = await response.blob();
     const bitmap = await createImageBitmap(blob);

@@ -186,6 +186,30 @@ def test_an_image_acquired_while_the_page_starts_is_kept_with_its_roi(
     assert errors == [], errors
 
 
+def test_no_older_image_is_shown_while_the_sem_acquires_the_one_asked_for(
+    page: tuple[Any, list[str]], server: ServerProcess
+) -> None:
+    # the operator asks for an image while the page starts: the latest stored one, arriving
+    # meanwhile, must not be shown (an ROI drawn on it would be dropped when the new one comes)
+    pg, errors = page
+    body = {"centre": [0, 0], "field": 5e-6, "pixels": 64}
+    assert httpx.post(server.url + "/api/sem/acquire", json=body, headers=AUTH).status_code < 300
+    held: list[Any] = []
+    pg.route("**/api/sem/acquire", lambda route: held.append(route))
+    with pg.expect_response("**/api/sem"):  # the page's start reads the stored images
+        pg.reload()
+        pg.click("#sem-acquire")
+    pg.wait_for_timeout(1000)  # time for the latest stored image to be fetched and drawn
+    assert pg.get_attribute("#sem-canvas", "data-sem-id") is None
+    assert held, "the page did not ask the SEM for an image"
+    with pg.expect_response("**/api/sem/acquire") as answer:
+        held[0].continue_()
+    acquired = answer.value.json()["id"]
+    pg.unroute("**/api/sem/acquire")
+    pg.wait_for_selector(f"#sem-canvas[data-sem-id='{acquired}']")
+    assert errors == [], errors
+
+
 def test_a_refused_request_shows_the_servers_message(page: tuple[Any, list[str]]) -> None:
     pg, errors = page
     pg.fill("#token", "not-the-token-at-all")
