@@ -312,7 +312,9 @@ def test_a_token_typed_while_the_page_still_loads_opens_the_viewer(
         if held:
             break
         pg.wait_for_timeout(50)
+    assert held, "the page did not ask who it is"
     held[0].continue_()
+    pg.unroute("**/api/auth/whoami")
     pg.wait_for_selector("#viewer[src]", state="attached", timeout=15_000)
     assert pg.input_value("#token") == TOKEN
     context.close()
